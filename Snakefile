@@ -1,0 +1,22 @@
+# stex workflow: spatiotemporal texture reconstruction from one RGB-D camera.
+# Run: snakemake --cores 2   (scene: config/config.yaml; others: --configfile config/scenes/<name>.yaml)
+from snakemake.utils import min_version, validate
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "config/schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/ingest.smk"
+include: "workflow/rules/masks.smk"
+
+
+rule all:
+    input:
+        all_outputs(),
+    default_target: True

@@ -1,0 +1,191 @@
+"""Camera models and coordinate conventions used everywhere in stex.
+
+Conventions (stated once, here):
+
+- Pinhole cameras in the OpenCV convention: x right, y down, z forward; lengths in metres.
+- Pixel coordinates: the centre of pixel (row r, column c) is at (u, v) = (c, r); i.e. integer
+  coordinates are pixel centres, as in OpenCV's ``projectPoints``.
+- Meshes, depth points and poses live in **depth-camera coordinates** (the authors' convention).
+  ``Calibration.depth_to_color`` maps a depth-camera point X_d to the colour camera,
+  X_c = R X_d + t (4x4, metres).
+- Depth images are stored as uint16 millimetres (0 = invalid) and used as float metres in code.
+- Distortion coefficients follow OpenCV's order (k1, k2, p1, p2, k3, k4, k5, k6); stex projects
+  with the pinhole model only, so readers undistort (or report) when coefficients are non-zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """A pinhole camera.
+
+    Attributes:
+        K: (3, 3) float64 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], pixels.
+        width, height: image size in pixels.
+        distortion: (8,) float64 OpenCV coefficients (k1, k2, p1, p2, k3, k4, k5, k6).
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(8))
+
+    def __post_init__(self):
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"camera matrix must be 3x3, got shape {K.shape}")
+        fx, fy = K[0, 0], K[1, 1]
+        if not (np.isfinite(K).all() and fx > 0 and fy > 0):
+            raise ValueError(f"camera matrix needs finite positive focal lengths, got fx={fx}, fy={fy}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        dist = np.zeros(8)
+        d = np.asarray(self.distortion, dtype=np.float64).ravel()
+        if d.size > 8:
+            raise ValueError(f"at most 8 distortion coefficients, got {d.size}")
+        dist[: d.size] = d
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "distortion", dist)
+
+    @classmethod
+    def from_focal(cls, fx, fy, cx, cy, width, height, distortion=()) -> "Intrinsics":
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return cls(K, width, height, np.asarray(distortion, dtype=np.float64))
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) in pixels."""
+        return (self.width, self.height)
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """The same camera for an image resized by ``factor`` (pixel centres preserved)."""
+        K = self.K.copy()
+        K[0, 0] *= factor
+        K[1, 1] *= factor
+        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+        return Intrinsics(K, round(self.width * factor), round(self.height * factor), self.distortion)
+
+    def to_dict(self) -> dict:
+        return {
+            "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy,
+            "width": self.width, "height": self.height,
+            "distortion": [float(x) for x in self.distortion],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Intrinsics":
+        return cls.from_focal(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
+                              d.get("distortion", ()))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Colour and depth cameras of one RGB-D sensor.
+
+    Attributes:
+        color, depth: the two cameras.
+        depth_to_color: (4, 4) float64 rigid transform, depth-camera -> colour-camera, metres.
+    """
+
+    color: Intrinsics
+    depth: Intrinsics
+    depth_to_color: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self):
+        T = np.asarray(self.depth_to_color, dtype=np.float64)
+        if T.shape == (3, 4):
+            T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ValueError(f"depth_to_color must be a finite 4x4 (or 3x4) matrix, got shape {T.shape}")
+        R = T[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+            raise ValueError("depth_to_color rotation is not a proper rotation matrix")
+        object.__setattr__(self, "depth_to_color", T)
+
+    def to_dict(self) -> dict:
+        return {
+            "color": self.color.to_dict(),
+            "depth": self.depth.to_dict(),
+            "depth_to_color": self.depth_to_color.tolist(),
+            "convention": "OpenCV pinhole, metres; depth_to_color maps depth-camera points to colour-camera points",
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Calibration":
+        return cls(Intrinsics.from_dict(d["color"]), Intrinsics.from_dict(d["depth"]),
+                   np.asarray(d["depth_to_color"], dtype=np.float64))
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to (..., 3) points; returns the same shape and float dtype."""
+    points = np.asarray(points)
+    out = points @ T[:3, :3].T + T[:3, 3]
+    return out.astype(np.result_type(points.dtype, np.float32), copy=False)
+
+
+def project_points(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project (..., 3) camera-space points with a pinhole K.
+
+    Returns:
+        uv: (..., 2) pixel coordinates (integer = pixel centre); NaN where z <= 0.
+        z: (...,) depth along the optical axis, metres.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    z = points[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(z > 0, 1.0 / z, np.nan)
+    u = K[0, 0] * points[..., 0] * inv + K[0, 1] * points[..., 1] * inv + K[0, 2]
+    v = K[1, 1] * points[..., 1] * inv + K[1, 2]
+    return np.stack([u, v], axis=-1), z
+
+
+def backproject_depth(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Back-project an (H, W) depth map in metres to (H, W, 3) camera-space points (0 stays 0)."""
+    H, W = depth_m.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    z = depth_m.astype(np.float64)
+    x = (u - K[0, 2]) / K[0, 0] * z
+    y = (v - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=-1)
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """4x4 world->camera transform for an OpenCV camera at ``eye`` looking at ``target``.
+
+    ``up`` is the world direction that should appear upwards in the image (OpenCV's -y).
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(-np.asarray(up, dtype=np.float64), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ eye
+    return T

@@ -1,0 +1,67 @@
+"""Configuration: load YAML, validate against config/schema.yaml and fill in the defaults.
+
+The workflow validates with ``snakemake.utils.validate`` (same schema); this module does the
+same for library users, the CLI and tests, without importing snakemake.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import jsonschema
+import yaml
+
+SCHEMA_PATH = Path(__file__).resolve().parents[1] / "config" / "schema.yaml"
+
+
+def _with_defaults(validator_class):
+    validate_properties = validator_class.VALIDATORS["properties"]
+
+    def set_defaults(validator, properties, instance, schema):
+        if isinstance(instance, dict):
+            for name, sub in properties.items():
+                if "default" in sub and name not in instance:
+                    instance[name] = copy.deepcopy(sub["default"])
+        yield from validate_properties(validator, properties, instance, schema)
+
+    return jsonschema.validators.extend(validator_class, {"properties": set_defaults})
+
+
+def load_schema(path: str | Path = SCHEMA_PATH) -> dict:
+    return yaml.safe_load(Path(path).read_text())
+
+
+def validate_config(config: dict, schema: dict | None = None) -> dict:
+    """Return a validated copy of ``config`` with every default filled in.
+
+    Raises ValueError naming the offending key path on invalid input.
+    """
+    schema = schema or load_schema()
+    cfg = copy.deepcopy(config or {})
+    validator = _with_defaults(jsonschema.Draft202012Validator)(schema)
+    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
+    if errors:
+        e = errors[0]
+        where = "/".join(str(p) for p in e.path) or "<top level>"
+        raise ValueError(f"config error at {where}: {e.message}")
+    return cfg
+
+
+def deep_update(base: dict, override: dict) -> dict:
+    """Recursively merge ``override`` into a copy of ``base`` (like snakemake's --configfile)."""
+    out = copy.deepcopy(base)
+    for k, v in (override or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_update(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def load_config(*paths: str | Path, overrides: dict | None = None) -> dict:
+    """Merge YAML files left to right (then ``overrides``), validate and fill defaults."""
+    cfg: dict = {}
+    for p in paths:
+        cfg = deep_update(cfg, yaml.safe_load(Path(p).read_text()) or {})
+    return validate_config(deep_update(cfg, overrides or {}))

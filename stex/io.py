@@ -1,0 +1,337 @@
+"""Artifact stores: every array stex writes, its shape, dtype, units and chunking, in one place.
+
+Each pipeline job writes one zarr v3 store (a directory ``*.zarr``). ``ARTIFACTS`` below is the
+single definition of what each store holds; ``docs/artifacts.md`` is generated from it
+(``python -m stex.io > docs/artifacts.md``; a test checks the two agree).
+
+Writing is atomic: :func:`create_store` builds the store in ``<path>.partial`` and moves it to
+``<path>`` only after every required array is present with the declared dtype and consistent
+shapes, and marks it ``complete``. A crash leaves no store that looks complete, and
+:func:`open_store` refuses incomplete stores and stores of another artifact kind.
+
+Every store carries attrs: ``stex_artifact`` (its kind), ``stex_version``, ``complete``,
+``frame_ids`` (global frame indices, where the store is per-frame), ``params`` (the settings that
+produced it), ``units`` (per array) and ``conventions``.
+
+Per-frame arrays are chunked one frame per chunk along axis 0, so frame-block jobs and readers
+touch only the frames they need. Frame-block artifacts (one store per block of frames) are read
+as one sequence through :class:`FrameSequence`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import zarr
+
+from stex import __version__
+
+# Snakemake drops a .snakemake_timestamp file into directory outputs; zarr warns about it.
+warnings.filterwarnings("ignore", message=r".*\.snakemake_timestamp.*")
+
+CONVENTIONS = (
+    "OpenCV pinhole cameras (x right, y down, z forward), metres; integer pixel coordinates are "
+    "pixel centres; meshes in depth-camera coordinates; depth stored as uint16 millimetres "
+    "(0 = invalid); texcoords in [0,1]^2 with u right, v down, origin at the texture's top-left "
+    "corner; faces counter-clockwise seen from outside."
+)
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One array of an artifact.
+
+    ``shape`` uses symbols (T frames in the store, V vertices, F faces, Vt texcoords,
+    Hc/Wc colour image, Hd/Wd depth image, W texture side); ``chunks`` likewise, where a
+    number is a literal chunk length and a symbol means the whole axis.
+    """
+
+    shape: tuple
+    dtype: str
+    units: str
+    description: str
+    chunks: tuple | None = None  # None: one chunk
+    required: bool = True
+
+
+@dataclass(frozen=True)
+class ArtifactSpec:
+    description: str
+    path: str  # where the workflow writes it, relative to results/<scene>/
+    arrays: dict[str, ArraySpec]
+    attrs: dict[str, str] = field(default_factory=dict)
+
+
+ARTIFACTS: dict[str, ArtifactSpec] = {
+    "scene": ArtifactSpec(
+        description="Scene-wide inputs gathered once at ingest: calibration, frame list, template "
+        "mesh and, when the source provides them, per-frame meshes of fixed topology ('given' "
+        "tracking mode). Synthetic scenes add their true per-frame geometry.",
+        path="scene.zarr",
+        arrays={
+            "template/vertices": ArraySpec(("V", 3), "float32", "m", "template mesh vertices, depth-camera coordinates"),
+            "template/faces": ArraySpec(("F", 3), "int32", "index", "template triangles into template/vertices"),
+            "template/texcoords": ArraySpec(("Vt", 2), "float32", "1", "template texture coordinates, if the template file has them", required=False),
+            "template/texcoord_faces": ArraySpec(("F", 3), "int32", "index", "per-corner index into template/texcoords", required=False),
+            "given/vertices": ArraySpec(("T", "V", 3), "float32", "m", "per-frame meshes supplied by the source (same faces as the template)", (1, "V", 3), required=False),
+            "truth/vertices": ArraySpec(("T", "V", 3), "float32", "m", "synthetic scenes: true per-frame vertices (same faces as the template)", (1, "V", 3), required=False),
+        },
+        attrs={
+            "calibration": "Calibration.to_dict(): colour/depth intrinsics, distortion, depth_to_color (m)",
+            "frame_ids": "list[int]: global frame indices, in order",
+            "frame_blocks": "list[[start, stop)]: frame index ranges of the frame-block stores",
+            "source": "dict: what was read (kind, path, settings)",
+        },
+    ),
+    "frames": ArtifactSpec(
+        description="RGB-D frames of one frame block, as recorded (after optional undistortion).",
+        path="frames/block_{block}.zarr",
+        arrays={
+            "color": ArraySpec(("T", "Hc", "Wc", 3), "uint8", "sRGB", "colour images, RGB", (1, "Hc", "Wc", 3)),
+            "depth": ArraySpec(("T", "Hd", "Wd"), "uint16", "mm", "depth images in the depth camera, 0 = invalid", (1, "Hd", "Wd")),
+            "mask": ArraySpec(("T", "Hc", "Wc"), "bool", "1", "foreground masks supplied by the source (colour resolution)", (1, "Hc", "Wc"), required=False),
+            "timestamps": ArraySpec(("T",), "float64", "s", "capture time of each frame"),
+        },
+        attrs={"frame_ids": "list[int]", "calibration": "as in scene"},
+    ),
+    "truth": ArtifactSpec(
+        description="Synthetic ground truth of one frame block: the true appearance of the whole "
+        "surface at each frame (a texture in the truth mesh's own atlas, so any render of a "
+        "reconstruction can be scored, unseen regions included), and true masks and depth.",
+        path="truth/block_{block}.zarr",
+        arrays={
+            "appearance": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "true texture of the object at each frame, in template/texcoords", (1, "W", "W", 3)),
+            "mask": ArraySpec(("T", "Hc", "Wc"), "bool", "1", "true object masks at colour resolution", (1, "Hc", "Wc")),
+            "depth": ArraySpec(("T", "Hd", "Wd"), "float32", "m", "noise-free depth, 0 = background beyond the far plane", (1, "Hd", "Wd")),
+        },
+        attrs={"frame_ids": "list[int]"},
+    ),
+    "masks": ArtifactSpec(
+        description="Foreground masks of one frame block (GrabCut seeded from depth).",
+        path="masks/block_{block}.zarr",
+        arrays={
+            "mask": ArraySpec(("T", "Hc", "Wc"), "bool", "1", "object foreground at colour resolution", (1, "Hc", "Wc")),
+            "seed": ArraySpec(("T", "Hc", "Wc"), "uint8", "cv2.GC_*", "GrabCut seed labels from depth (0 bg, 1 fg, 2 probable bg, 3 probable fg)", (1, "Hc", "Wc")),
+        },
+        attrs={"frame_ids": "list[int]"},
+    ),
+}
+
+
+class StoreError(ValueError):
+    """A store is missing, incomplete, of the wrong kind or malformed."""
+
+
+def _resolve_chunks(spec: ArraySpec, shape: tuple[int, ...]) -> tuple[int, ...]:
+    if spec.chunks is None:
+        return tuple(max(1, s) for s in shape)
+    return tuple(max(1, c if isinstance(c, int) else s) for c, s in zip(spec.chunks, shape))
+
+
+class StoreWriter:
+    """A store under construction; use through :func:`create_store`."""
+
+    def __init__(self, group: zarr.Group, artifact: str):
+        self.group = group
+        self.artifact = artifact
+        self.spec = ARTIFACTS[artifact]
+
+    def _spec(self, name: str) -> ArraySpec:
+        if name not in self.spec.arrays:
+            raise StoreError(f"artifact {self.artifact!r} declares no array {name!r} (see stex.io.ARTIFACTS)")
+        return self.spec.arrays[name]
+
+    def create(self, name: str, shape: tuple[int, ...]) -> zarr.Array:
+        """An empty array with the declared dtype and chunking, to be filled frame by frame."""
+        spec = self._spec(name)
+        if len(shape) != len(spec.shape):
+            raise StoreError(f"{self.artifact}/{name}: expected {len(spec.shape)} dims {spec.shape}, got shape {shape}")
+        return self.group.create_array(name, shape=tuple(shape), dtype=spec.dtype,
+                                       chunks=_resolve_chunks(spec, tuple(shape)),
+                                       fill_value=0, overwrite=True)
+
+    def write(self, name: str, data: np.ndarray) -> zarr.Array:
+        """Write a whole array at once (converted to the declared dtype, checked for NaN)."""
+        spec = self._spec(name)
+        data = np.asarray(data)
+        if data.dtype.kind == "f" and not np.isfinite(data).all():
+            raise StoreError(f"{self.artifact}/{name}: non-finite values")
+        arr = self.create(name, data.shape)
+        arr[...] = data.astype(spec.dtype, copy=False)
+        return arr
+
+    @property
+    def attrs(self):
+        return self.group.attrs
+
+
+def _check_complete(group: zarr.Group, artifact: str, where: str) -> None:
+    spec = ARTIFACTS[artifact]
+    sizes: dict[str, int] = {}
+    for name, a in spec.arrays.items():
+        if name not in group:
+            if a.required:
+                raise StoreError(f"{where}: required array {name!r} was not written")
+            continue
+        arr = group[name]
+        if np.dtype(arr.dtype) != np.dtype(a.dtype):
+            raise StoreError(f"{where}: array {name!r} has dtype {arr.dtype}, expected {a.dtype}")
+        for sym, n in zip(a.shape, arr.shape):
+            if isinstance(sym, int):
+                if n != sym:
+                    raise StoreError(f"{where}: array {name!r} has shape {arr.shape}, expected {a.shape}")
+            elif sizes.setdefault(sym, n) != n:
+                raise StoreError(f"{where}: array {name!r} has {sym}={n}, other arrays have {sym}={sizes[sym]}")
+
+
+@contextlib.contextmanager
+def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = None,
+                 params: dict | None = None) -> Iterator[StoreWriter]:
+    """Create the store of ``artifact`` at ``path`` atomically.
+
+    Yields a :class:`StoreWriter`. On normal exit the arrays are checked against ``ARTIFACTS``,
+    the attrs ``stex_artifact``, ``stex_version``, ``params``, ``units``, ``conventions`` and
+    ``complete=True`` are written and the store is moved into place (replacing an old one). On an
+    exception the partial store is deleted.
+    """
+    if artifact not in ARTIFACTS:
+        raise StoreError(f"unknown artifact {artifact!r}; known: {sorted(ARTIFACTS)}")
+    path = Path(path)
+    tmp = path.with_name(path.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+    writer = StoreWriter(group, artifact)
+    try:
+        group.attrs.update({"stex_artifact": artifact, "stex_version": __version__, "complete": False})
+        if attrs:
+            group.attrs.update(_jsonable(attrs))
+        yield writer
+        _check_complete(group, artifact, str(path))
+        spec = ARTIFACTS[artifact]
+        group.attrs.update({
+            "params": _jsonable(params or {}),
+            "units": {k: v.units for k, v in spec.arrays.items() if k in group},
+            "conventions": CONVENTIONS,
+            "complete": True,
+        })
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if path.exists():
+        shutil.rmtree(path)
+    os.replace(tmp, path)
+
+
+def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
+    """Open a complete store of kind ``artifact`` read-only, or raise :class:`StoreError`."""
+    path = Path(path)
+    if not path.exists():
+        raise StoreError(f"{path}: no such store (has the {artifact!r} stage run?)")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+    except Exception as exc:  # zarr raises several types for a broken store
+        raise StoreError(f"{path}: not a readable zarr store ({exc})") from exc
+    kind = group.attrs.get("stex_artifact")
+    if kind != artifact:
+        raise StoreError(f"{path}: holds artifact {kind!r}, expected {artifact!r}")
+    if not group.attrs.get("complete", False):
+        raise StoreError(f"{path}: store is incomplete (its writer did not finish)")
+    return group
+
+
+def _jsonable(obj):
+    """Convert numpy scalars/arrays and paths inside attrs to JSON types."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+class FrameSequence:
+    """Frame-block stores of one artifact read as one sequence of frames.
+
+    >>> seq = FrameSequence(["frames/block_0000.zarr", "frames/block_0001.zarr"], "frames")
+    >>> seq.read("color", 12)        # (Hc, Wc, 3) uint8 of global frame 12
+
+    Blocks must hold disjoint, increasing ``frame_ids``.
+    """
+
+    def __init__(self, paths, artifact: str):
+        self.artifact = artifact
+        self.groups = [open_store(p, artifact) for p in paths]
+        self.frame_ids: list[int] = []
+        self._where: dict[int, tuple[int, int]] = {}
+        for b, g in enumerate(self.groups):
+            for i, fid in enumerate(g.attrs["frame_ids"]):
+                if fid in self._where:
+                    raise StoreError(f"{paths[b]}: frame {fid} also appears in another block")
+                self._where[fid] = (b, i)
+                self.frame_ids.append(fid)
+        if self.frame_ids != sorted(self.frame_ids):
+            raise StoreError(f"frame blocks of {artifact!r} are not in frame order")
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    @property
+    def attrs(self):
+        return self.groups[0].attrs
+
+    def read(self, name: str, frame_id: int) -> np.ndarray:
+        if frame_id not in self._where:
+            raise KeyError(f"frame {frame_id} is not in the {self.artifact!r} blocks")
+        b, i = self._where[frame_id]
+        return self.groups[b][name][i]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.groups[0]
+
+
+def artifacts_markdown() -> str:
+    """The docs page describing every artifact (docs/artifacts.md)."""
+    lines = [
+        "# Artifacts",
+        "",
+        "Generated from `stex/io.py` (`python -m stex.io > docs/artifacts.md`); do not edit by hand.",
+        "",
+        "Every stage writes zarr v3 stores under `results/<scene>/`. Writes are atomic (built in "
+        "`<path>.partial`, moved into place when complete). Every store has the attrs "
+        "`stex_artifact`, `stex_version`, `complete`, `params`, `units` and `conventions`.",
+        "",
+        f"Conventions: {CONVENTIONS}",
+        "",
+        "Shape symbols: T frames (in that store), V vertices, F faces, Vt texture coordinates, "
+        "Hc×Wc colour image, Hd×Wd depth image, W texture side. Per-frame arrays are chunked one "
+        "frame per chunk.",
+        "",
+    ]
+    for name, spec in ARTIFACTS.items():
+        lines += [f"## `{name}` — `results/<scene>/{spec.path}`", "", spec.description, "",
+                  "| array | shape | dtype | units | required | meaning |", "|---|---|---|---|---|---|"]
+        for aname, a in spec.arrays.items():
+            shape = "[" + ", ".join(str(s) for s in a.shape) + "]"
+            lines.append(f"| `{aname}` | {shape} | {a.dtype} | {a.units} | {'yes' if a.required else 'no'} | {a.description} |")
+        if spec.attrs:
+            lines += ["", "attrs:", ""] + [f"- `{k}`: {v}" for k, v in spec.attrs.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(artifacts_markdown(), end="")

@@ -1,0 +1,185 @@
+"""Masks stage: foreground masks at colour resolution by GrabCut seeded from depth.
+
+The depth image says where the object is (valid depth inside [near, far] metres) and where it
+is not (valid depth beyond the range). Those depth pixels are carried into the colour image
+through the calibration (depth -> colour extrinsic, colour intrinsics), and become GrabCut seeds:
+
+- sure foreground: the in-range region, eroded by ``sure_erode_px``;
+- probable foreground: the in-range region (holes filled);
+- probable background: a band of ``bg_margin_px`` around it, where depth edges and parallax
+  between the two cameras make depth unreliable;
+- sure background: everything else (out-of-range or invalid depth far from the object).
+
+GrabCut (OpenCV) then places the boundary on colour edges. Large images are segmented at a
+reduced size (``max_pixels``) and the result is upsampled.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from stex.camera import Calibration, backproject_depth, project_points, transform_points
+
+GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD = cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD
+
+
+def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m: float,
+                          far_m: float) -> np.ndarray:
+    """(Hc, Wc) bool: colour pixels covered by depth points inside [near_m, far_m].
+
+    Each depth pixel is splatted as a square of the size it covers in the colour image, so the
+    region has no gaps when the colour image is finer than the depth image.
+    """
+    if depth_mm.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got shape {depth_mm.shape}")
+    d = depth_mm.astype(np.float64) / 1000.0
+    inside = (d >= near_m) & (d <= far_m)
+    c = calibration.color
+    region = np.zeros((c.height, c.width), np.uint8)
+    if not inside.any():
+        return region.astype(bool)
+    pts = backproject_depth(d, calibration.depth.K)[inside]
+    uv, z = project_points(transform_points(calibration.depth_to_color, pts), c.K)
+    px = np.rint(uv).astype(np.int64)
+    ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
+    region[px[ok, 1], px[ok, 0]] = 1
+    # Footprint of a depth pixel in the colour image, in colour pixels.
+    scale = c.fx / calibration.depth.fx * float(np.median(z[ok]) if ok.any() else 1.0) / float(np.median(pts[:, 2]))
+    k = int(np.ceil(scale)) + 1
+    region = cv2.morphologyEx(region, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
+    return region.astype(bool)
+
+
+def grabcut_seeds(region: np.ndarray, sure_erode_px: int, bg_margin_px: int) -> np.ndarray:
+    """(H, W) uint8 GrabCut labels (cv2.GC_*) from a bool in-range region."""
+    region = ndimage.binary_fill_holes(region)
+    seeds = np.full(region.shape, GC_BGD, np.uint8)
+    if not region.any():
+        return seeds
+    disk = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))  # noqa: E731
+    r8 = region.astype(np.uint8)
+    near = cv2.dilate(r8, disk(bg_margin_px)) > 0 if bg_margin_px > 0 else region
+    sure = cv2.erode(r8, disk(sure_erode_px)) > 0 if sure_erode_px > 0 else region
+    seeds[near] = GC_PR_BGD
+    seeds[region] = GC_PR_FGD
+    seeds[sure] = GC_FGD
+    return seeds
+
+
+def grabcut_mask(color: np.ndarray, seeds: np.ndarray, iterations: int = 5,
+                 max_pixels: int = 500_000, seed: int = 0) -> np.ndarray:
+    """(H, W) bool foreground from GrabCut on an (H, W, 3) uint8 RGB image with seed labels.
+
+    Returns all-False if there is no foreground seed. Deterministic for a given ``seed``
+    (OpenCV's GMM initialisation uses its global RNG, which is reseeded here).
+    """
+    if color.shape[:2] != seeds.shape:
+        raise ValueError(f"colour {color.shape[:2]} and seeds {seeds.shape} differ in size")
+    if not np.isin(seeds, (GC_FGD, GC_PR_FGD)).any():
+        return np.zeros(seeds.shape, bool)
+    H, W = seeds.shape
+    factor = 1.0
+    img, lab = color, seeds
+    while (H * factor) * (W * factor) > max_pixels:
+        factor /= 2
+    if factor < 1:
+        size = (max(1, round(W * factor)), max(1, round(H * factor)))
+        img = cv2.resize(color, size, interpolation=cv2.INTER_AREA)
+        lab = cv2.resize(seeds, size, interpolation=cv2.INTER_NEAREST)
+    cv2.setRNGSeed(seed)
+    mask = lab.copy()
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    bgr = np.ascontiguousarray(img[..., ::-1])
+    if np.isin(mask, (GC_BGD, GC_PR_BGD)).any():
+        cv2.grabCut(bgr, mask, None, bgd, fgd, int(iterations), cv2.GC_INIT_WITH_MASK)
+    fg = np.isin(mask, (GC_FGD, GC_PR_FGD)).astype(np.uint8)
+    if factor < 1:
+        fg = cv2.resize(fg.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR) >= 0.5
+        fg[seeds == GC_FGD] = True
+        fg[seeds == GC_BGD] = False
+    fg = fg.astype(bool)
+    # Keep the components that contain sure foreground; fill holes inside the object.
+    lbl, n = ndimage.label(fg)
+    keep = np.unique(lbl[(seeds == GC_FGD) & fg])
+    keep = keep[keep > 0]
+    if keep.size:
+        fg = np.isin(lbl, keep)
+    return ndimage.binary_fill_holes(fg)
+
+
+def compute_mask(color: np.ndarray, depth_mm: np.ndarray, calibration: Calibration, params: dict,
+                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Foreground mask of one frame: returns (mask (Hc, Wc) bool, seeds (Hc, Wc) uint8).
+
+    ``params`` is the validated ``masks`` config section (depth_near_m, depth_far_m,
+    sure_erode_px, bg_margin_px, iterations, max_pixels).
+    """
+    region = depth_region_in_color(depth_mm, calibration, params["depth_near_m"], params["depth_far_m"])
+    seeds = grabcut_seeds(region, params["sure_erode_px"], params["bg_margin_px"])
+    return grabcut_mask(color, seeds, params["iterations"], params["max_pixels"], seed), seeds
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two bool masks (1.0 if both are empty)."""
+    union = np.logical_or(a, b).sum()
+    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
+
+
+def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
+    """Masks stage for one frame block: read ``frames``, write a ``masks`` store to ``out``.
+
+    With ``params['use_given']`` the source's own masks are copied (error if it has none).
+    """
+    import logging
+    import time
+
+    from stex.io import create_store, open_store
+
+    log = logging.getLogger("stex.masks")
+    scene = open_store(scene_path, "scene")
+    frames = open_store(frames_path, "frames")
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    ids = list(frames.attrs["frame_ids"])
+    n = len(ids)
+    if params["use_given"] and "mask" not in frames:
+        raise ValueError(f"{frames_path}: masks.use_given is set but the source supplied no masks")
+    t0 = time.perf_counter()
+    with create_store(out, "masks", attrs={"frame_ids": ids}, params=params) as store:
+        mask = store.create("mask", (n, cal.color.height, cal.color.width))
+        seed = store.create("seed", (n, cal.color.height, cal.color.width))
+        for k, fid in enumerate(ids):
+            depth = frames["depth"][k]
+            if params["use_given"]:
+                m = frames["mask"][k]
+                s = np.where(m, GC_FGD, GC_BGD).astype(np.uint8)
+            else:
+                m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid)
+            if not m.any():
+                raise ValueError(
+                    f"{frames_path}: frame {fid}: empty mask (no depth inside "
+                    f"[{params['depth_near_m']}, {params['depth_far_m']}] m; check masks.depth_near_m/depth_far_m)")
+            mask[k] = m
+            seed[k] = s
+            log.info("masks: frame %d (%d/%d, %.2f frames/s)", fid, k + 1, n, (k + 1) / (time.perf_counter() - t0))
+
+
+def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | None, out, n_show: int = 6) -> None:
+    """Write a PNG montage of masks over colour for ``n_show`` frames spread over the sequence."""
+    from stex.io import FrameSequence
+    from stex.preview import mask_overlay, montage, write_png
+
+    frames = FrameSequence(frames_paths, "frames")
+    masks = FrameSequence(masks_paths, "masks")
+    truth = FrameSequence(truth_paths, "truth") if truth_paths else None
+    ids = frames.frame_ids
+    pick = [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, min(n_show, len(ids))).round().astype(int))]
+    tiles = []
+    for fid in pick:
+        m = masks.read("mask", fid)
+        title = f"frame {fid}"
+        if truth is not None:
+            title += f"  IoU {mask_iou(m, truth.read('mask', fid)):.3f}"
+        tiles.append(mask_overlay(frames.read("color", fid), m, title))
+    write_png(out, montage(tiles))

@@ -1,0 +1,196 @@
+"""Folder datasets: the authors' layout (Kim et al.'s code) and stex's own layout.
+
+Authors' layout (``layout: authors``), as their ``TextureMappingNonRigid`` reads it::
+
+    <root>/conf.json                      {"<case>": {"main": {start_idx, end_idx, tex_mesh_path},
+                                             "mapper4D": {color_intrinsic, depth_intrinsic,
+                                                          d_c_extrinsic (3x4 row-major, m)}}}
+    <root>/stream/color/Frame_%06d.png    8-bit colour (BGR/BGRA on disk)
+    <root>/stream/depth/Frame_%06d.png    16-bit depth, millimetres
+    <root>/stream/mask/Frame_%06d.png     optional, colour resolution, foreground >= 1
+    <root>/mesh/Frame_%03d.{off,obj,ply}  optional per-frame meshes, RELATIVE index 0..T-1
+
+stex layout (``layout: stex``), see docs/datasets.md::
+
+    <root>/calibration.json               stex.camera.Calibration.to_dict()
+    <root>/color/%06d.{png,jpg}           colour, RGB on disk as usual image files
+    <root>/depth/%06d.png                 uint16 millimetres
+    <root>/mask/%06d.png                  optional
+    <root>/meshes/%06d.{obj,ply,off}      optional per-frame meshes (absolute frame index)
+    <root>/template.{obj,ply,off,glb}     optional template
+
+Frame indices in file names are absolute; the reader exposes them as ``frame_ids``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from stex.camera import Calibration, Intrinsics
+from stex.readers.meshes import Mesh, load_mesh
+
+_MESH_EXT = (".off", ".obj", ".ply")
+
+
+class FolderDataset:
+    """Random access to the frames of a folder dataset.
+
+    Attributes:
+        root: dataset folder. layout: 'authors' or 'stex'.
+        calibration: :class:`~stex.camera.Calibration`.
+        frame_ids: list of absolute frame indices (sorted).
+    """
+
+    def __init__(self, root: str | Path, layout: str = "authors", start: int = 0, stop: int | None = None):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"dataset folder not found: {self.root}")
+        if layout not in ("authors", "stex"):
+            raise ValueError(f"unknown folder layout {layout!r} (authors | stex)")
+        self.layout = layout
+        self.template_hint: str | None = None
+        if layout == "authors":
+            self.calibration = self._authors_calibration()
+            self._color_dir, self._depth_dir, self._mask_dir = (self.root / "stream" / d for d in ("color", "depth", "mask"))
+            self._pattern = re.compile(r"^Frame_(\d+)\.png$")
+        else:
+            path = self.root / "calibration.json"
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: missing (stex layout needs calibration.json)")
+            try:
+                self.calibration = Calibration.from_dict(json.loads(path.read_text()))
+            except (KeyError, ValueError, TypeError) as exc:
+                raise ValueError(f"{path}: invalid calibration ({exc})") from exc
+            self._color_dir, self._depth_dir, self._mask_dir = (self.root / d for d in ("color", "depth", "mask"))
+            self._pattern = re.compile(r"^(\d+)\.(png|jpg|jpeg)$")
+        if not self._color_dir.is_dir():
+            raise FileNotFoundError(f"{self._color_dir}: colour folder missing")
+        color_ids = self._ids(self._color_dir)
+        depth_ids = self._ids(self._depth_dir)
+        ids = sorted(i for i in color_ids if start <= i and (stop is None or i < stop))
+        if not ids:
+            raise ValueError(f"{self._color_dir}: no colour frames in [{start}, {stop})")
+        missing = [i for i in ids if i not in depth_ids]
+        if missing:
+            raise ValueError(f"{self._depth_dir}: depth missing for frame(s) {missing[:10]}")
+        gaps = [b for a, b in zip(ids, ids[1:]) if b != a + 1]
+        if gaps:
+            raise ValueError(f"{self._color_dir}: frames are not consecutive (missing before {gaps[:10]})")
+        self.frame_ids = ids
+        self._color_files = color_ids
+        self._depth_files = depth_ids
+        self._mask_files = self._ids(self._mask_dir) if self._mask_dir.is_dir() else {}
+        self.has_masks = bool(self._mask_files) and all(i in self._mask_files for i in ids)
+
+    def _ids(self, folder: Path) -> dict[int, Path]:
+        if not folder.is_dir():
+            return {}
+        out = {}
+        for p in folder.iterdir():
+            m = self._pattern.match(p.name)
+            if m:
+                out[int(m.group(1))] = p
+        return out
+
+    def _authors_calibration(self) -> Calibration:
+        path = self.root / "conf.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing (the authors' layout keeps the cameras in conf.json)")
+        try:
+            conf = json.loads(path.read_text())
+            case = next(v for v in conf.values() if isinstance(v, dict) and "mapper4D" in v)
+            m = case["mapper4D"]
+            color = Intrinsics.from_dict(m["color_intrinsic"])
+            depth = Intrinsics.from_dict(m["depth_intrinsic"])
+            ext = np.asarray(m["d_c_extrinsic"], np.float64)
+            if ext.size != 12:
+                raise ValueError(f"d_c_extrinsic needs 12 numbers (3x4 row-major), got {ext.size}")
+            T = np.vstack([ext.reshape(3, 4), [0, 0, 0, 1]])
+            # The authors' extrinsic is rounded to 8 digits; re-orthonormalise the rotation.
+            u, _, vt = np.linalg.svd(T[:3, :3])
+            T[:3, :3] = u @ vt
+            self.template_hint = case.get("main", {}).get("tex_mesh_path")
+            return Calibration(color, depth, T)
+        except StopIteration:
+            raise ValueError(f"{path}: no case with a 'mapper4D' section") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: invalid camera settings ({exc})") from exc
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def _read(self, path: Path, flags: int) -> np.ndarray:
+        img = cv2.imread(str(path), flags)
+        if img is None:
+            raise ValueError(f"{path}: cannot decode image (missing or corrupt)")
+        return img
+
+    def color(self, frame_id: int) -> np.ndarray:
+        """(Hc, Wc, 3) uint8 RGB of ``frame_id``."""
+        path = self._color_files[frame_id]
+        img = self._read(path, cv2.IMREAD_COLOR)
+        if img.dtype != np.uint8:
+            raise ValueError(f"{path}: colour must be 8-bit, got {img.dtype}")
+        c = self.calibration.color
+        if img.shape[:2] != (c.height, c.width):
+            raise ValueError(f"{path}: colour is {img.shape[1]}x{img.shape[0]}, calibration says {c.width}x{c.height}")
+        return img[..., ::-1].copy()
+
+    def depth(self, frame_id: int) -> np.ndarray:
+        """(Hd, Wd) uint16 depth in millimetres of ``frame_id`` (0 = invalid)."""
+        path = self._depth_files[frame_id]
+        img = self._read(path, cv2.IMREAD_UNCHANGED)
+        if img.dtype != np.uint16 or img.ndim != 2:
+            raise ValueError(f"{path}: depth must be single-channel 16-bit millimetres, got {img.dtype} {img.shape}")
+        d = self.calibration.depth
+        if img.shape != (d.height, d.width):
+            raise ValueError(f"{path}: depth is {img.shape[1]}x{img.shape[0]}, calibration says {d.width}x{d.height}")
+        return img
+
+    def mask(self, frame_id: int) -> np.ndarray:
+        """(Hc, Wc) bool foreground mask of ``frame_id`` (source-supplied)."""
+        path = self._mask_files.get(frame_id)
+        if path is None:
+            raise FileNotFoundError(f"{self._mask_dir}: no mask for frame {frame_id}")
+        img = self._read(path, cv2.IMREAD_GRAYSCALE)
+        c = self.calibration.color
+        if img.shape != (c.height, c.width):
+            raise ValueError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, must match the colour size {c.width}x{c.height}")
+        return img >= 1
+
+    def mesh_path(self, frame_id: int) -> Path | None:
+        """The given mesh file of ``frame_id``, or None."""
+        if self.layout == "authors":
+            stem, base = f"Frame_{frame_id - self.frame_ids[0]:03d}", self.root / "mesh"
+        else:
+            stem, base = f"{frame_id:06d}", self.root / "meshes"
+        for ext in _MESH_EXT:
+            p = base / (stem + ext)
+            if p.is_file():
+                return p
+        return None
+
+    def template_path(self, override: str | None = None) -> Path | None:
+        """The template mesh: ``override`` (relative to the root), else the layout's default."""
+        if override:
+            p = self.root / override
+            if not p.is_file():
+                raise FileNotFoundError(f"template mesh not found: {p}")
+            return p
+        candidates = []
+        if self.layout == "authors":
+            if self.template_hint:
+                candidates.append(self.root / self.template_hint)
+            candidates += [self.root / "mesh" / f"Frame_000{e}" for e in _MESH_EXT]
+        else:
+            candidates += [self.root / f"template{e}" for e in (".obj", ".ply", ".off", ".glb", ".gltf")]
+        return next((p for p in candidates if p.is_file()), None)
+
+    def load_given_mesh(self, frame_id: int) -> Mesh | None:
+        p = self.mesh_path(frame_id)
+        return None if p is None else load_mesh(p)

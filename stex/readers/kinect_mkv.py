@@ -1,0 +1,1003 @@
+"""Azure Kinect recordings (``k4arecorder`` Matroska files) -> colour, depth and a ``Calibration``.
+
+File layout (written by the Azure Kinect SDK's recorder; see Microsoft's "record file format" page):
+
+- track ``COLOR``: MJPEG (stored as ``V_MS/VFW/FOURCC`` ``MJPG`` or ``V_MJPEG``), or raw
+  ``V_MS/VFW/FOURCC`` ``BGRA`` / ``NV12`` / ``YUY2``; tag ``K4A_COLOR_MODE`` e.g. ``MJPG_720P``;
+- track ``DEPTH`` (and ``IR``): raw ``V_MS/VFW/FOURCC`` ``b16g`` = 16-bit **big-endian** grey,
+  millimetres, rows stored top-down (checked on a real recording: not flipped); tag
+  ``K4A_DEPTH_MODE`` e.g. ``NFOV_UNBINNED``;
+- attachment ``calibration.json`` (tag ``K4A_CALIBRATION_FILE``): the device's factory
+  ``CalibrationInformation`` (normalised sensor-wide intrinsics, see
+  :func:`calibration_from_k4a_json`);
+- segment tags ``K4A_START_OFFSET_NS`` (device time of Matroska time 0) and
+  ``K4A_DEPTH_DELAY_NS`` (colour-to-depth capture delay).
+
+Tracks are always selected by their title, never by index (indices change with the mode).
+
+Backends: ``pyk4a`` (the official SDK through its Python wrapper, ``pyk4a.PyK4APlayback``) is
+used when it can be imported; otherwise PyAV is used as a pure demuxer (packets are decoded here:
+depth/IR bytes with numpy, MJPEG with OpenCV). The pyk4a path is written against pyk4a's
+documented API (``PyK4APlayback``, ``configuration``, ``calibration_raw``, ``get_next_capture``,
+``seek``) but is **not exercised by the test suite** (pyk4a needs the SDK's native library, which
+is not installed where the tests run); only the PyAV path is tested. Both backends derive the
+calibration from the same ``calibration.json`` through :func:`calibration_from_k4a_json`.
+
+Timestamps are **device timestamps in microseconds** (what the SDK reports as
+``device_timestamp_usec``): Matroska block time + ``K4A_START_OFFSET_NS``. A capture's timestamp
+is the one of its depth image.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from stex.camera import Calibration, Intrinsics
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "COLOR_RESOLUTIONS",
+    "DEPTH_MODES",
+    "FrameIndexError",
+    "KinectRecording",
+    "Undistorter",
+    "calibration_from_k4a_json",
+    "open_kinect_mkv",
+    "undistort_frame",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Mode tables (numbers from the Azure Kinect SDK's mode-specific calibration, MIT licence).
+# Each entry: (binned calibration image size, crop offset, output image size), all (x, y) pixels.
+# The raw calibration is normalised to the full sensor; a mode first bins the sensor image to
+# ``binned`` and then crops ``output`` starting at ``crop``.
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _ModeInfo:
+    binned: tuple[int, int]
+    crop: tuple[int, int]
+    output: tuple[int, int]
+
+
+#: Colour resolutions, keyed by the k4a name without prefix; the colour calibration is 4:3.
+COLOR_RESOLUTIONS: dict[str, _ModeInfo] = {
+    "720P": _ModeInfo((1280, 960), (0, 120), (1280, 720)),
+    "1080P": _ModeInfo((1920, 1440), (0, 180), (1920, 1080)),
+    "1440P": _ModeInfo((2560, 1920), (0, 240), (2560, 1440)),
+    "1536P": _ModeInfo((2048, 1536), (0, 0), (2048, 1536)),
+    "2160P": _ModeInfo((3840, 2880), (0, 360), (3840, 2160)),
+    "3072P": _ModeInfo((4096, 3072), (0, 0), (4096, 3072)),
+}
+
+#: Depth modes; the depth calibration is for the 1024x1024 sensor.
+DEPTH_MODES: dict[str, _ModeInfo] = {
+    "NFOV_2X2BINNED": _ModeInfo((512, 512), (96, 90), (320, 288)),
+    "NFOV_UNBINNED": _ModeInfo((1024, 1024), (192, 180), (640, 576)),
+    "WFOV_2X2BINNED": _ModeInfo((512, 512), (0, 0), (512, 512)),
+    "WFOV_UNBINNED": _ModeInfo((1024, 1024), (0, 0), (1024, 1024)),
+    "PASSIVE_IR": _ModeInfo((1024, 1024), (0, 0), (1024, 1024)),
+}
+
+_COLOR_FORMATS = ("MJPG", "BGRA", "NV12", "YUY2")
+
+
+class FrameIndexError(ValueError, IndexError):
+    """A frame index outside ``[0, n_frames)``."""
+
+
+def _parse_color_resolution(value) -> str:
+    """'720P' / 'RES_720P' / 'K4A_COLOR_RESOLUTION_720P' / 'MJPG_720P' / '1280x720' / (1280, 720)
+    or a pyk4a ``ColorResolution`` enum -> key of ``COLOR_RESOLUTIONS``."""
+    if hasattr(value, "name") and not isinstance(value, str):  # enum (pyk4a.ColorResolution)
+        value = value.name
+    if isinstance(value, (tuple, list)) and len(value) == 2:
+        size = (int(value[0]), int(value[1]))
+        for key, info in COLOR_RESOLUTIONS.items():
+            if info.output == size:
+                return key
+        raise ValueError(f"no Azure Kinect colour resolution has size {size[0]}x{size[1]} "
+                         f"(known: {', '.join(f'{m.output[0]}x{m.output[1]}' for m in COLOR_RESOLUTIONS.values())})")
+    if isinstance(value, str):
+        s = value.strip().upper()
+        if "X" in s and s.replace("X", "").isdigit():
+            w, h = s.split("X")
+            return _parse_color_resolution((int(w), int(h)))
+        tail = s.rsplit("_", 1)[-1]
+        if tail in COLOR_RESOLUTIONS:
+            return tail
+    raise ValueError(f"unknown Azure Kinect colour resolution {value!r} "
+                     f"(expected one of {sorted(COLOR_RESOLUTIONS)} or a (width, height) pair)")
+
+
+def _parse_depth_mode(value) -> str:
+    """'NFOV_UNBINNED' / 'K4A_DEPTH_MODE_NFOV_UNBINNED' / (640, 576) / pyk4a ``DepthMode``
+    -> key of ``DEPTH_MODES``."""
+    if hasattr(value, "name") and not isinstance(value, str):
+        value = value.name
+    if isinstance(value, (tuple, list)) and len(value) == 2:
+        size = (int(value[0]), int(value[1]))
+        for key, info in DEPTH_MODES.items():  # WFOV_UNBINNED comes before PASSIVE_IR
+            if info.output == size:
+                return key
+        raise ValueError(f"no Azure Kinect depth mode has size {size[0]}x{size[1]}")
+    if isinstance(value, str):
+        s = value.strip().upper()
+        if s.startswith("K4A_DEPTH_MODE_"):
+            s = s[len("K4A_DEPTH_MODE_"):]
+        if s in DEPTH_MODES:
+            return s
+    raise ValueError(f"unknown Azure Kinect depth mode {value!r} (expected one of {sorted(DEPTH_MODES)})")
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration
+# --------------------------------------------------------------------------------------------
+
+_LOC_DEPTH = "CALIBRATION_CameraLocationD0"
+_LOC_COLOR = "CALIBRATION_CameraLocationPV0"
+_MODEL_BROWN_CONRADY = "CALIBRATION_LensDistortionModelBrownConrady"
+_MODEL_RATIONAL_6KT = "CALIBRATION_LensDistortionModelRational6KT"
+
+
+def _camera_entry(info: dict, location: str) -> dict:
+    for cam in info.get("Cameras", []):
+        if cam.get("Location") == location:
+            return cam
+    found = [c.get("Location") for c in info.get("Cameras", [])]
+    raise ValueError(f"calibration has no camera with Location {location!r} (found {found})")
+
+
+def _rt_matrix(cam: dict) -> np.ndarray:
+    """4x4 'world -> this camera' transform from a camera's Rt (row-major R, translation in m)."""
+    rt = cam["Rt"]
+    R = np.asarray(rt["Rotation"], dtype=np.float64).reshape(3, 3)
+    t = np.asarray(rt["Translation"], dtype=np.float64).reshape(3)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def _orthonormalise(R: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(R)
+    Rn = U @ Vt
+    if np.linalg.det(Rn) < 0:
+        U[:, -1] *= -1
+        Rn = U @ Vt
+    return Rn
+
+
+def _mode_intrinsics(cam: dict, mode: _ModeInfo, which: str) -> Intrinsics:
+    intr = cam["Intrinsics"]
+    model = intr.get("ModelType")
+    p = np.asarray(intr["ModelParameters"], dtype=np.float64)
+    count = int(intr.get("ModelParameterCount", p.size))
+    if count < 14 or p.size < 14:
+        raise ValueError(f"{which} camera: expected 14 intrinsic parameters, got {min(count, p.size)}")
+    # Parameter order in the k4a JSON / k4a_calibration_intrinsic_parameters_t:
+    #   cx, cy, fx, fy, k1, k2, k3, k4, k5, k6, codx, cody, p2, p1   (note: p2 before p1)
+    cx_n, cy_n, fx_n, fy_n, k1, k2, k3, k4, k5, k6, codx, cody, p2, p1 = p[:14]
+    if model == _MODEL_RATIONAL_6KT:
+        warnings.warn(f"{which} camera uses the deprecated Rational6KT lens model (early internal devices); "
+                      "its tangential term and centre of distortion have no exact OpenCV equivalent, "
+                      "the distortion coefficients are an approximation", stacklevel=3)
+    elif model != _MODEL_BROWN_CONRADY:
+        raise ValueError(f"{which} camera: unsupported lens model {model!r} "
+                         f"(expected {_MODEL_BROWN_CONRADY!r})")
+    sensor = (int(cam["SensorWidth"]), int(cam["SensorHeight"]))
+    if which == "colour":
+        if sensor[0] * 9 // 16 == sensor[1]:
+            # Legacy 16:9 colour calibration (4096x2304): the SDK re-expresses it on the 4:3
+            # 4096x3072 image, which extends 384 rows above (and below) the 16:9 one.
+            cx_n = cx_n * 4096 / 4096
+            cy_n = (cy_n * 2304 + 384) / 3072
+            fy_n = fy_n * 2304 / 3072
+        elif sensor[0] * 3 // 4 != sensor[1]:
+            raise ValueError(f"colour camera: unexpected sensor aspect {sensor[0]}x{sensor[1]} "
+                             "(expected 4:3 or legacy 16:9)")
+    elif sensor != (1024, 1024):
+        raise ValueError(f"depth camera: unexpected sensor size {sensor[0]}x{sensor[1]} (expected 1024x1024)")
+    bw, bh = mode.binned
+    ox, oy = mode.crop
+    # Normalised, 0-cornered (0 = left edge of the first pixel) -> pixels in the binned image,
+    # minus the crop, minus half a pixel so that integer coordinates are pixel centres (OpenCV).
+    fx = fx_n * bw
+    fy = fy_n * bh
+    cx = cx_n * bw - ox - 0.5
+    cy = cy_n * bh - oy - 0.5
+    # Brown-Conrady as k4a evaluates it equals OpenCV's rational model (codx = cody = 0).
+    dist = np.array([k1, k2, p1, p2, k3, k4, k5, k6], dtype=np.float64)
+    return Intrinsics.from_focal(fx, fy, cx, cy, mode.output[0], mode.output[1], dist)
+
+
+def calibration_from_k4a_json(calib, color_resolution, depth_mode) -> Calibration:
+    """Mode-specific ``Calibration`` from an Azure Kinect ``calibration.json``.
+
+    Args:
+        calib: the parsed JSON (dict with key ``CalibrationInformation`` or the inner dict), or
+            its text (str/bytes), as stored in a recording's ``calibration.json`` attachment or
+            returned by ``k4a_device_get_raw_calibration`` / ``pyk4a ... .calibration_raw``.
+        color_resolution: the recorded colour resolution: ``(width, height)`` such as
+            ``(1280, 720)``, or a name: ``'720P'``, ``'RES_720P'``, ``'K4A_COLOR_RESOLUTION_720P'``,
+            ``'MJPG_720P'`` (the ``K4A_COLOR_MODE`` tag), ``'1280x720'``.
+        depth_mode: ``'NFOV_UNBINNED'`` (640x576), ``'NFOV_2X2BINNED'`` (320x288),
+            ``'WFOV_UNBINNED'`` (1024x1024), ``'WFOV_2X2BINNED'`` (512x512), ``'PASSIVE_IR'``
+            (1024x1024), optionally prefixed ``K4A_DEPTH_MODE_``, or a (width, height) pair.
+
+    Returns:
+        ``Calibration`` with ``color`` / ``depth`` ``Intrinsics`` for the recorded image sizes and
+        ``depth_to_color`` (4x4, metres, X_color = R X_depth + t).
+
+    What the JSON holds and how it is converted:
+
+    - ``Cameras[]`` with ``Location`` ``CALIBRATION_CameraLocationD0`` (depth, 1024x1024 sensor)
+      and ``CALIBRATION_CameraLocationPV0`` (colour, 4096x3072 sensor; legacy devices 4096x2304).
+    - ``Intrinsics.ModelParameters`` = (cx, cy, fx, fy, k1, k2, k3, k4, k5, k6, codx, cody, p2, p1),
+      with cx, fx divided by the sensor width and cy, fy by the sensor height, and the origin at
+      the *corner* of the first pixel (the SDK's "unitized, 0-cornered" form).
+    - A recording mode bins the sensor image to ``binned`` pixels and crops ``output`` pixels
+      from offset ``crop`` (tables ``COLOR_RESOLUTIONS``, ``DEPTH_MODES``, the same numbers as the
+      SDK's mode-specific calibration). So in the output image
+      ``fx = fx_n * binned_w``, ``fy = fy_n * binned_h``,
+      ``cx = cx_n * binned_w - crop_x - 0.5``, ``cy = cy_n * binned_h - crop_y - 0.5``.
+      The ``- 0.5`` moves the origin from the pixel corner to the pixel centre, which is the
+      stex/OpenCV convention (integer coordinates = pixel centres) and what the SDK itself
+      returns as its pixel-unit calibration. E.g. 720P colour: binned 1280x960, crop (0, 120).
+    - Distortion: k4a's Brown-Conrady model is OpenCV's rational model, so the OpenCV vector is
+      ``(k1, k2, p1, p2, k3, k4, k5, k6)`` -- p1 and p2 are stored swapped in the JSON. (The
+      deprecated ``Rational6KT`` model of pre-production devices is only approximated; a warning
+      is issued.) ``MetricRadius`` (the radius in the z=1 plane beyond which the model is not
+      valid) is not represented in ``Intrinsics``.
+    - ``Rt`` of each camera maps a reference ("world") frame into that camera,
+      X_cam = R X_world + t, R row-major, **t in metres** (the SDK multiplies by 1000 to get its
+      millimetre extrinsics). The depth camera is the reference in factory calibrations (its Rt
+      is the identity), but the general ``depth_to_color = Rt_color @ inv(Rt_depth)`` is used.
+      The rotation is re-orthonormalised (the JSON holds float32 values).
+    """
+    if isinstance(calib, (bytes, bytearray, memoryview)):
+        calib = bytes(calib).decode("utf-8")
+    if isinstance(calib, str):
+        calib = json.loads(calib)
+    if not isinstance(calib, dict):
+        raise ValueError(f"calibration must be a dict (parsed calibration.json), got {type(calib).__name__}")
+    info = calib.get("CalibrationInformation", calib)
+    if "Cameras" not in info:
+        raise ValueError("calibration JSON has no 'CalibrationInformation.Cameras' list")
+    color_mode = COLOR_RESOLUTIONS[_parse_color_resolution(color_resolution)]
+    depth_info = DEPTH_MODES[_parse_depth_mode(depth_mode)]
+    cam_d = _camera_entry(info, _LOC_DEPTH)
+    cam_c = _camera_entry(info, _LOC_COLOR)
+    try:
+        depth = _mode_intrinsics(cam_d, depth_info, "depth")
+        color = _mode_intrinsics(cam_c, color_mode, "colour")
+        T = _rt_matrix(cam_c) @ np.linalg.inv(_rt_matrix(cam_d))
+    except (KeyError, TypeError) as e:
+        raise ValueError(f"calibration JSON is missing or has a malformed field: {e!r}") from e
+    T[:3, :3] = _orthonormalise(T[:3, :3])
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    baseline = float(np.linalg.norm(T[:3, 3]))
+    if baseline > 0.5:
+        warnings.warn(f"depth->colour translation is {baseline:.3f} (expected metres, ~0.032 for an "
+                      "Azure Kinect); is the calibration in millimetres?", stacklevel=2)
+    return Calibration(color=color, depth=depth, depth_to_color=T)
+
+
+# --------------------------------------------------------------------------------------------
+# Matroska container checks
+# --------------------------------------------------------------------------------------------
+
+_EBML_MAGIC = b"\x1a\x45\xdf\xa3"
+_SEGMENT_ID = b"\x18\x53\x80\x67"
+
+
+def _read_vint(buf: bytes, pos: int) -> tuple[int, int, bool]:
+    """EBML variable-size integer at ``pos``: (value, length in bytes, is 'unknown size')."""
+    if pos >= len(buf):
+        raise ValueError("header ends early")
+    first = buf[pos]
+    if first == 0:
+        raise ValueError("invalid EBML size")
+    length = 8 - first.bit_length() + 1
+    if pos + length > len(buf):
+        raise ValueError("header ends early")
+    value = first & (0xFF >> length)
+    for b in buf[pos + 1: pos + length]:
+        value = (value << 8) | b
+    unknown = value == (1 << (7 * length)) - 1
+    return value, length, unknown
+
+
+def _check_matroska(path: Path, allow_truncated: bool) -> None:
+    """Cheap structural checks before handing the file to a demuxer.
+
+    Raises ValueError when the file is not EBML/Matroska, or when the Segment's declared size
+    runs past the end of the file (a truncated copy or an interrupted recording) -- unless
+    ``allow_truncated``, in which case it only warns.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if head[:4] != _EBML_MAGIC:
+        raise ValueError(f"{path}: not a Matroska (.mkv) file: it does not start with the EBML magic bytes")
+    try:
+        hdr_size, n, _ = _read_vint(head, 4)
+        pos = 4 + n + hdr_size
+        if head[pos:pos + 4] != _SEGMENT_ID:
+            raise ValueError("no Segment element after the EBML header")
+        seg_size, n, unknown = _read_vint(head, pos + 4)
+        seg_start = pos + 4 + n
+    except ValueError as e:
+        raise ValueError(f"{path}: corrupt Matroska header ({e}); file size {size} bytes") from None
+    if not unknown and seg_start + seg_size > size:
+        msg = (f"{path}: truncated Matroska file: the Segment declares {seg_start + seg_size} bytes "
+               f"but the file has only {size} ({100.0 * size / (seg_start + seg_size):.1f}%)")
+        if not allow_truncated:
+            raise ValueError(msg + "; pass allow_truncated=True to read the complete captures it still holds")
+        warnings.warn(msg, stacklevel=3)
+
+
+# --------------------------------------------------------------------------------------------
+# Frame decoding (shared by the PyAV backend)
+# --------------------------------------------------------------------------------------------
+
+def _decode_depth(buf: bytes, size: tuple[int, int], dtype: str, what: str) -> np.ndarray:
+    w, h = size
+    if len(buf) != w * h * 2:
+        raise ValueError(f"{what}: depth packet has {len(buf)} bytes, expected {w * h * 2} "
+                         f"({w}x{h} 16-bit pixels); the file is corrupt or truncated")
+    return np.frombuffer(buf, dtype=dtype).reshape(h, w).astype(np.uint16)
+
+
+def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.ndarray:
+    """Packet bytes -> (H, W, 3) uint8 RGB."""
+    w, h = size
+    a = np.frombuffer(buf, dtype=np.uint8)
+    if fmt == "MJPG":
+        img = None
+        if a.size:
+            img = cv2.imdecode(a, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if img is None:
+            img = _decode_mjpeg_ffmpeg(buf)
+        if img is None:
+            raise ValueError(f"{what}: colour MJPEG packet ({len(buf)} bytes) cannot be decoded; "
+                             "the file is corrupt or truncated")
+        if img.shape[:2] != (h, w):
+            raise ValueError(f"{what}: colour image is {img.shape[1]}x{img.shape[0]}, the track says {w}x{h}")
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    expected = {"BGRA": w * h * 4, "NV12": w * h * 3 // 2, "YUY2": w * h * 2}[fmt]
+    if a.size != expected:
+        raise ValueError(f"{what}: {fmt} colour packet has {a.size} bytes, expected {expected} "
+                         f"for {w}x{h}; the file is corrupt or truncated")
+    if fmt == "BGRA":
+        return cv2.cvtColor(a.reshape(h, w, 4), cv2.COLOR_BGRA2RGB)
+    if fmt == "NV12":
+        return cv2.cvtColor(a.reshape(h * 3 // 2, w), cv2.COLOR_YUV2RGB_NV12)
+    return cv2.cvtColor(a.reshape(h, w, 2), cv2.COLOR_YUV2RGB_YUY2)
+
+
+def _decode_mjpeg_ffmpeg(buf: bytes) -> np.ndarray | None:
+    """Fallback MJPEG decoder (FFmpeg through PyAV); returns BGR like cv2.imdecode, or None."""
+    try:
+        import av
+
+        ctx = av.CodecContext.create("mjpeg", "r")
+        frames = ctx.decode(av.Packet(buf)) + ctx.decode(None)
+        if not frames:
+            return None
+        return frames[0].to_ndarray(format="bgr24")
+    except Exception:  # noqa: BLE001 -- any decoder failure means "cannot decode"
+        return None
+
+
+# --------------------------------------------------------------------------------------------
+# Recording
+# --------------------------------------------------------------------------------------------
+
+def _to_us(pts: int, time_base: Fraction) -> int:
+    """Stream timestamp -> integer microseconds (exact integer arithmetic, rounded half up).
+
+    Matroska time bases differ between writers (k4arecorder: 1/1000000 s; FFmpeg: 1/1000 s).
+    """
+    num, den = time_base.numerator, time_base.denominator
+    return (2 * int(pts) * num * 1_000_000 + den) // (2 * den)
+
+
+def _int_tag(tags: dict, key: str, path: Path) -> int:
+    value = tags.get(key)
+    if value in (None, ""):
+        return 0
+    try:
+        return int(value)
+    except ValueError:
+        raise ValueError(f"{path}: tag {key} is not an integer: {value!r}") from None
+
+
+def _pair_captures(color_us: np.ndarray, depth_us: np.ndarray, tolerance_us: float) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy in-order pairing of two sorted timestamp lists within ``tolerance_us``.
+
+    Returns index arrays (ic, id) of the paired colour and depth images.
+    """
+    ic, idp = [], []
+    i = j = 0
+    while i < len(color_us) and j < len(depth_us):
+        dt = int(color_us[i]) - int(depth_us[j])
+        if abs(dt) < tolerance_us:
+            ic.append(i)
+            idp.append(j)
+            i += 1
+            j += 1
+        elif dt < 0:
+            i += 1
+        else:
+            j += 1
+    return np.asarray(ic, dtype=np.int64), np.asarray(idp, dtype=np.int64)
+
+
+def open_kinect_mkv(path, backend: str = "auto", allow_truncated: bool = False) -> "KinectRecording":
+    """Open an Azure Kinect recording; see :class:`KinectRecording`."""
+    return KinectRecording(path, backend=backend, allow_truncated=allow_truncated)
+
+
+class KinectRecording:
+    """An Azure Kinect ``.mkv`` recording opened for reading (a context manager).
+
+    Args:
+        path: the ``.mkv`` file written by ``k4arecorder`` (or the SDK's record API).
+        backend: ``'pyav'`` (PyAV demuxer + numpy/OpenCV decoding; tested), ``'pyk4a'`` (the
+            Azure Kinect SDK through pyk4a; untested here, needs the SDK installed) or
+            ``'auto'`` (pyk4a when importable, else PyAV).
+        allow_truncated: read a truncated file's complete captures instead of refusing it
+            (PyAV backend; a warning is issued).
+
+    Attributes:
+        path: ``pathlib.Path`` of the file.
+        backend: ``'pyav'`` or ``'pyk4a'``.
+        calibration: ``stex.camera.Calibration`` for the recorded modes (see
+            :func:`calibration_from_k4a_json`); distortion is *not* removed from the frames,
+            use :class:`Undistorter` for that.
+        calibration_json: the parsed ``calibration.json`` attachment (dict).
+        color_mode: e.g. ``'720P'``; depth_mode: e.g. ``'NFOV_UNBINNED'``.
+        color_format: ``'MJPG'``, ``'BGRA'``, ``'NV12'`` or ``'YUY2'`` (as stored).
+        color_size, depth_size: ``(width, height)`` in pixels.
+        n_frames: number of captures holding both a colour and a depth image (colour and depth
+            images are paired like the SDK does: timestamps closer than half a frame period,
+            after the ``K4A_DEPTH_DELAY_NS`` correction). ``len(recording)`` is the same.
+        timestamps_us: (n_frames,) int64 device timestamps of the captures' depth images, µs.
+        color_timestamps_us: (n_frames,) int64 device timestamps of the colour images, µs.
+        start_offset_us: device time of the file's time 0 (``K4A_START_OFFSET_NS`` / 1000).
+        n_unpaired_color, n_unpaired_depth: images that found no partner (skipped).
+        metadata: container-level tags (dict of str).
+    """
+
+    def __init__(self, path, backend: str = "auto", allow_truncated: bool = False):
+        self.path = Path(path)
+        if backend not in ("auto", "pyav", "pyk4a"):
+            raise ValueError(f"backend must be 'auto', 'pyav' or 'pyk4a', got {backend!r}")
+        if not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no such Azure Kinect recording")
+        if not self.path.is_file():
+            raise ValueError(f"{self.path}: is not a regular file")
+        if backend == "auto":
+            try:
+                import pyk4a  # noqa: F401
+
+                backend = "pyk4a"
+            except Exception:  # noqa: BLE001 -- ImportError, or the native library failing to load
+                backend = "pyav"
+        self.backend = backend
+        self._closed = False
+        self._playback = None
+        _check_matroska(self.path, allow_truncated)
+        try:
+            if backend == "pyav":
+                self._open_pyav()
+            else:
+                self._open_pyk4a()
+        except BaseException:
+            self.close()
+            raise
+
+    # ---------------------------------------------------------------- common API
+
+    def __enter__(self) -> "KinectRecording":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __len__(self) -> int:
+        return self.n_frames
+
+    def __repr__(self) -> str:
+        return (f"KinectRecording({str(self.path)!r}, backend={self.backend!r}, n_frames={self.n_frames}, "
+                f"color={self.color_format} {self.color_size[0]}x{self.color_size[1]}, "
+                f"depth={self.depth_mode} {self.depth_size[0]}x{self.depth_size[1]})")
+
+    def close(self) -> None:
+        """Release the file (idempotent)."""
+        if self._playback is not None:
+            try:
+                self._playback.close()
+            finally:
+                self._playback = None
+        self._closed = True
+
+    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+        """Iterate over captures ``start .. stop-1`` in order.
+
+        Yields:
+            ``(index, timestamp_us, color, depth)``: capture index (int), device timestamp of the
+            depth image (int, µs), colour (Hc, Wc, 3) uint8 **RGB**, depth (Hd, Wd) uint16
+            millimetres (0 = no measurement). Lens distortion is left in both images.
+
+        Raises:
+            FrameIndexError (a ValueError) when ``start``/``stop`` fall outside ``[0, n_frames]``;
+            ValueError naming the file and the frame for corrupt packets.
+        """
+        if self._closed:
+            raise ValueError(f"{self.path}: recording is closed")
+        start, stop = self._check_range(start, stop)
+        if start == stop:
+            return iter(())
+        if self.backend == "pyav":
+            return self._frames_pyav(start, stop)
+        return self._frames_pyk4a(start, stop)
+
+    def read_frame(self, index: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """One capture: ``(timestamp_us, color (Hc,Wc,3) uint8 RGB, depth (Hd,Wd) uint16 mm)``."""
+        index = int(index)
+        if not 0 <= index < self.n_frames:
+            raise FrameIndexError(f"{self.path}: frame index {index} out of range: the recording has "
+                                  f"{self.n_frames} captures with colour and depth (0..{self.n_frames - 1})")
+        for _, ts, color, depth in self.frames(index, index + 1):
+            return ts, color, depth
+        raise ValueError(f"{self.path}: frame {index} could not be read")  # pragma: no cover
+
+    def _check_range(self, start, stop) -> tuple[int, int]:
+        n = self.n_frames
+        start = int(start)
+        stop = n if stop is None else int(stop)
+        if not 0 <= start <= n:
+            raise FrameIndexError(f"{self.path}: start frame {start} out of range 0..{n} "
+                                  f"(the recording has {n} captures with colour and depth)")
+        if not start <= stop <= n:
+            raise FrameIndexError(f"{self.path}: stop frame {stop} out of range {start}..{n} "
+                                  f"(the recording has {n} captures with colour and depth)")
+        return start, stop
+
+    def _set_modes(self, color_tag: str | None, depth_tag: str | None) -> None:
+        """Resolve colour/depth modes from the track tags, cross-checked with the track sizes."""
+        self.color_mode = _parse_color_resolution(color_tag if color_tag else self.color_size)
+        if COLOR_RESOLUTIONS[self.color_mode].output != self.color_size:
+            raise ValueError(f"{self.path}: COLOR track is {self.color_size[0]}x{self.color_size[1]} but its "
+                             f"K4A_COLOR_MODE tag says {color_tag!r}")
+        self.depth_mode = _parse_depth_mode(depth_tag if depth_tag else self.depth_size)
+        if DEPTH_MODES[self.depth_mode].output != self.depth_size:
+            raise ValueError(f"{self.path}: DEPTH track is {self.depth_size[0]}x{self.depth_size[1]} but its "
+                             f"K4A_DEPTH_MODE tag says {depth_tag!r}")
+        try:
+            self.calibration = calibration_from_k4a_json(self.calibration_json, self.color_mode, self.depth_mode)
+        except ValueError as e:
+            raise ValueError(f"{self.path}: bad calibration.json attachment: {e}") from e
+
+    # ---------------------------------------------------------------- PyAV backend
+
+    def _av_open(self):
+        import av
+
+        try:
+            return av.open(str(self.path), mode="r")
+        except av.error.FFmpegError as e:
+            raise ValueError(f"{self.path}: cannot be opened as a Matroska file: {e}") from e
+
+    def _open_pyav(self) -> None:
+        import av
+
+        container = self._av_open()
+        try:
+            if "matroska" not in container.format.name:
+                raise ValueError(f"{self.path}: not a Matroska file (container format {container.format.name!r})")
+            self.metadata = dict(container.metadata)
+            by_title: dict[str, object] = {}
+            for s in container.streams:
+                title = s.metadata.get("title")
+                if s.type == "video" and title and title not in by_title:
+                    by_title[title] = s
+            for need in ("COLOR", "DEPTH"):
+                if need not in by_title:
+                    raise ValueError(f"{self.path}: no {need} track (video tracks found: "
+                                     f"{sorted(by_title) or 'none'}); a k4arecorder file with colour and depth "
+                                     "is needed")
+            cs, ds = by_title["COLOR"], by_title["DEPTH"]
+            self.calibration_json = self._read_attachment(container)
+            self.color_size = (int(cs.codec_context.width), int(cs.codec_context.height))
+            self.depth_size = (int(ds.codec_context.width), int(ds.codec_context.height))
+            self.color_format = self._color_format(cs)
+            self._depth_dtype = self._depth_format(ds)
+            self._set_modes(cs.metadata.get("K4A_COLOR_MODE"), ds.metadata.get("K4A_DEPTH_MODE"))
+            self._color_index, self._depth_index = cs.index, ds.index
+            self.start_offset_us = _int_tag(self.metadata, "K4A_START_OFFSET_NS", self.path) // 1000
+            depth_delay_us = _int_tag(self.metadata, "K4A_DEPTH_DELAY_NS", self.path) / 1000.0
+
+            # One pass over the packets (no decoding) to build the capture index.
+            c_pts, c_dur, d_pts, d_dur = [], [], [], []
+            try:
+                for pkt in container.demux(cs, ds):
+                    if pkt.pts is None or pkt.size == 0:
+                        continue
+                    if pkt.stream.index == cs.index:
+                        c_pts.append(pkt.pts)
+                        c_dur.append(pkt.duration or 0)
+                    else:
+                        d_pts.append(pkt.pts)
+                        d_dur.append(pkt.duration or 0)
+            except av.error.FFmpegError as e:
+                raise ValueError(f"{self.path}: corrupt Matroska data after {len(c_pts)} colour and "
+                                 f"{len(d_pts)} depth images: {e}") from e
+            self._color_tb = Fraction(cs.time_base)
+            self._depth_tb = Fraction(ds.time_base)
+        finally:
+            container.close()
+
+        c_pts = np.asarray(c_pts, dtype=np.int64)
+        d_pts = np.asarray(d_pts, dtype=np.int64)
+        oc, od = np.argsort(c_pts, kind="stable"), np.argsort(d_pts, kind="stable")
+        c_pts, d_pts = c_pts[oc], d_pts[od]
+        c_us = np.array([_to_us(p, self._color_tb) for p in c_pts], dtype=np.int64)
+        d_us = np.array([_to_us(p, self._depth_tb) for p in d_pts], dtype=np.int64)
+        period = self._frame_period_us(d_us, [d_dur[i] for i in od], self._depth_tb)
+        ic, idp = _pair_captures(c_us + depth_delay_us, d_us, period / 2.0)
+        self.frame_period_us = period
+        self._cap_color_pts = c_pts[ic]
+        self._cap_depth_pts = d_pts[idp]
+        self.timestamps_us = d_us[idp] + self.start_offset_us
+        self.color_timestamps_us = c_us[ic] + self.start_offset_us
+        self.n_frames = int(len(idp))
+        self.n_unpaired_color = int(len(c_us) - len(ic))
+        self.n_unpaired_depth = int(len(d_us) - len(idp))
+        if self.n_unpaired_color or self.n_unpaired_depth:
+            log.info("%s: %d colour and %d depth images have no partner and are skipped",
+                     self.path, self.n_unpaired_color, self.n_unpaired_depth)
+
+    @staticmethod
+    def _frame_period_us(d_us: np.ndarray, durations: list, tb: Fraction) -> float:
+        if len(d_us) >= 2:
+            diffs = np.diff(d_us)
+            diffs = diffs[diffs > 0]
+            if diffs.size:
+                return float(np.median(diffs))
+        durs = [d for d in durations if d > 0]
+        if durs:
+            return float(_to_us(int(np.median(durs)), tb))
+        return 1e6 / 30.0
+
+    def _read_attachment(self, container) -> dict:
+        for s in container.streams:
+            if s.type != "attachment":
+                continue
+            name = getattr(s, "name", None) or s.metadata.get("filename")
+            if name == "calibration.json" or "K4A_CALIBRATION_FILE" in s.metadata:
+                try:
+                    return json.loads(bytes(s.data).decode("utf-8"))
+                except (UnicodeDecodeError, json.JSONDecodeError) as e:
+                    raise ValueError(f"{self.path}: calibration.json attachment is not valid JSON: {e}") from e
+        raise ValueError(f"{self.path}: no calibration.json attachment (tag K4A_CALIBRATION_FILE); "
+                         "without it the camera intrinsics are unknown")
+
+    def _color_format(self, s) -> str:
+        cc = s.codec_context
+        if cc.name == "mjpeg":
+            return "MJPG"
+        tag = (cc.codec_tag or "").strip("\x00 ")
+        if tag.upper() in _COLOR_FORMATS:
+            return tag.upper()
+        pix = cc.format.name if cc.format is not None else ""
+        by_pix = {"bgra": "BGRA", "nv12": "NV12", "yuyv422": "YUY2"}
+        if pix in by_pix:
+            return by_pix[pix]
+        raise ValueError(f"{self.path}: unsupported COLOR track (codec {cc.name!r}, FourCC {tag!r}, pixel format "
+                         f"{pix!r}); expected MJPEG, BGRA, NV12 or YUY2")
+
+    def _depth_format(self, s) -> str:
+        cc = s.codec_context
+        tag = (cc.codec_tag or "").strip("\x00 ")
+        pix = cc.format.name if cc.format is not None else ""
+        if cc.name == "rawvideo" and (tag == "b16g" or pix == "gray16be"):
+            return ">u2"
+        if cc.name == "rawvideo" and pix == "gray16le":
+            return "<u2"
+        raise ValueError(f"{self.path}: unsupported DEPTH track (codec {cc.name!r}, FourCC {tag!r}, pixel format "
+                         f"{pix!r}); expected raw 16-bit 'b16g' as written by k4arecorder")
+
+    def _frames_pyav(self, start: int, stop: int):
+        import av
+
+        want_c = {int(p): i for i, p in enumerate(self._cap_color_pts[start:stop], start)}
+        want_d = {int(p): i for i, p in enumerate(self._cap_depth_pts[start:stop], start)}
+        first_c, first_d = int(self._cap_color_pts[start]), int(self._cap_depth_pts[start])
+
+        def packets(seek: bool):
+            container = self._av_open()
+            try:
+                cs = container.streams[self._color_index]
+                ds = container.streams[self._depth_index]
+                if seek:
+                    t_us = min(_to_us(first_c, self._color_tb), _to_us(first_d, self._depth_tb))
+                    container.seek(max(t_us - 1, 0), backward=True, any_frame=False)  # offset in av.time_base = µs
+                for pkt in container.demux(cs, ds):
+                    if pkt.pts is None or pkt.size == 0:
+                        continue
+                    yield pkt
+            finally:
+                container.close()
+
+        next_idx = start
+        color_buf: dict[int, bytes] = {}
+        depth_buf: dict[int, bytes] = {}
+        gen = packets(seek=start > 0)
+        source = gen
+        if start > 0:
+            # The seek must not land after the first wanted packet of either stream (packets of
+            # one stream arrive in timestamp order); check the first packet of each stream and
+            # fall back to reading from the beginning when it did.
+            pre = []
+            first_seen: dict[int, int] = {}
+            try:
+                for pkt in gen:
+                    pre.append(pkt)
+                    first_seen.setdefault(pkt.stream.index, int(pkt.pts))
+                    if len(first_seen) == 2:
+                        break
+            except av.error.FFmpegError as e:
+                raise ValueError(f"{self.path}: corrupt Matroska data near frame {start}: {e}") from e
+            ok = (first_seen.get(self._color_index, first_c + 1) <= first_c
+                  and first_seen.get(self._depth_index, first_d + 1) <= first_d)
+            if not ok:
+                gen.close()
+                log.debug("%s: seek to frame %d imprecise; reading from the start", self.path, start)
+                gen = packets(seek=False)
+                pre = []
+            source = _chain(pre, gen)
+
+        try:
+            for pkt in source:
+                sidx = pkt.stream.index
+                if sidx == self._color_index:
+                    i = want_c.get(int(pkt.pts))
+                    if i is not None and i >= next_idx:
+                        color_buf[i] = bytes(pkt)
+                elif sidx == self._depth_index:
+                    i = want_d.get(int(pkt.pts))
+                    if i is not None and i >= next_idx:
+                        depth_buf[i] = bytes(pkt)
+                while next_idx in color_buf and next_idx in depth_buf:
+                    yield self._decode_capture(next_idx, color_buf.pop(next_idx), depth_buf.pop(next_idx))
+                    next_idx += 1
+                    if next_idx >= stop:
+                        return
+        except av.error.FFmpegError as e:
+            raise ValueError(f"{self.path}: corrupt Matroska data while reading frame {next_idx}: {e}") from e
+        finally:
+            gen.close()
+        if next_idx < stop:
+            raise ValueError(f"{self.path}: the file ended before frame {next_idx} "
+                             f"(expected {self.n_frames} captures); it was modified or is corrupt")
+
+    def _decode_capture(self, index: int, cbuf: bytes, dbuf: bytes):
+        what = f"{self.path}: frame {index} (t={int(self.timestamps_us[index])} us)"
+        depth = _decode_depth(dbuf, self.depth_size, self._depth_dtype, what)
+        color = _decode_color(cbuf, self.color_size, self.color_format, what)
+        return index, int(self.timestamps_us[index]), color, depth
+
+    # ---------------------------------------------------------------- pyk4a backend (untested here)
+
+    def _open_pyk4a(self) -> None:
+        import pyk4a
+
+        try:
+            pb = pyk4a.PyK4APlayback(str(self.path))
+            pb.open()
+        except Exception as e:  # noqa: BLE001 -- pyk4a raises K4AException for anything
+            raise ValueError(f"{self.path}: the Azure Kinect SDK cannot open this recording: {e}") from e
+        self._playback = pb
+        try:
+            cfg = pb.configuration
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"{self.path}: the Azure Kinect SDK cannot read the recording configuration: {e}") from e
+        if not cfg["color_track_enabled"] or not cfg["depth_track_enabled"]:
+            raise ValueError(f"{self.path}: no {'COLOR' if not cfg['color_track_enabled'] else 'DEPTH'} track; "
+                             "a recording with colour and depth is needed")
+        try:
+            raw = pb.calibration_raw
+        except Exception as e:  # noqa: BLE001
+            raise ValueError(f"{self.path}: no readable calibration.json attachment: {e}") from e
+        try:
+            self.calibration_json = json.loads(raw)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{self.path}: calibration.json attachment is not valid JSON: {e}") from e
+        fmt = pyk4a.ImageFormat(cfg["color_format"]).name  # COLOR_MJPG, COLOR_BGRA32, ...
+        self.color_format = {"COLOR_MJPG": "MJPG", "COLOR_BGRA32": "BGRA", "COLOR_NV12": "NV12",
+                             "COLOR_YUY2": "YUY2"}.get(fmt)
+        if self.color_format is None:
+            raise ValueError(f"{self.path}: unsupported colour format {fmt}")
+        color_key = _parse_color_resolution(pyk4a.ColorResolution(cfg["color_resolution"]).name)
+        depth_key = _parse_depth_mode(pyk4a.DepthMode(cfg["depth_mode"]).name)
+        self.color_size = COLOR_RESOLUTIONS[color_key].output
+        self.depth_size = DEPTH_MODES[depth_key].output
+        self._set_modes(color_key, depth_key)
+        self.metadata = {}
+        self.start_offset_us = int(cfg.get("start_timestamp_offset_usec", 0))
+        self.frame_period_us = {0: 200000.0, 1: 1e6 / 15, 2: 1e6 / 30}.get(int(cfg["camera_fps"]), 1e6 / 30)
+        # Index pass: the SDK groups images into captures itself.
+        d_ts, c_ts = [], []
+        n_c_only = n_d_only = 0
+        while True:
+            try:
+                cap = pb.get_next_capture()
+            except EOFError:
+                break
+            has_c = cap.color is not None
+            has_d = cap.depth is not None
+            if has_c and has_d:
+                d_ts.append(int(cap.depth_timestamp_usec))
+                c_ts.append(int(cap.color_timestamp_usec))
+            else:
+                n_c_only += has_c and not has_d
+                n_d_only += has_d and not has_c
+        self.timestamps_us = np.asarray(d_ts, dtype=np.int64)
+        self.color_timestamps_us = np.asarray(c_ts, dtype=np.int64)
+        self.n_frames = len(d_ts)
+        self.n_unpaired_color, self.n_unpaired_depth = int(n_c_only), int(n_d_only)
+        self._ts_to_index = {t: i for i, t in enumerate(d_ts)}
+
+    def _frames_pyk4a(self, start: int, stop: int):
+        import pyk4a
+
+        pb = self._playback
+        target = int(self.timestamps_us[start])
+
+        def run(seek_origin_device: bool):
+            if seek_origin_device:
+                pb.seek(target, origin=pyk4a.SeekOrigin.DEVICE_TIME)
+            else:
+                pb.seek(0, origin=pyk4a.SeekOrigin.BEGIN)
+            while True:
+                try:
+                    cap = pb.get_next_capture()
+                except EOFError:
+                    return
+                if cap.color is None or cap.depth is None:
+                    continue
+                i = self._ts_to_index.get(int(cap.depth_timestamp_usec))
+                if i is None:
+                    continue
+                yield i, cap
+
+        nxt = start
+        gen = run(True)
+        restarted = False
+        try:
+            while nxt < stop:
+                item = next(gen, None)
+                if item is None:
+                    break
+                i, cap = item
+                if i > nxt and not restarted:  # the seek overshot: read from the beginning
+                    gen.close()
+                    gen, restarted = run(False), True
+                    continue
+                if i < nxt:
+                    continue
+                if i > nxt:
+                    raise ValueError(f"{self.path}: frame {nxt} was not found when reading the file again")
+                yield self._decode_pyk4a(i, cap)
+                nxt += 1
+        finally:
+            gen.close()
+        if nxt < stop:
+            raise ValueError(f"{self.path}: the file ended before frame {nxt}")
+
+    def _decode_pyk4a(self, index: int, cap):
+        what = f"{self.path}: frame {index} (t={int(self.timestamps_us[index])} us)"
+        depth = np.asarray(cap.depth)
+        w, h = self.depth_size
+        if depth.shape != (h, w):
+            raise ValueError(f"{what}: depth image is {depth.shape}, expected ({h}, {w})")
+        raw = np.ascontiguousarray(np.asarray(cap.color, dtype=np.uint8))
+        color = _decode_color(raw.tobytes(), self.color_size, self.color_format, what)
+        return index, int(self.timestamps_us[index]), color, depth.astype(np.uint16, copy=False)
+
+
+def _chain(first, rest):
+    yield from first
+    yield from rest
+
+
+# --------------------------------------------------------------------------------------------
+# Undistortion
+# --------------------------------------------------------------------------------------------
+
+class Undistorter:
+    """Removes lens distortion from colour and depth images, keeping each camera matrix K.
+
+    The remap tables are computed once (``cv2.initUndistortRectifyMap`` with R = I and
+    newK = K): output pixel (u, v) of the pinhole image samples the input image where the
+    distorted camera sees the same ray. Colour is interpolated bilinearly; depth uses
+    nearest-neighbour so that no depth value is invented by mixing a foreground and a background
+    sample or a valid value with 0 (invalid). Depth values (z along the optical axis) need no
+    change, since undistortion only moves where a ray is imaged. Output pixels whose source falls
+    outside the input image are 0 (black / invalid depth).
+
+    Args:
+        calibration: a ``Calibration`` with distortion coefficients.
+
+    Attributes:
+        calibration: the same calibration with zero distortion (use it with the undistorted
+            images).
+    """
+
+    def __init__(self, calibration: Calibration):
+        self.source = calibration
+        self._maps = {}
+        for name in ("color", "depth"):
+            cam: Intrinsics = getattr(calibration, name)
+            if np.any(cam.distortion != 0):
+                m1, m2 = cv2.initUndistortRectifyMap(cam.K, cam.distortion, np.eye(3), cam.K,
+                                                     (cam.width, cam.height), cv2.CV_32FC1)
+                self._maps[name] = (m1, m2)
+        self.calibration = Calibration(
+            color=Intrinsics(calibration.color.K, calibration.color.width, calibration.color.height),
+            depth=Intrinsics(calibration.depth.K, calibration.depth.width, calibration.depth.height),
+            depth_to_color=calibration.depth_to_color,
+        )
+
+    def undistort_color(self, color: np.ndarray) -> np.ndarray:
+        """(Hc, Wc, C) or (Hc, Wc) image (any dtype OpenCV remaps) -> same shape and dtype."""
+        cam = self.source.color
+        _check_shape(color, cam, "colour")
+        if "color" not in self._maps:
+            return color
+        m1, m2 = self._maps["color"]
+        return cv2.remap(color, m1, m2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def undistort_depth(self, depth: np.ndarray) -> np.ndarray:
+        """(Hd, Wd) uint16 mm -> (Hd, Wd) uint16 mm, nearest-neighbour, 0 outside."""
+        cam = self.source.depth
+        _check_shape(depth, cam, "depth")
+        if "depth" not in self._maps:
+            return depth
+        m1, m2 = self._maps["depth"]
+        return cv2.remap(depth, m1, m2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def __call__(self, color: np.ndarray | None, depth: np.ndarray | None):
+        """Undistort one capture; returns ``(color, depth)`` (either may be None to skip it)."""
+        return (None if color is None else self.undistort_color(color),
+                None if depth is None else self.undistort_depth(depth))
+
+
+def _check_shape(img: np.ndarray, cam: Intrinsics, what: str) -> None:
+    if img.shape[:2] != (cam.height, cam.width):
+        raise ValueError(f"{what} image is {img.shape[1]}x{img.shape[0]} but the calibration is for "
+                         f"{cam.width}x{cam.height}")
+
+
+def undistort_frame(color: np.ndarray, depth: np.ndarray, calibration: Calibration):
+    """Undistort one capture; returns ``(color, depth, calibration_without_distortion)``.
+
+    Builds the remap tables on every call; for a sequence create one :class:`Undistorter`.
+    """
+    u = Undistorter(calibration)
+    c, d = u(color, depth)
+    return c, d, u.calibration

@@ -1,0 +1,117 @@
+"""Mesh files: OBJ (keeping texture coordinates indexed per corner), OFF, PLY, glTF/GLB.
+
+Returns plain arrays in stex conventions (texcoords v downward: OBJ's upward v is flipped here,
+at import, and nowhere else).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh.
+
+    vertices (V, 3) float64 m; faces (F, 3) int32; texcoords (Vt, 2) float64 or None;
+    texcoord_faces (F, 3) int32 or None (per-corner index into texcoords).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    texcoords: np.ndarray | None = None
+    texcoord_faces: np.ndarray | None = None
+
+
+def _read_obj(path: Path) -> Mesh:
+    verts, tcs, faces, tfaces = [], [], [], []
+    with open(path, "r", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            parts = line.split()
+            if not parts:
+                continue
+            try:
+                if parts[0] == "v":
+                    verts.append([float(x) for x in parts[1:4]])
+                elif parts[0] == "vt":
+                    tcs.append([float(parts[1]), float(parts[2]) if len(parts) > 2 else 0.0])
+                elif parts[0] == "f":
+                    corners = [p.split("/") for p in parts[1:]]
+                    vi = [int(c[0]) for c in corners]
+                    ti = [int(c[1]) if len(c) > 1 and c[1] else 0 for c in corners]
+                    for k in range(1, len(vi) - 1):  # fan-triangulate polygons
+                        faces.append([vi[0], vi[k], vi[k + 1]])
+                        tfaces.append([ti[0], ti[k], ti[k + 1]])
+            except (ValueError, IndexError) as exc:
+                raise ValueError(f"{path}:{lineno}: cannot parse OBJ line {line.strip()!r}") from exc
+    if not verts or not faces:
+        raise ValueError(f"{path}: OBJ has no vertices or no faces")
+    V = np.asarray(verts, np.float64)
+    F = np.asarray(faces, np.int64)
+    F = np.where(F < 0, F + len(V) + 1, F) - 1  # OBJ indices are 1-based, negatives relative
+    if F.min() < 0 or F.max() >= len(V):
+        raise ValueError(f"{path}: face refers to a vertex outside 1..{len(V)}")
+    tc = tf = None
+    TF = np.asarray(tfaces, np.int64)
+    if tcs and (TF != 0).all():
+        tc = np.asarray(tcs, np.float64)
+        tc[:, 1] = 1.0 - tc[:, 1]  # OBJ v points up; stex v points down
+        tf = (np.where(TF < 0, TF + len(tc) + 1, TF) - 1).astype(np.int32)
+        if tf.min() < 0 or tf.max() >= len(tc):
+            raise ValueError(f"{path}: face refers to a texcoord outside 1..{len(tc)}")
+    return Mesh(V, F.astype(np.int32), tc, tf)
+
+
+def load_mesh(path: str | Path) -> Mesh:
+    """Load a triangle mesh from OBJ, OFF, PLY, STL, glTF or GLB, keeping vertex order."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".obj":
+        mesh = _read_obj(path)
+    elif suffix in (".gltf", ".glb"):
+        from stex.synth.gltf import load_skinned_gltf
+        sk = load_skinned_gltf(path)
+        mesh = Mesh(np.asarray(sk.vertices, np.float64), np.asarray(sk.faces, np.int32),
+                    np.asarray(sk.texcoords, np.float64), np.asarray(sk.texcoord_faces, np.int32))
+    else:
+        import trimesh
+        try:
+            tm = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+        except Exception as exc:
+            raise ValueError(f"{path}: cannot read mesh ({exc})") from exc
+        if len(tm.faces) == 0:
+            raise ValueError(f"{path}: mesh has no faces")
+        mesh = Mesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int32))
+    if not np.isfinite(mesh.vertices).all():
+        bad = int(np.flatnonzero(~np.isfinite(mesh.vertices).all(1))[0])
+        raise ValueError(f"{path}: vertex {bad} is not finite")
+    return mesh
+
+
+def check_same_topology(reference_faces: np.ndarray, mesh: Mesh, where: str) -> None:
+    """Raise ValueError naming ``where`` if ``mesh`` does not have exactly the reference faces."""
+    if mesh.faces.shape != reference_faces.shape or not np.array_equal(mesh.faces, reference_faces):
+        raise ValueError(
+            f"{where}: mesh topology differs from the template "
+            f"({len(mesh.faces)} faces / {len(mesh.vertices)} vertices vs {len(reference_faces)} faces)")
+
+
+def write_obj(path: str | Path, mesh: Mesh, mtl: str | None = None) -> None:
+    """Write an OBJ (texcoords flipped back to OBJ's upward v)."""
+    with open(path, "w") as fh:
+        if mtl:
+            fh.write(f"mtllib {mtl}\nusemtl material0\n")
+        np.savetxt(fh, mesh.vertices, fmt="v %.6f %.6f %.6f")
+        if mesh.texcoords is not None:
+            tc = mesh.texcoords.copy()
+            tc[:, 1] = 1.0 - tc[:, 1]
+            np.savetxt(fh, tc, fmt="vt %.6f %.6f")
+            f = np.stack([mesh.faces + 1, mesh.texcoord_faces + 1], -1).reshape(-1, 6)
+            np.savetxt(fh, f, fmt="f %d/%d %d/%d %d/%d")
+        else:
+            np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")

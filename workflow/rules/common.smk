@@ -1,0 +1,27 @@
+# Paths, frame blocks and parameter sections shared by the rules.
+from stex.ingest import count_frames, frame_blocks
+
+RESULTS = f"{config['results']}/{config['scene']}"
+SOURCE = config["source"]
+SYNTHETIC = SOURCE["kind"] == "synthetic"
+BLOCKS = frame_blocks(count_frames(SOURCE), config["frame_block"])
+BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
+ENV = "../../envs/stex.yaml"
+
+
+wildcard_constraints:
+    block=r"\d{4}",
+
+
+def block_range(wildcards):
+    """[start, stop) frame positions of a frame block."""
+    return list(BLOCKS[int(wildcards.block)])
+
+
+def all_outputs():
+    out = [f"{RESULTS}/scene.zarr", f"{RESULTS}/previews/masks.png"]
+    out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
+    out += expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS)
+    if SYNTHETIC:
+        out += expand(f"{RESULTS}/truth/block_{{block}}.zarr", block=BLOCK_IDS)
+    return out

@@ -1,0 +1,47 @@
+# Ingest: the source (synthetic scene, folder dataset or Azure Kinect .mkv) into zarr stores.
+
+
+rule ingest_scene:
+    output:
+        directory(f"{RESULTS}/scene.zarr"),
+    params:
+        source=SOURCE,
+        frame_block=config["frame_block"],
+    log:
+        f"{RESULTS}/logs/ingest_scene.log",
+    conda:
+        ENV
+    script:
+        "../scripts/ingest_scene.py"
+
+
+if SYNTHETIC:
+
+    rule ingest_block:
+        output:
+            frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
+            truth=directory(f"{RESULTS}/truth/block_{{block}}.zarr"),
+        params:
+            source=SOURCE,
+            frames=block_range,
+        log:
+            f"{RESULTS}/logs/ingest_block_{{block}}.log",
+        conda:
+            ENV
+        script:
+            "../scripts/ingest_block.py"
+
+else:
+
+    rule ingest_block:
+        output:
+            frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
+        params:
+            source=SOURCE,
+            frames=block_range,
+        log:
+            f"{RESULTS}/logs/ingest_block_{{block}}.log",
+        conda:
+            ENV
+        script:
+            "../scripts/ingest_block.py"

@@ -1,0 +1,36 @@
+# Masks: GrabCut at colour resolution seeded from depth, one job per frame block.
+
+
+rule masks:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        frames=f"{RESULTS}/frames/block_{{block}}.zarr",
+    output:
+        directory(f"{RESULTS}/masks/block_{{block}}.zarr"),
+    params:
+        masks=config["masks"],
+    log:
+        f"{RESULTS}/logs/masks_{{block}}.log",
+    conda:
+        ENV
+    script:
+        "../scripts/masks.py"
+
+
+rule masks_preview:
+    input:
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
+        truth=expand(f"{RESULTS}/truth/block_{{block}}.zarr", block=BLOCK_IDS) if SYNTHETIC else [],
+    output:
+        report(
+            f"{RESULTS}/previews/masks.png",
+            caption="../report/masks.rst",
+            category="Masks",
+        ),
+    log:
+        f"{RESULTS}/logs/masks_preview.log",
+    conda:
+        ENV
+    script:
+        "../scripts/masks_preview.py"

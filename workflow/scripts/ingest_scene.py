@@ -1,0 +1,6 @@
+"""Thin adapter: rule ingest_scene -> stex.ingest.write_scene."""
+from stex.ingest import write_scene
+from stex.logs import setup_logging
+
+setup_logging(snakemake.log[0])
+write_scene(snakemake.params.source, snakemake.params.frame_block, snakemake.output[0])

@@ -1,0 +1,7 @@
+"""Thin adapter: rule masks_preview -> stex.masks.preview_masks."""
+from stex.logs import setup_logging
+from stex.masks import preview_masks
+
+setup_logging(snakemake.log[0])
+preview_masks(list(snakemake.input.frames), list(snakemake.input.masks),
+              list(snakemake.input.truth) or None, snakemake.output[0])
