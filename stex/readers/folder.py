@@ -8,7 +8,8 @@ Authors' layout (``layout: authors``), as their ``TextureMappingNonRigid`` reads
     <root>/stream/color/Frame_%06d.png    8-bit colour (BGR/BGRA on disk)
     <root>/stream/depth/Frame_%06d.png    16-bit depth, millimetres
     <root>/stream/mask/Frame_%06d.png     optional, colour resolution, foreground >= 1
-    <root>/mesh/Frame_%03d.{off,obj,ply}  optional per-frame meshes, RELATIVE index 0..T-1
+    <root>/mesh/Frame_%03d.{off,obj,ply}  optional per-frame meshes, RELATIVE index: Frame_000 is
+                                          frame start_idx (else the first colour frame on disk)
 
 stex layout (``layout: stex``), see docs/datasets.md::
 
@@ -54,6 +55,7 @@ class FolderDataset:
             raise ValueError(f"unknown folder layout {layout!r} (authors | stex)")
         self.layout = layout
         self.template_hint: str | None = None
+        self._mesh_base: int | None = None  # authors: frame id of mesh/Frame_000 (conf.json start_idx)
         if layout == "authors":
             self.calibration = self._authors_calibration()
             self._color_dir, self._depth_dir, self._mask_dir = (self.root / "stream" / d for d in ("color", "depth", "mask"))
@@ -85,7 +87,13 @@ class FolderDataset:
         self._color_files = color_ids
         self._depth_files = depth_ids
         self._mask_files = self._ids(self._mask_dir) if self._mask_dir.is_dir() else {}
-        self.has_masks = bool(self._mask_files) and all(i in self._mask_files for i in ids)
+        with_mask = [i for i in ids if i in self._mask_files]
+        if with_mask and len(with_mask) != len(ids):
+            raise ValueError(f"{self._mask_dir}: masks missing for frame(s) {[i for i in ids if i not in self._mask_files][:10]} "
+                             "(give a mask for every frame or none)")
+        self.has_masks = bool(with_mask)
+        if layout == "authors" and self._mesh_base is None:
+            self._mesh_base = min(color_ids)
 
     def _ids(self, folder: Path) -> dict[int, Path]:
         if not folder.is_dir():
@@ -111,10 +119,18 @@ class FolderDataset:
             if ext.size != 12:
                 raise ValueError(f"d_c_extrinsic needs 12 numbers (3x4 row-major), got {ext.size}")
             T = np.vstack([ext.reshape(3, 4), [0, 0, 0, 1]])
+            R = T[:3, :3]
+            if not (np.isfinite(T).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
+                raise ValueError("d_c_extrinsic's left 3x3 block is not a rotation matrix")
             # The authors' extrinsic is rounded to 8 digits; re-orthonormalise the rotation.
-            u, _, vt = np.linalg.svd(T[:3, :3])
+            u, _, vt = np.linalg.svd(R)
             T[:3, :3] = u @ vt
-            self.template_hint = case.get("main", {}).get("tex_mesh_path")
+            main = case.get("main", {})
+            self.template_hint = main.get("tex_mesh_path")
+            if main.get("start_idx") is not None:
+                if int(main["start_idx"]) != main["start_idx"] or main["start_idx"] < 0:
+                    raise ValueError(f"main.start_idx must be a non-negative integer, got {main['start_idx']!r}")
+                self._mesh_base = int(main["start_idx"])
             return Calibration(color, depth, T)
         except StopIteration:
             raise ValueError(f"{path}: no case with a 'mapper4D' section") from None
@@ -133,7 +149,7 @@ class FolderDataset:
     def color(self, frame_id: int) -> np.ndarray:
         """(Hc, Wc, 3) uint8 RGB of ``frame_id``."""
         path = self._color_files[frame_id]
-        img = self._read(path, cv2.IMREAD_COLOR)
+        img = self._read(path, cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)  # ANYDEPTH: refuse 16-bit, don't rescale
         if img.dtype != np.uint8:
             raise ValueError(f"{path}: colour must be 8-bit, got {img.dtype}")
         c = self.calibration.color
@@ -157,7 +173,9 @@ class FolderDataset:
         path = self._mask_files.get(frame_id)
         if path is None:
             raise FileNotFoundError(f"{self._mask_dir}: no mask for frame {frame_id}")
-        img = self._read(path, cv2.IMREAD_GRAYSCALE)
+        img = self._read(path, cv2.IMREAD_UNCHANGED)  # not GRAYSCALE: it rescales 16-bit and weights colours
+        if img.ndim == 3:
+            img = img[..., :3].max(axis=2)  # any colour channel >= 1 (alpha ignored)
         c = self.calibration.color
         if img.shape != (c.height, c.width):
             raise ValueError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, must match the colour size {c.width}x{c.height}")
@@ -166,7 +184,12 @@ class FolderDataset:
     def mesh_path(self, frame_id: int) -> Path | None:
         """The given mesh file of ``frame_id``, or None."""
         if self.layout == "authors":
-            stem, base = f"Frame_{frame_id - self.frame_ids[0]:03d}", self.root / "mesh"
+            # Relative index: mesh/Frame_000 belongs to conf.json's start_idx (else the first
+            # colour frame on disk), whatever source.folder.start selects.
+            rel = frame_id - self._mesh_base
+            if rel < 0:
+                return None
+            stem, base = f"Frame_{rel:03d}", self.root / "mesh"
         else:
             stem, base = f"{frame_id:06d}", self.root / "meshes"
         for ext in _MESH_EXT:

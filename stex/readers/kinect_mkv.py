@@ -477,6 +477,7 @@ class KinectRecording:
         timestamps_us: (n_frames,) int64 device timestamps of the captures' depth images, µs.
         color_timestamps_us: (n_frames,) int64 device timestamps of the colour images, µs.
         start_offset_us: device time of the file's time 0 (``K4A_START_OFFSET_NS`` / 1000).
+        frame_period_us: median spacing of the depth images (pairing tolerance is half of it).
         n_unpaired_color, n_unpaired_depth: images that found no partner (skipped).
         metadata: container-level tags (dict of str).
     """

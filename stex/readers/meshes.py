@@ -35,7 +35,7 @@ def _read_obj(path: Path) -> Mesh:
                 continue
             try:
                 if parts[0] == "v":
-                    verts.append([float(x) for x in parts[1:4]])
+                    verts.append([float(parts[1]), float(parts[2]), float(parts[3])])
                 elif parts[0] == "vt":
                     tcs.append([float(parts[1]), float(parts[2]) if len(parts) > 2 else 0.0])
                 elif parts[0] == "f":

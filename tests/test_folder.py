@@ -1,0 +1,572 @@
+"""Folder datasets (stex.readers.folder) in the authors' layout and in stex's layout, and their ingest.
+
+Small datasets are written to disk from the synthetic scene generator (realistic colour, depth,
+masks and deforming meshes with a texture atlas), read back, ingested, and compared with what
+was written. Bad inputs must fail with a message naming the file or frame.
+"""
+
+import json
+import re
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from stex.config import load_config
+from stex.ingest import FolderSource, write_frames_block, write_scene
+from stex.io import open_store
+from stex.readers.folder import FolderDataset
+from stex.readers.meshes import load_mesh
+from stex.synth.scene import SyntheticScene
+
+SYN = {
+    "n_frames": 4,
+    "color": {"width": 160, "height": 120, "fx": 140.0},
+    "depth": {"width": 80, "height": 72, "fx": 63.0},
+    "procedural": {"n_around": 24, "n_rings": 12},
+    "texture_size": 64,
+}
+N = SYN["n_frames"]
+FIRST = 7  # absolute index of the first frame on disk (datasets rarely start at 0)
+IDS = list(range(FIRST, FIRST + N))
+
+
+# -- the synthetic content ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def synth():
+    cfg = load_config(overrides={"source": {"synthetic": SYN}})["source"]["synthetic"]
+    scene = SyntheticScene(cfg)
+    renders = [scene.render_frame(i) for i in range(N)]
+    return SimpleNamespace(
+        cal=scene.calibration,
+        faces=scene.faces, texcoords=scene.texcoords, texcoord_faces=scene.texcoord_faces,
+        color=[r.color for r in renders], depth=[r.depth_mm for r in renders],
+        mask=[r.true_mask for r in renders], verts=[scene.given_vertices(i) for i in range(N)],
+    )
+
+
+def _write_obj(path: Path, V, F, tc=None, tf=None) -> None:
+    """A plain OBJ written here (not with stex's writer): full precision, OBJ's v pointing up."""
+    lines = ["# test mesh"] + [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(V).tolist()]
+    if tc is not None:
+        lines += [f"vt {u!r} {1.0 - v!r}" for u, v in np.asarray(tc).tolist()]
+        lines += ["f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(f, t))
+                  for f, t in zip(np.asarray(F).tolist(), np.asarray(tf).tolist())]
+    else:
+        lines += ["f " + " ".join(str(a + 1) for a in f) for f in np.asarray(F).tolist()]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _write_off(path: Path, V, F) -> None:
+    trimesh.Trimesh(np.asarray(V), np.asarray(F), process=False).export(path)
+
+
+def _intr(cam) -> dict:
+    return {k: v for k, v in cam.to_dict().items() if k != "distortion"}
+
+
+def _conf(s, tex_mesh_path="tex_mesh.obj", **mapper) -> dict:
+    m = {
+        "layer_number": 4,
+        "color_intrinsic": _intr(s.cal.color),
+        "depth_intrinsic": _intr(s.cal.depth),
+        # 3x4 row-major, rounded to 8 digits as in the authors' files
+        "d_c_extrinsic": [round(x, 8) for x in s.cal.depth_to_color[:3].ravel().tolist()],
+    }
+    m.update(mapper)
+    main = {"start_idx": FIRST, "end_idx": FIRST + N - 1, "data_root_path": "./", "is_viewer": False}
+    if tex_mesh_path:
+        main["tex_mesh_path"] = tex_mesh_path
+    # a first case without cameras: the reader takes the case that has a mapper4D section
+    return {"case_other": {"main": {"start_idx": 0}}, "case_test": {"main": main, "mapper4D": m}}
+
+
+def make_authors(root: Path, s, masks=True, meshes=True, template=True) -> Path:
+    (root / "stream" / "color").mkdir(parents=True)
+    (root / "stream" / "depth").mkdir()
+    (root / "conf.json").write_text(json.dumps(_conf(s, "tex_mesh.obj" if template else None), indent=1))
+    if masks:
+        (root / "stream" / "mask").mkdir()
+    if meshes:
+        (root / "mesh").mkdir()
+    for k, fid in enumerate(IDS):
+        bgr = s.color[k][..., ::-1]
+        if k == 1:  # BGRA on disk is fine too
+            bgr = np.dstack([bgr, np.full(bgr.shape[:2], 255, np.uint8)])
+        assert cv2.imwrite(str(root / "stream" / "color" / f"Frame_{fid:06d}.png"), bgr)
+        assert cv2.imwrite(str(root / "stream" / "depth" / f"Frame_{fid:06d}.png"), s.depth[k])
+        if masks:  # foreground >= 1: frame 2 uses 1, the others 255
+            m = s.mask[k].astype(np.uint8) * (1 if k == 2 else 255)
+            assert cv2.imwrite(str(root / "stream" / "mask" / f"Frame_{fid:06d}.png"), m)
+        if meshes:  # RELATIVE 3-digit index
+            _write_off(root / "mesh" / f"Frame_{k:03d}.off", s.verts[k], s.faces)
+    if template:
+        _write_obj(root / "tex_mesh.obj", s.verts[0], s.faces, s.texcoords, s.texcoord_faces)
+    return root
+
+
+def make_stex(root: Path, s, masks=True, meshes=True, template=True) -> Path:
+    for d in ("color", "depth") + (("mask",) if masks else ()) + (("meshes",) if meshes else ()):
+        (root / d).mkdir(parents=True)
+    (root / "calibration.json").write_text(json.dumps(s.cal.to_dict(), indent=1))
+    for k, fid in enumerate(IDS):
+        assert cv2.imwrite(str(root / "color" / f"{fid:06d}.png"), s.color[k][..., ::-1])  # RGB image file
+        assert cv2.imwrite(str(root / "depth" / f"{fid:06d}.png"), s.depth[k])
+        if masks:
+            assert cv2.imwrite(str(root / "mask" / f"{fid:06d}.png"), s.mask[k].astype(np.uint8) * 255)
+        if meshes:  # absolute 6-digit index
+            _write_obj(root / "meshes" / f"{fid:06d}.obj", s.verts[k], s.faces)
+    if template:
+        _write_obj(root / "template.obj", s.verts[0], s.faces, s.texcoords, s.texcoord_faces)
+    return root
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory, synth):
+    base = tmp_path_factory.mktemp("datasets")
+    return {"authors": make_authors(base / "authors", synth), "stex": make_stex(base / "stex", synth)}
+
+
+@pytest.fixture
+def authors(tmp_path, datasets) -> Path:
+    """A private copy of the authors'-layout dataset, free to damage."""
+    return Path(shutil.copytree(datasets["authors"], tmp_path / "ds"))
+
+
+@pytest.fixture
+def stex_ds(tmp_path, datasets) -> Path:
+    return Path(shutil.copytree(datasets["stex"], tmp_path / "ds"))
+
+
+def folder_cfg(root, layout="authors", **kw) -> dict:
+    return load_config(overrides={"source": {"kind": "folder",
+                                             "folder": {"path": str(root), "layout": layout, **kw}}})["source"]
+
+
+def _check_calibration(cal, s, atol):
+    for name in ("color", "depth"):
+        a, b = getattr(cal, name), getattr(s.cal, name)
+        assert (a.width, a.height) == (b.width, b.height)
+        np.testing.assert_allclose(a.K, b.K, atol=atol)
+        assert not a.distortion.any()
+    np.testing.assert_allclose(cal.depth_to_color, s.cal.depth_to_color, atol=atol)
+    R = cal.depth_to_color[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+# -- reading ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_reader_returns_what_was_written(datasets, synth, layout):
+    s = synth
+    ds = FolderDataset(datasets[layout], layout)
+    assert ds.frame_ids == IDS and len(ds) == N and ds.has_masks
+    _check_calibration(ds.calibration, s, 1e-6 if layout == "authors" else 0)
+    for k, fid in enumerate(IDS):
+        c = ds.color(fid)
+        assert c.dtype == np.uint8 and c.shape == (120, 160, 3)
+        np.testing.assert_array_equal(c, s.color[k])  # RGB order, not the BGR on disk
+        assert (s.color[k][..., 0] != s.color[k][..., 2]).any()
+        d = ds.depth(fid)
+        assert d.dtype == np.uint16
+        np.testing.assert_array_equal(d, s.depth[k])
+        m = ds.mask(fid)
+        assert m.dtype == bool
+        np.testing.assert_array_equal(m, s.mask[k])
+        mesh = ds.load_given_mesh(fid)
+        assert mesh is not None
+        np.testing.assert_allclose(mesh.vertices, s.verts[k], atol=1e-6)
+        np.testing.assert_array_equal(mesh.faces, s.faces)
+    expected = f"Frame_{N - 1:03d}.off" if layout == "authors" else f"{IDS[-1]:06d}.obj"
+    assert ds.mesh_path(IDS[-1]).name == expected
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_template_obj_texcoords_are_flipped_at_import(datasets, synth, layout):
+    s = synth
+    src = FolderSource(folder_cfg(datasets[layout], layout)["folder"])
+    path = src.ds.template_path()
+    assert path.name == ("tex_mesh.obj" if layout == "authors" else "template.obj")
+    t = src.template()
+    np.testing.assert_allclose(t.vertices, s.verts[0], atol=1e-6)
+    np.testing.assert_array_equal(t.faces, s.faces)
+    np.testing.assert_array_equal(t.texcoord_faces, s.texcoord_faces)
+    np.testing.assert_allclose(t.texcoords, s.texcoords, atol=1e-12)  # stex: v down
+    raw_vt = np.array([[float(x) for x in ln.split()[1:3]] for ln in path.read_text().splitlines()
+                       if ln.startswith("vt ")])
+    np.testing.assert_allclose(t.texcoords[:, 1], 1.0 - raw_vt[:, 1], atol=1e-12)  # OBJ: v up
+    assert np.abs(raw_vt[:, 1] - t.texcoords[:, 1]).max() > 0.1
+
+
+def test_authors_default_template_is_first_mesh_off(tmp_path, synth):
+    s = synth
+    root = make_authors(tmp_path / "ds", s, template=False)
+    src = FolderSource(folder_cfg(root)["folder"])
+    assert src.ds.template_path() == root / "mesh" / "Frame_000.off"
+    t = src.template()
+    np.testing.assert_allclose(t.vertices, s.verts[0], atol=1e-6)
+    np.testing.assert_array_equal(t.faces, s.faces)
+    assert t.texcoords is None and t.texcoord_faces is None
+    # an explicit template (relative to the root) wins
+    _write_obj(root / "other.obj", s.verts[1], s.faces, s.texcoords, s.texcoord_faces)
+    src = FolderSource(folder_cfg(root, template="other.obj")["folder"])
+    np.testing.assert_allclose(src.template().vertices, s.verts[1], atol=1e-6)
+    with pytest.raises(FileNotFoundError, match="template mesh not found: .*nope.obj"):
+        FolderSource(folder_cfg(root, template="nope.obj")["folder"]).template()
+
+
+def test_start_stop_select_frames_and_authors_mesh_index_stays_relative_to_start_idx(datasets, synth):
+    s = synth
+    ds = FolderDataset(datasets["authors"], "authors", start=FIRST + 2)
+    assert ds.frame_ids == IDS[2:]
+    # Frame_000 belongs to conf.json's start_idx, not to the first frame read
+    assert ds.mesh_path(FIRST + 2).name == "Frame_002.off"
+    np.testing.assert_allclose(ds.load_given_mesh(FIRST + 2).vertices, s.verts[2], atol=1e-6)
+    src = FolderSource(folder_cfg(datasets["authors"], start=FIRST + 1, stop=FIRST + 3)["folder"])
+    assert src.frame_ids == IDS[1:3]
+    np.testing.assert_allclose(src.given_vertices(0), s.verts[1], atol=1e-6)
+    np.testing.assert_array_equal(next(iter(src.frames(1, 2)))[1], s.color[2])
+    ds = FolderDataset(datasets["stex"], "stex", start=FIRST + 1, stop=FIRST + 2)
+    assert ds.frame_ids == [FIRST + 1]
+    with pytest.raises(ValueError, match=r"no colour frames in \[100, None\)"):
+        FolderDataset(datasets["stex"], "stex", start=100)
+
+
+def test_without_masks_meshes_or_template(tmp_path, synth):
+    root = make_stex(tmp_path / "ds", synth, masks=False, meshes=False, template=False)
+    src = FolderSource(folder_cfg(root, "stex")["folder"])
+    assert not src.ds.has_masks
+    assert src.template() is None and src.given_vertices(0) is None
+    pos, c, d, m, ts, extra = next(iter(src.frames(0, 1)))
+    assert pos == 0 and m is None
+    np.testing.assert_array_equal(c, synth.color[0])
+
+
+# -- ingest -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_ingest_stores_equal_the_files(tmp_path, datasets, synth, layout):
+    s = synth
+    cfg = folder_cfg(datasets[layout], layout)
+    write_scene(cfg, 3, tmp_path / "scene.zarr")
+    g = open_store(tmp_path / "scene.zarr", "scene")
+    assert g.attrs["frame_ids"] == IDS
+    assert g.attrs["frame_blocks"] == [[0, 3], [3, 4]]
+    assert g.attrs["source"]["kind"] == "folder" and g.attrs["source"]["layout"] == layout
+    assert g.attrs["has_template"] is True
+    cal = g.attrs["calibration"]
+    np.testing.assert_allclose(cal["depth_to_color"], s.cal.depth_to_color, atol=1e-6)
+    assert cal["color"]["fx"] == pytest.approx(s.cal.color.fx) and cal["depth"]["width"] == 80
+    np.testing.assert_allclose(g["template/vertices"][:], s.verts[0], atol=1e-6)
+    np.testing.assert_array_equal(g["template/faces"][:], s.faces)
+    np.testing.assert_allclose(g["template/texcoords"][:], s.texcoords, atol=1e-6)
+    np.testing.assert_array_equal(g["template/texcoord_faces"][:], s.texcoord_faces)
+    np.testing.assert_allclose(g["given/vertices"][:], np.stack(s.verts), atol=1e-6)
+    assert "truth/vertices" not in g
+
+    for b, (start, stop) in enumerate(g.attrs["frame_blocks"]):
+        out = tmp_path / "frames" / f"block_{b:04d}.zarr"
+        write_frames_block(cfg, start, stop, out)
+        f = open_store(out, "frames")
+        assert f.attrs["frame_ids"] == IDS[start:stop]
+        np.testing.assert_array_equal(f["color"][:], np.stack(s.color[start:stop]))
+        np.testing.assert_array_equal(f["depth"][:], np.stack(s.depth[start:stop]))
+        np.testing.assert_array_equal(f["mask"][:], np.stack(s.mask[start:stop]))
+        assert f["timestamps"].shape == (stop - start,) and np.isfinite(f["timestamps"][:]).all()
+
+
+def test_folder_source_needs_a_path():
+    cfg = load_config(overrides={"source": {"kind": "folder"}})["source"]
+    with pytest.raises(ValueError, match="source.folder.path"):
+        FolderSource(cfg["folder"])
+
+
+# -- bad input ----------------------------------------------------------------------------------
+
+def _set_mapper(root: Path, **changes):
+    conf = json.loads((root / "conf.json").read_text())
+    conf["case_test"]["mapper4D"].update(changes)
+    (root / "conf.json").write_text(json.dumps(conf))
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"dataset folder not found: .*nope"):
+        FolderDataset(tmp_path / "nope")
+    with pytest.raises(FileNotFoundError, match="dataset folder not found"):
+        write_scene(folder_cfg(tmp_path / "nope"), 2, tmp_path / "scene.zarr")
+    assert not (tmp_path / "scene.zarr").exists()
+
+
+def test_missing_conf_json(authors):
+    (authors / "conf.json").unlink()
+    with pytest.raises(FileNotFoundError, match=r"conf\.json: missing"):
+        FolderDataset(authors)
+
+
+def test_conf_json_without_mapper4d(authors):
+    conf = json.loads((authors / "conf.json").read_text())
+    del conf["case_test"]["mapper4D"]
+    (authors / "conf.json").write_text(json.dumps(conf))
+    with pytest.raises(ValueError, match=r"conf\.json: no case with a 'mapper4D' section"):
+        FolderDataset(authors)
+
+
+def test_conf_json_not_json(authors):
+    (authors / "conf.json").write_text("{ not json")
+    with pytest.raises(ValueError, match=r"conf\.json: invalid camera settings"):
+        FolderDataset(authors)
+
+
+def test_conf_json_missing_intrinsic_key(authors, synth):
+    bad = _intr(synth.cal.color)
+    del bad["fy"]
+    _set_mapper(authors, color_intrinsic=bad)
+    with pytest.raises(ValueError, match=r"conf\.json: invalid camera settings.*fy"):
+        FolderDataset(authors)
+
+
+def test_extrinsic_with_11_numbers(authors, synth):
+    _set_mapper(authors, d_c_extrinsic=synth.cal.depth_to_color[:3].ravel().tolist()[:11])
+    with pytest.raises(ValueError, match=r"conf\.json: .*d_c_extrinsic needs 12 numbers.*got 11"):
+        FolderDataset(authors)
+
+
+def test_authors_extrinsic_that_is_no_rotation(authors, synth):
+    T = synth.cal.depth_to_color[:3].copy()
+    T[:3, :3] *= 2.0  # would silently become a rotation if only re-orthonormalised
+    _set_mapper(authors, d_c_extrinsic=T.ravel().tolist())
+    with pytest.raises(ValueError, match=r"conf\.json: .*not a rotation"):
+        FolderDataset(authors)
+    T[:3, :3] = -synth.cal.depth_to_color[:3, :3]  # reflection
+    _set_mapper(authors, d_c_extrinsic=T.ravel().tolist())
+    with pytest.raises(ValueError, match=r"conf\.json: .*not a rotation"):
+        FolderDataset(authors)
+
+
+def test_missing_depth_frame(authors):
+    (authors / "stream" / "depth" / f"Frame_{FIRST + 2:06d}.png").unlink()
+    with pytest.raises(ValueError, match=rf"depth: depth missing for frame\(s\) \[{FIRST + 2}\]"):
+        FolderDataset(authors)
+
+
+def test_missing_colour_folder(authors):
+    shutil.rmtree(authors / "stream" / "color")
+    with pytest.raises(FileNotFoundError, match="color: colour folder missing"):
+        FolderDataset(authors)
+
+
+def test_non_consecutive_frames(authors):
+    for d in ("color", "depth", "mask"):
+        (authors / "stream" / d / f"Frame_{FIRST + 2:06d}.png").unlink()
+    with pytest.raises(ValueError, match=rf"not consecutive .*\[{FIRST + 3}\]"):
+        FolderDataset(authors)
+
+
+def test_masks_missing_for_some_frames(authors):
+    (authors / "stream" / "mask" / f"Frame_{FIRST + 1:06d}.png").unlink()
+    with pytest.raises(ValueError, match=rf"mask: masks missing for frame\(s\) \[{FIRST + 1}\]"):
+        FolderDataset(authors)
+
+
+def _truncate(path: Path, keep: float = 0.6) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+
+
+def test_corrupt_png_fails_ingest_and_leaves_no_store(tmp_path, authors):
+    bad = authors / "stream" / "color" / f"Frame_{FIRST + 1:06d}.png"
+    _truncate(bad)
+    ds = FolderDataset(authors)  # listing works; decoding names the file
+    with pytest.raises(ValueError, match=re.escape(str(bad)) + ": cannot decode image"):
+        ds.color(FIRST + 1)
+    out = tmp_path / "frames" / "block_0000.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": cannot decode"):
+        write_frames_block(folder_cfg(authors), 0, N, out)
+    assert not out.exists() and not out.with_name(out.name + ".partial").exists()
+    write_frames_block(folder_cfg(authors), 0, 1, out)  # the frames before it are fine
+    assert open_store(out, "frames").attrs["frame_ids"] == [FIRST]
+
+
+def test_corrupt_depth_png(authors):
+    bad = authors / "stream" / "depth" / f"Frame_{FIRST:06d}.png"
+    _truncate(bad)
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": cannot decode"):
+        FolderDataset(authors).depth(FIRST)
+
+
+def test_colour_of_the_wrong_size(tmp_path, authors, synth):
+    bad = authors / "stream" / "color" / f"Frame_{FIRST + 3:06d}.png"
+    cv2.imwrite(str(bad), cv2.resize(synth.color[3], (80, 60)))
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": colour is 80x60, calibration says 160x120"):
+        FolderDataset(authors).color(FIRST + 3)
+    out = tmp_path / "f.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name)):
+        write_frames_block(folder_cfg(authors), 2, 4, out)
+    assert not out.exists() and not (tmp_path / "f.zarr.partial").exists()
+
+
+def test_8bit_depth(authors, synth):
+    bad = authors / "stream" / "depth" / f"Frame_{FIRST + 1:06d}.png"
+    cv2.imwrite(str(bad), (synth.depth[1] // 16).astype(np.uint8))
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": depth must be single-channel 16-bit.*uint8"):
+        FolderDataset(authors).depth(FIRST + 1)
+
+
+def test_16bit_colour_is_refused_not_rescaled(authors, synth):
+    bad = authors / "stream" / "color" / f"Frame_{FIRST:06d}.png"
+    cv2.imwrite(str(bad), synth.color[0][..., ::-1].astype(np.uint16) * 257)
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": colour must be 8-bit, got uint16"):
+        FolderDataset(authors).color(FIRST)
+
+
+def test_grey_colour_and_16bit_or_colour_masks(authors, synth):
+    """Grey colour images become RGB; a mask pixel is foreground if any channel is >= 1, whatever
+    the bit depth (a 16-bit mask of 0/1 must not be rescaled to 0)."""
+    grey = cv2.cvtColor(synth.color[0], cv2.COLOR_RGB2GRAY)
+    cv2.imwrite(str(authors / "stream" / "color" / f"Frame_{FIRST:06d}.png"), grey)
+    m16 = synth.mask[1].astype(np.uint16)
+    cv2.imwrite(str(authors / "stream" / "mask" / f"Frame_{FIRST + 1:06d}.png"), m16)
+    mc = np.zeros(synth.mask[3].shape + (3,), np.uint8)
+    mc[synth.mask[3]] = (1, 0, 0)  # dark blue label (BGR), grey value 0
+    cv2.imwrite(str(authors / "stream" / "mask" / f"Frame_{FIRST + 3:06d}.png"), mc)
+    ds = FolderDataset(authors)
+    np.testing.assert_array_equal(ds.color(FIRST), np.dstack([grey] * 3))
+    np.testing.assert_array_equal(ds.mask(FIRST + 1), synth.mask[1])
+    np.testing.assert_array_equal(ds.mask(FIRST + 3), synth.mask[3])
+
+
+def test_depth_of_the_wrong_size(authors, synth):
+    bad = authors / "stream" / "depth" / f"Frame_{FIRST:06d}.png"
+    cv2.imwrite(str(bad), synth.depth[0][:, :40].copy())
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": depth is 40x72, calibration says 80x72"):
+        FolderDataset(authors).depth(FIRST)
+
+
+def test_mask_of_the_wrong_size(tmp_path, authors, synth):
+    bad = authors / "stream" / "mask" / f"Frame_{FIRST + 2:06d}.png"
+    cv2.imwrite(str(bad), synth.mask[2][:60, :80].astype(np.uint8) * 255)
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": mask is 80x60, must match the colour size 160x120"):
+        FolderDataset(authors).mask(FIRST + 2)
+    out = tmp_path / "f.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name)):
+        write_frames_block(folder_cfg(authors), 0, N, out)
+    assert not out.exists() and not (tmp_path / "f.zarr.partial").exists()
+
+
+def test_empty_mask_at_ingest(tmp_path, authors):
+    bad = authors / "stream" / "mask" / f"Frame_{FIRST + 1:06d}.png"
+    cv2.imwrite(str(bad), np.zeros((120, 160), np.uint8))
+    out = tmp_path / "frames" / "block_0000.zarr"
+    with pytest.raises(ValueError, match=rf"frame {FIRST + 1}: the source's mask is empty"):
+        write_frames_block(folder_cfg(authors), 0, N, out)
+    assert not out.exists() and not out.with_name(out.name + ".partial").exists()
+    assert not any((tmp_path / "frames").iterdir())
+
+
+def test_given_mesh_with_other_topology(tmp_path, authors, synth):
+    bad = authors / "mesh" / "Frame_002.off"
+    F = synth.faces.copy()
+    F[[0, 1]] = F[[1, 0]]  # same vertices, faces reordered
+    _write_off(bad, synth.verts[2], F)
+    out = tmp_path / "scene.zarr"
+    with pytest.raises(ValueError, match=re.escape(str(bad)) + ": mesh topology differs from the template"):
+        write_scene(folder_cfg(authors), 2, out)
+    assert not out.exists() and not (tmp_path / "scene.zarr.partial").exists()
+    keep = (synth.faces < len(synth.verts[2]) - 5).all(1)
+    _write_off(bad, synth.verts[2][:-5], synth.faces[keep])  # fewer vertices and faces
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": mesh topology differs"):
+        write_scene(folder_cfg(authors), 2, out)
+
+
+def test_given_mesh_with_nan_vertices(tmp_path, authors, synth):
+    bad = authors / "mesh" / "Frame_001.off"
+    V = synth.verts[1].copy()
+    V[5, 1] = np.nan
+    _write_off(bad, V, synth.faces)
+    out = tmp_path / "scene.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": vertex 5 is not finite"):
+        write_scene(folder_cfg(authors), 2, out)
+    assert not out.exists() and not (tmp_path / "scene.zarr.partial").exists()
+
+
+def test_given_mesh_missing_for_a_later_frame(tmp_path, authors):
+    (authors / "mesh" / "Frame_003.off").unlink()
+    with pytest.raises(ValueError, match=rf"given mesh missing for frame {FIRST + 3}"):
+        write_scene(folder_cfg(authors), 2, tmp_path / "scene.zarr")
+    assert not (tmp_path / "scene.zarr").exists()
+
+
+def test_obj_face_index_out_of_range(tmp_path, stex_ds, synth):
+    bad = stex_ds / "meshes" / f"{FIRST + 1:06d}.obj"
+    F = synth.faces.copy()
+    F[3, 1] = len(synth.verts[1])  # one past the last vertex
+    _write_obj(bad, synth.verts[1], F)
+    with pytest.raises(ValueError, match=re.escape(bad.name) + r": face refers to a vertex outside 1\.\."):
+        load_mesh(bad)
+    out = tmp_path / "scene.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": face refers to a vertex outside"):
+        write_scene(folder_cfg(stex_ds, "stex"), 2, out)
+    assert not out.exists() and not (tmp_path / "scene.zarr.partial").exists()
+
+
+def test_obj_texcoord_index_out_of_range_and_bad_lines(tmp_path, synth):
+    p = tmp_path / "t.obj"
+    tf = synth.texcoord_faces.copy()
+    tf[0, 0] = len(synth.texcoords) + 3
+    _write_obj(p, synth.verts[0], synth.faces, synth.texcoords, tf)
+    with pytest.raises(ValueError, match=r"t\.obj: face refers to a texcoord outside"):
+        load_mesh(p)
+    p.write_text("v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match=r"t\.obj:2: cannot parse OBJ line 'v 1 0'"):
+        load_mesh(p)
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n")
+    with pytest.raises(ValueError, match=r"t\.obj:4: cannot parse"):
+        load_mesh(p)
+    p.write_text("v 0 0 0\n")
+    with pytest.raises(ValueError, match=r"t\.obj: OBJ has no vertices or no faces"):
+        load_mesh(p)
+    with pytest.raises(FileNotFoundError, match="mesh file not found"):
+        load_mesh(tmp_path / "absent.off")
+
+
+def test_stex_calibration_is_validated(stex_ds, synth):
+    path = stex_ds / "calibration.json"
+    good = synth.cal.to_dict()
+
+    bad = json.loads(json.dumps(good))
+    bad["color"]["fx"] = -140.0
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration.*focal"):
+        FolderDataset(stex_ds, "stex")
+
+    bad = json.loads(json.dumps(good))
+    bad["depth_to_color"][0][0] = 1.5  # scaled axis: not a rotation
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration.*not a proper rotation"):
+        FolderDataset(stex_ds, "stex")
+
+    bad = json.loads(json.dumps(good))
+    bad["depth_to_color"] = (np.diag([1.0, 1.0, -1.0, 1.0])).tolist()  # reflection
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration.*not a proper rotation"):
+        FolderDataset(stex_ds, "stex")
+
+    bad = json.loads(json.dumps(good))
+    del bad["depth"]
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration.*depth"):
+        FolderDataset(stex_ds, "stex")
+
+    path.unlink()
+    with pytest.raises(FileNotFoundError, match=r"calibration\.json: missing"):
+        FolderDataset(stex_ds, "stex")
+
+
+def test_unknown_layout(stex_ds):
+    with pytest.raises(ValueError, match="unknown folder layout 'kim'"):
+        FolderDataset(stex_ds, "kim")

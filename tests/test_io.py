@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+
+from conftest import REPO
+from stex.io import ARTIFACTS, FrameSequence, StoreError, artifacts_markdown, create_store, open_store
+
+
+def _frames(path, ids, H=4, W=5):
+    with create_store(path, "frames", attrs={"frame_ids": ids}, params={"x": 1}) as s:
+        c = s.create("color", (len(ids), H, W, 3))
+        for k, fid in enumerate(ids):
+            c[k] = fid
+        s.write("depth", np.full((len(ids), 2, 3), 1000, np.uint16))
+        s.write("timestamps", np.asarray(ids, float))
+
+
+def test_round_trip_attrs_and_chunks(tmp_path):
+    p = tmp_path / "f.zarr"
+    _frames(p, [3, 4])
+    g = open_store(p, "frames")
+    assert g.attrs["complete"] and g.attrs["frame_ids"] == [3, 4]
+    assert g.attrs["units"]["depth"] == "mm" and g.attrs["params"] == {"x": 1}
+    assert "OpenCV" in g.attrs["conventions"]
+    assert g["color"].chunks == (1, 4, 5, 3)
+    assert g["color"].dtype == np.uint8 and g["color"][1, 0, 0, 0] == 4
+
+
+def test_failed_writer_leaves_nothing(tmp_path):
+    p = tmp_path / "f.zarr"
+    with pytest.raises(RuntimeError):
+        with create_store(p, "frames") as s:
+            s.create("color", (1, 2, 2, 3))
+            raise RuntimeError("boom")
+    assert not p.exists() and not (tmp_path / "f.zarr.partial").exists()
+
+
+def test_missing_required_array_is_refused(tmp_path):
+    p = tmp_path / "f.zarr"
+    with pytest.raises(StoreError, match="required array 'depth'"):
+        with create_store(p, "frames") as s:
+            s.create("color", (1, 2, 2, 3))
+            s.write("timestamps", np.zeros(1))
+    assert not p.exists()
+
+
+def test_inconsistent_shapes_and_undeclared_arrays(tmp_path):
+    with pytest.raises(StoreError, match="T=2"):
+        with create_store(tmp_path / "a.zarr", "frames") as s:
+            s.create("color", (1, 2, 2, 3))
+            s.create("depth", (2, 2, 2))
+            s.write("timestamps", np.zeros(1))
+    with pytest.raises(StoreError, match="declares no array"):
+        with create_store(tmp_path / "b.zarr", "frames") as s:
+            s.create("data2", (1,))
+    with pytest.raises(StoreError, match="non-finite"):
+        with create_store(tmp_path / "c.zarr", "scene") as s:
+            s.write("template/vertices", np.array([[0, np.nan, 0]]))
+
+
+def test_open_refuses_wrong_kind_incomplete_and_missing(tmp_path):
+    p = tmp_path / "f.zarr"
+    _frames(p, [0])
+    with pytest.raises(StoreError, match="expected 'masks'"):
+        open_store(p, "masks")
+    with pytest.raises(StoreError, match="no such store"):
+        open_store(tmp_path / "nope.zarr", "frames")
+    import zarr
+    g = zarr.open_group(str(p), mode="r+")
+    g.attrs["complete"] = False
+    with pytest.raises(StoreError, match="incomplete"):
+        open_store(p, "frames")
+
+
+def test_frame_sequence_across_blocks(tmp_path):
+    _frames(tmp_path / "b0.zarr", [0, 1, 2])
+    _frames(tmp_path / "b1.zarr", [3, 4])
+    seq = FrameSequence([tmp_path / "b0.zarr", tmp_path / "b1.zarr"], "frames")
+    assert len(seq) == 5 and seq.frame_ids == [0, 1, 2, 3, 4]
+    assert seq.read("color", 4)[0, 0, 0] == 4
+    with pytest.raises(KeyError):
+        seq.read("color", 9)
+    _frames(tmp_path / "dup.zarr", [2])
+    with pytest.raises(StoreError, match="frame 2"):
+        FrameSequence([tmp_path / "b0.zarr", tmp_path / "dup.zarr"], "frames")
+
+
+def test_docs_page_is_generated_from_the_registry():
+    doc = (REPO / "docs" / "artifacts.md").read_text()
+    assert doc == artifacts_markdown(), "regenerate: python -m stex.io > docs/artifacts.md"
+    for name, spec in ARTIFACTS.items():
+        assert f"`{name}`" in doc
+        for aname in spec.arrays:
+            assert f"`{aname}`" in doc
