@@ -76,8 +76,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         "tracking mode). Synthetic scenes add their true per-frame geometry.",
         path="scene.zarr",
         arrays={
-            "template/vertices": ArraySpec(("V", 3), "float32", "m", "template mesh vertices, depth-camera coordinates"),
-            "template/faces": ArraySpec(("F", 3), "int32", "index", "template triangles into template/vertices"),
+            "template/vertices": ArraySpec(("V", 3), "float32", "m", "template mesh vertices, depth-camera coordinates (absent when the source has no template: attr has_template)", required=False),
+            "template/faces": ArraySpec(("F", 3), "int32", "index", "template triangles into template/vertices", required=False),
             "template/texcoords": ArraySpec(("Vt", 2), "float32", "1", "template texture coordinates, if the template file has them", required=False),
             "template/texcoord_faces": ArraySpec(("F", 3), "int32", "index", "per-corner index into template/texcoords", required=False),
             "given/vertices": ArraySpec(("T", "V", 3), "float32", "m", "per-frame meshes supplied by the source (same faces as the template)", (1, "V", 3), required=False),
@@ -88,6 +88,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "frame_ids": "list[int]: global frame indices, in order",
             "frame_blocks": "list[[start, stop)]: frame index ranges of the frame-block stores",
             "source": "dict: what was read (kind, path, settings)",
+            "has_template": "bool: whether template/* was written",
         },
     ),
     "frames": ArtifactSpec(

@@ -28,6 +28,7 @@ def montage(images: list[np.ndarray], columns: int = 3, width: int = 960) -> np.
     if not images:
         raise ValueError("montage needs at least one image")
     h, w = images[0].shape[:2]
+    columns = min(columns, len(images))
     rows = -(-len(images) // columns)
     grid = np.zeros((rows * h, columns * w, 3), np.uint8)
     for k, im in enumerate(images):

@@ -562,6 +562,13 @@ def test_stex_calibration_is_validated(stex_ds, synth):
     with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration.*depth"):
         FolderDataset(stex_ds, "stex")
 
+    bad = json.loads(json.dumps(good))
+    bad["color"]["distortion"] = [0.1, -0.05, 0, 0, 0, 0, 0, 0]
+    path.write_text(json.dumps(bad))
+    with pytest.warns(UserWarning, match=r"calibration\.json: non-zero distortion"):
+        ds = FolderDataset(stex_ds, "stex")
+    assert ds.calibration.color.distortion[0] == 0.1  # reported, kept, not applied
+
     path.unlink()
     with pytest.raises(FileNotFoundError, match=r"calibration\.json: missing"):
         FolderDataset(stex_ds, "stex")

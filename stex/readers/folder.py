@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 
 import cv2
@@ -68,6 +69,10 @@ class FolderDataset:
                 self.calibration = Calibration.from_dict(json.loads(path.read_text()))
             except (KeyError, ValueError, TypeError) as exc:
                 raise ValueError(f"{path}: invalid calibration ({exc})") from exc
+            if self.calibration.color.distortion.any() or self.calibration.depth.distortion.any():
+                warnings.warn(f"{path}: non-zero distortion coefficients; the folder reader does not undistort "
+                              "and stex projects with the pinhole model, so the images should be undistorted "
+                              "and the coefficients zero", stacklevel=2)
             self._color_dir, self._depth_dir, self._mask_dir = (self.root / d for d in ("color", "depth", "mask"))
             self._pattern = re.compile(r"^(\d+)\.(png|jpg|jpeg)$")
         if not self._color_dir.is_dir():

@@ -1,0 +1,58 @@
+"""Ingest of recordings into the scene/frames stores (the synthetic and folder sources have their
+own test files)."""
+import numpy as np
+import pytest
+
+from conftest import data_samples
+from stex.config import load_config
+from stex.ingest import count_frames, frame_blocks, write_frames_block, write_scene
+from stex.io import open_store
+from test_kinect_mkv import synthetic_mkv  # noqa: F401  (fixture)
+
+REAL_MKV = data_samples() / "azure_kinect_pyk4a" / "recording.mkv"
+
+
+def test_frame_blocks():
+    assert frame_blocks(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    with pytest.raises(ValueError):
+        frame_blocks(0, 4)
+
+
+def _mkv_source(path, **kw):
+    return load_config(overrides={"source": {"kind": "mkv", "mkv": {"path": str(path), **kw}}})["source"]
+
+
+def test_mkv_ingest_of_a_written_recording(synthetic_mkv, tmp_path):  # noqa: F811
+    synthetic_mkv = synthetic_mkv[0]
+    from stex.readers.kinect_mkv import open_kinect_mkv
+    src = _mkv_source(synthetic_mkv, undistort=False, start=2, stop=7)
+    assert count_frames(src) == 5
+    write_scene(src, 3, tmp_path / "scene.zarr")
+    scene = open_store(tmp_path / "scene.zarr", "scene")
+    assert scene.attrs["frame_ids"] == [2, 3, 4, 5, 6] and scene.attrs["has_template"] is False
+    write_frames_block(src, 3, 5, tmp_path / "b1.zarr")
+    frames = open_store(tmp_path / "b1.zarr", "frames")
+    assert frames.attrs["frame_ids"] == [5, 6]
+    with open_kinect_mkv(synthetic_mkv) as rec:
+        _, ts, color, depth = next(iter(rec.frames(5, 6)))
+    assert np.array_equal(frames["depth"][0], depth)
+    assert np.array_equal(frames["color"][0], color)
+    assert frames["timestamps"][0] == pytest.approx(ts * 1e-6)
+
+
+@pytest.mark.skipif(not REAL_MKV.is_file(), reason="shared data samples absent")
+def test_mkv_ingest_of_the_real_recording(tmp_path):
+    src = _mkv_source(REAL_MKV)
+    write_scene(src, 8, tmp_path / "scene.zarr")
+    write_frames_block(src, 0, 1, tmp_path / "b0.zarr")
+    scene = open_store(tmp_path / "scene.zarr", "scene")
+    cal = scene.attrs["calibration"]
+    assert (cal["color"]["width"], cal["color"]["height"]) == (1280, 720)
+    assert (cal["depth"]["width"], cal["depth"]["height"]) == (640, 576)
+    assert cal["color"]["distortion"] == [0.0] * 8  # undistorted at ingest
+    f = open_store(tmp_path / "b0.zarr", "frames")
+    depth = f["depth"][0]
+    valid = depth[depth > 0]
+    assert depth.dtype == np.uint16 and depth.shape == (576, 640)
+    assert np.mean((valid >= 150) & (valid <= 5500)) > 0.99 and np.median(valid) > 500
+    assert f["color"].shape == (1, 720, 1280, 3)

@@ -1,0 +1,424 @@
+"""Tests for stex.render: rasteriser vs. an independent ray caster, visibility, textured rendering,
+bilinear sampling and edge cases."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from trimesh.ray.ray_triangle import RayMeshIntersector
+
+from stex import render
+from stex.camera import backproject_depth
+
+# ------------------------------------------------------------------------------------------------
+# fixtures
+# ------------------------------------------------------------------------------------------------
+
+# four smooth protrusions on the camera-facing side hide parts of the surface behind them
+_BUMP_DIRS = np.array([[0.8, 0.1, -0.6], [-0.5, 0.6, -0.6], [-0.3, -0.8, -0.5], [0.2, -0.2, -0.95]])
+CENTRE_Z = 1.5
+
+
+def bumpy_sphere(subdivisions=5, radius=0.4, distance=CENTRE_Z):
+    """20,480-face self-occluding blob, ~0.4 m radius, centred 1.5 m in front of the camera."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    d = np.asarray(m.vertices)
+    bump = 0.1 * np.sin(3.0 * d[:, 0] + 0.3) * np.sin(4.0 * d[:, 1] + 1.1) * np.sin(3.0 * d[:, 2] + 0.7)
+    for c in _BUMP_DIRS / np.linalg.norm(_BUMP_DIRS, axis=1, keepdims=True):
+        bump += 0.35 * np.exp(-((d - c) ** 2).sum(axis=1) / 0.3 ** 2)
+    v = d * (radius * (1.0 + bump))[:, None]
+    v[:, 2] += distance
+    return v, np.asarray(m.faces, dtype=np.int64)
+
+
+def camera(f, W, H):
+    return np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def blob():
+    return bumpy_sphere()
+
+
+@pytest.fixture(scope="module")
+def small_view(blob):
+    """The blob rendered at 160x144 (fx=126, ~1.2 cm pixels) plus a trimesh ray cast through
+    every pixel centre."""
+    V, F = blob
+    W, H = 160, 144
+    K = camera(126.0, W, H)
+    ras = render.rasterize(V, F, K, W, H)
+    r, c = np.mgrid[0:H, 0:W]
+    dirs = np.stack([(c - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1], np.ones((H, W))], -1).reshape(-1, 3)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rmi = RayMeshIntersector(trimesh.Trimesh(V, F, process=False))
+    loc, iray, itri = rmi.intersects_location(np.zeros_like(dirs), dirs, multiple_hits=False)
+    z_ray = np.zeros(H * W)
+    z_ray[iray] = loc[:, 2]  # camera-space z of the hit point (not the ray length)
+    f_ray = np.full(H * W, -1)
+    f_ray[iray] = itri
+    return dict(V=V, F=F, K=K, W=W, H=H, ras=ras, z_ray=z_ray.reshape(H, W),
+                f_ray=f_ray.reshape(H, W), rmi=rmi)
+
+
+@pytest.fixture(scope="module")
+def depth_view(blob):
+    """The blob rendered by the Azure Kinect depth camera geometry: 640x576, fx=504."""
+    V, F = blob
+    W, H = 640, 576
+    K = camera(504.0, W, H)
+    return dict(V=V, F=F, K=K, W=W, H=H, ras=render.rasterize(V, F, K, W, H))
+
+
+def owned_faces(face_id, n_faces):
+    own = np.zeros(n_faces, dtype=bool)
+    own[face_id[face_id >= 0]] = True
+    return own
+
+
+# ------------------------------------------------------------------------------------------------
+# rasterize
+# ------------------------------------------------------------------------------------------------
+
+def test_depth_and_face_ids_match_ray_cast(small_view):
+    ras, z_ray, f_ray = small_view["ras"], small_view["z_ray"], small_view["f_ray"]
+    z = ras.depth.astype(np.float64)
+    assert ras.depth.dtype == np.float32 and ras.face_id.dtype == np.int32
+    assert ras.bary.dtype == np.float32 and ras.bary.shape == z.shape + (3,)
+    both_empty = (z == 0) & (z_ray == 0)
+    both_hit = (z > 0) & (z_ray > 0) & (np.abs(z - z_ray) <= 1e-5)
+    agree = both_empty | both_hit
+    assert (z_ray > 0).sum() > 4000  # the object covers a good part of the image
+    assert agree.mean() >= 0.995, f"depth agrees on only {agree.mean():.4%} of pixels"
+    hit = f_ray >= 0
+    same = (ras.face_id == f_ray)[hit].mean()
+    assert same >= 0.99, f"face ids agree on only {same:.4%} of hit pixels"
+    # empty pixels are marked consistently
+    empty = ras.face_id < 0
+    assert np.all(ras.depth[empty] == 0) and np.all(ras.bary[empty] == 0)
+    assert np.all(ras.depth[~empty] > 0)
+
+
+def test_barycentrics_reproduce_hit_point(small_view):
+    V, F, K, ras = small_view["V"], small_view["F"], small_view["K"], small_view["ras"]
+    hit = ras.face_id >= 0
+    b = ras.bary[hit].astype(np.float64)
+    assert np.allclose(b.sum(axis=1), 1.0, atol=1e-6)
+    assert b.min() >= -1e-6 and b.max() <= 1.0 + 1e-6
+    tri = V[F[ras.face_id[hit]]]                      # (N, 3, 3)
+    p = (b[:, :, None] * tri).sum(axis=1)
+    q = backproject_depth(ras.depth, K)[hit]
+    assert np.abs(p - q).max() <= 1e-5
+    # interpolate_attributes does the same
+    pos = render.interpolate_attributes(ras, F, V)
+    assert pos.shape == ras.depth.shape + (3,) and pos.dtype == np.float32
+    assert np.abs(pos[hit] - q).max() <= 1e-5
+    assert np.all(pos[~hit] == 0)
+    zz = render.interpolate_attributes(ras, F, V[:, 2])
+    assert zz.shape == ras.depth.shape
+    assert np.abs(zz - ras.depth).max() <= 1e-5
+
+
+def test_perspective_correct_on_tilted_plane():
+    # a plane tilted by 60 degrees: affine (screen-space) interpolation would be off by cm
+    W, H = 96, 80
+    K = camera(80.0, W, H)
+    ang = np.deg2rad(60.0)
+    centre = np.array([0.0, 0.0, 1.0])
+    ex = np.array([np.cos(ang), 0.0, np.sin(ang)])
+    ey = np.array([0.0, 1.0, 0.0])
+    s = np.array([-1, 1, 1, -1]) * 0.4
+    t = np.array([-1, -1, 1, 1]) * 0.4
+    V = centre + s[:, None] * ex + t[:, None] * ey
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    ras = render.rasterize(V, F, K, W, H)
+    hit = ras.face_id >= 0
+    assert hit.sum() > 1000
+    # ray-plane intersection per pixel centre
+    r, c = np.mgrid[0:H, 0:W]
+    d = np.stack([(c - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1], np.ones((H, W))], -1)
+    n = np.cross(ex, ey)
+    lam = (centre @ n) / (d @ n)
+    P = d * lam[..., None]
+    assert np.abs(ras.depth[hit] - P[hit][:, 2]).max() < 1e-5
+    st = render.interpolate_attributes(ras, F, np.stack([s, t], 1))
+    st_true = np.stack([(P - centre) @ ex, (P - centre) @ ey], -1)
+    assert np.abs(st[hit] - st_true[hit]).max() < 1e-5
+
+
+def test_watertight_grid_and_tie_rule():
+    # a fronto-parallel grid whose vertices project exactly onto pixel centres: every edge passes
+    # through pixel centres, so coverage must be inclusive and crack-free
+    W, H = 33, 25
+    K = camera(50.0, W, H)
+    gx, gy = np.meshgrid(np.arange(0, W, 4), np.arange(0, H, 4))
+    z = 2.0
+    V = np.stack([(gx - K[0, 2]) / K[0, 0] * z, (gy - K[1, 2]) / K[1, 1] * z, np.full(gx.shape, z)], -1)
+    V = V.reshape(-1, 3)
+    nx = gx.shape[1]
+    i = np.arange(gx.size).reshape(gx.shape)
+    a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, 1:].ravel(), i[1:, :-1].ravel()
+    F = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    ras = render.rasterize(V, F, K, W, H)
+    covered = ras.face_id >= 0
+    last_c, last_r = 4 * (nx - 1), 4 * (gx.shape[0] - 1)
+    assert covered[: last_r + 1, : last_c + 1].all(), "cracks between triangles"
+    assert not covered[:, last_c + 1:].any() and not covered[last_r + 1:, :].any()
+    assert np.allclose(ras.depth[covered], z)
+    # equal depth: the lowest face index wins; the same input gives the same bytes
+    F2 = np.concatenate([F[:, ::-1], F])   # duplicate faces, first copy reversed
+    r1 = render.rasterize(V, F2, K, W, H)
+    r2 = render.rasterize(V.astype(np.float32), F2.astype(np.int32), K, W, H)
+    assert r1.face_id.max() < len(F)
+    for x, y in zip(r1, r2):
+        assert x.tobytes() == y.tobytes()
+
+
+def test_normals(blob):
+    V, F = blob
+    mesh = trimesh.Trimesh(V, F, process=False)
+    fn = render.face_normals(V, F)
+    assert fn.shape == F.shape and np.allclose(fn, mesh.face_normals, atol=1e-10)
+    # area weighting: one big and one small face sharing vertex 0
+    Vs = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0.1], [0.1, 0, 0]], float)
+    Fs = np.array([[0, 1, 2], [0, 3, 4]])  # normals +z (area 0.5) and +y (area 0.005)
+    vn = render.vertex_normals(Vs, Fs)
+    expect = np.array([0.0, 0.01, 1.0]) / np.hypot(0.01, 1.0)
+    assert np.allclose(vn[0], expect)
+    # on the smooth blob vertex normals agree with the neighbouring face normals
+    vn = render.vertex_normals(V, F)
+    assert np.allclose(np.linalg.norm(vn, axis=1), 1.0)
+    assert np.min((vn[F[:, 0]] * fn).sum(axis=1)) > 0.9
+
+
+# ------------------------------------------------------------------------------------------------
+# visibility
+# ------------------------------------------------------------------------------------------------
+
+def test_face_visibility_finds_subpixel_faces(small_view):
+    V, F, K, ras = small_view["V"], small_view["F"], small_view["K"], small_view["ras"]
+    vis, cos = render.face_visibility(V, F, K, ras.depth)
+    assert vis.dtype == bool and vis.shape == (len(F),)
+    assert cos.dtype == np.float32 and cos.min() >= 0 and cos.max() <= 1
+    own = owned_faces(ras.face_id, len(F))
+    # at ~1.2 cm pixels most faces are smaller than a pixel
+    assert vis.sum() > 1.4 * own.sum(), (vis.sum(), own.sum())
+    cen = V[F].mean(axis=1)
+    assert not vis[cen[:, 2] > CENTRE_Z + 0.1].any()
+    assert np.all(cos[vis] > 0)
+
+
+def test_face_visibility_at_depth_camera_resolution(depth_view):
+    V, F, K, ras = depth_view["V"], depth_view["F"], depth_view["K"], depth_view["ras"]
+    vis, cos = render.face_visibility(V, F, K, ras.depth)
+    own = owned_faces(ras.face_id, len(F))
+    missed = own & (cos > 0.1) & ~vis
+    assert not missed.any(), f"{missed.sum()} faces own a pixel, face the camera, and are not visible"
+    cen = V[F].mean(axis=1)
+    assert not vis[cen[:, 2] > CENTRE_Z + 0.1].any()
+    # min_cos
+    vis3, cos3 = render.face_visibility(V, F, K, ras.depth, min_cos=0.3)
+    assert np.array_equal(vis3, vis & (cos > 0.3)) and np.array_equal(cos3, cos)
+    # the plain test (tangent_plane=False) is |z - 3x3 min| one-sided, computed here with numpy
+    visp, _ = render.face_visibility(V, F, K, ras.depth, tangent_plane=False)
+    d = np.where(ras.depth > 0, ras.depth, np.inf).astype(np.float64)
+    dmin = np.lib.stride_tricks.sliding_window_view(np.pad(d, 1, constant_values=np.inf), (3, 3)).min(axis=(2, 3))
+    u = K[0, 0] * V[:, 0] / V[:, 2] + K[0, 2]
+    v = K[1, 1] * V[:, 1] / V[:, 2] + K[1, 2]
+    c, r = np.floor(u + 0.5).astype(int), np.floor(v + 0.5).astype(int)
+    inside = (c >= 0) & (c < depth_view["W"]) & (r >= 0) & (r < depth_view["H"])
+    ok = np.zeros(len(V), bool)
+    ok[inside] = V[inside, 2] <= dmin[r[inside], c[inside]] + 0.01
+    assert np.array_equal(visp, ok[F].all(axis=1) & (cos > 0))
+    # ... and the tangent-plane test finds strictly more of the visible faces
+    assert visp.sum() < vis.sum() and not (visp & ~vis).any()
+
+
+def test_face_visibility_against_ray_casting(small_view, depth_view):
+    """A random sample of front-facing faces, checked by ray casting to 4 points of each face."""
+    V, F, K, ras = depth_view["V"], depth_view["F"], depth_view["K"], depth_view["ras"]
+    vis, cos = render.face_visibility(V, F, K, ras.depth)
+    rng = np.random.default_rng(1)
+    sel = rng.choice(np.flatnonzero(cos > 0.05), 500, replace=False)
+    tri = V[F[sel]]
+    cen = tri.mean(axis=1, keepdims=True)
+    pts = np.concatenate([0.9 * tri + 0.1 * cen, cen], axis=1).reshape(-1, 3)
+    first = small_view["rmi"].intersects_first(np.zeros_like(pts), pts / np.linalg.norm(pts, axis=1, keepdims=True))
+    truth = (first.reshape(-1, 4) == sel[:, None]).all(axis=1)
+    assert (~truth).sum() >= 5, "the sample should contain occluded faces"
+    assert not (vis[sel] & ~truth).any(), "visible faces that are occluded"
+    assert not (truth & ~vis[sel] & (cos[sel] > 0.1)).any(), "visible faces (cos > 0.1) missed"
+
+
+def test_vertex_visibility(depth_view):
+    V, F, K, ras = depth_view["V"], depth_view["F"], depth_view["K"], depth_view["ras"]
+    vis, cos = render.vertex_visibility(V, F, K, ras.depth)
+    assert vis.shape == (len(V),) and vis.dtype == bool and cos.dtype == np.float32
+    assert np.all(cos[vis] > 0) and cos.min() >= 0
+    assert not vis[V[:, 2] > CENTRE_Z + 0.1].any()
+    fvis, _ = render.face_visibility(V, F, K, ras.depth)
+    vn = render.vertex_normals(V, F)
+    corner = np.zeros(len(V), bool)
+    corner[F[fvis].ravel()] = True
+    facing = -(vn * V).sum(1) / np.linalg.norm(V, axis=1) > 0.2
+    assert vis[corner & facing].mean() > 0.99
+    # a vertex projecting outside the image is not visible
+    far = V + np.array([5.0, 0.0, 0.0])
+    vis2, _ = render.vertex_visibility(far, F, K, ras.depth)
+    assert not vis2.any()
+    # with window=0 and an empty depth map nothing is visible
+    vis3, _ = render.vertex_visibility(V, F, K, np.zeros_like(ras.depth), window=0)
+    assert not vis3.any()
+
+
+# ------------------------------------------------------------------------------------------------
+# sampling and textured rendering
+# ------------------------------------------------------------------------------------------------
+
+def test_sample_bilinear_matches_cv2_remap():
+    rng = np.random.default_rng(0)
+    img = rng.random((37, 53, 3)).astype(np.float32)
+    # coordinates on OpenCV's 1/32-pixel interpolation grid compare exactly; include outside ones
+    uv = np.round(rng.uniform(-4, 58, size=(41, 29, 2)) * 32) / 32
+    ref = cv2.remap(img, uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32),
+                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = render.sample_bilinear(img, uv)
+    assert out.shape == (41, 29, 3) and out.dtype == np.float32
+    assert np.abs(out - ref).max() < 1e-5
+    # arbitrary coordinates: OpenCV quantises weights to 1/32 px
+    uv2 = rng.uniform(-2, 55, size=(1000, 2))
+    ref2 = cv2.remap(img, uv2[:, :1].astype(np.float32), uv2[:, 1:].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
+    assert np.abs(render.sample_bilinear(img, uv2) - ref2).max() < 2.0 / 32
+    # uint8 grey image -> float32 (...) in the image's units
+    g = rng.integers(0, 256, size=(20, 30), dtype=np.uint8)
+    outg = render.sample_bilinear(g, uv[:5])
+    assert outg.shape == (5, 29) and outg.dtype == np.float32
+    refg = cv2.remap(g.astype(np.float32), uv[:5, :, 0].astype(np.float32), uv[:5, :, 1].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    assert np.abs(outg - refg).max() < 1e-3
+    # integer coordinates hit pixel centres exactly
+    assert render.sample_bilinear(g, np.array([7.0, 3.0])) == g[3, 7]
+
+
+def test_texcoords_to_pixels():
+    px = render.texcoords_to_pixels(np.array([[0.0, 0.0], [1.0, 1.0], [0.5 / 8, 1.5 / 4]]), 8, 4)
+    assert np.allclose(px, [[-0.5, -0.5], [7.5, 3.5], [0.0, 1.0]])
+
+
+def _checker(Ht, Wt, cell):
+    r, c = np.mgrid[0:Ht, 0:Wt]
+    tex = np.zeros((Ht, Wt, 3), np.uint8)
+    tex[..., 0] = np.where((r // cell + c // cell) % 2, 255, 20)
+    tex[..., 1] = (r * 7 + c * 3) % 256
+    tex[..., 2] = 128
+    return tex
+
+
+def test_render_textured_reproduces_texture():
+    # a fronto-parallel quad whose image is exactly the texture: texel centres on pixel centres
+    W, H = 64, 48
+    K = camera(60.0, W, H)
+    z = 1.3
+    cu = np.array([-0.5, W - 0.5, W - 0.5, -0.5])
+    cv = np.array([-0.5, -0.5, H - 0.5, H - 0.5])
+    V = np.stack([(cu - K[0, 2]) / K[0, 0] * z, (cv - K[1, 2]) / K[1, 1] * z, np.full(4, z)], 1)
+    F = np.array([[0, 2, 1], [0, 3, 2]])  # counter-clockwise seen from the camera
+    T = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)  # top-left corner at (0, 0)
+    tex = _checker(H, W, 4)
+    img, mask = render.render_textured(V, F, T, F, tex, K, W, H)
+    assert img.shape == (H, W, 3) and img.dtype == np.float32 and mask.all()
+    assert np.abs(img - tex).max() < 0.05
+    # a different texture size: compare with sampling the texture at the mapped pixels
+    tex2 = _checker(100, 77, 9)
+    img2, mask2 = render.render_textured(V, F, T, F, tex2, K, W, H)
+    r, c = np.mgrid[0:H, 0:W]
+    uv = np.stack([(c + 0.5) / W, (r + 0.5) / H], -1)
+    ref = render.sample_bilinear(tex2, render.texcoords_to_pixels(uv, 77, 100))
+    assert np.abs(img2 - ref).max() < 0.05
+
+
+def test_render_textured_uv_seam():
+    # two triangles sharing positions but with separate texcoords (an atlas with two charts)
+    W, H = 64, 48
+    K = camera(60.0, W, H)
+    z = 1.0
+    V = np.array([[-0.3, -0.25, z], [0.3, -0.25, z], [0.3, 0.25, z], [-0.3, 0.25, z]])
+    F = np.array([[0, 2, 1], [0, 3, 2]])
+    T = np.array([[0.05, 0.05], [0.45, 0.45], [0.45, 0.05],      # chart A (face 0)
+                  [0.55, 0.55], [0.55, 0.95], [0.95, 0.95]])     # chart B (face 1)
+    TF = np.array([[0, 1, 2], [3, 4, 5]])
+    tex = _checker(120, 120, 10)
+    img, mask = render.render_textured(V, F, T, TF, tex, K, W, H)
+    ras = render.rasterize(V, F, K, W, H)
+    assert np.array_equal(mask, ras.face_id >= 0) and mask.sum() > 500
+    assert (ras.face_id == 0).sum() > 200 and (ras.face_id == 1).sum() > 200
+    # expected: per-face affine map from the (planar, fronto-parallel) position to texcoords
+    r, c = np.mgrid[0:H, 0:W]
+    xy = np.stack([(c - K[0, 2]) / K[0, 0] * z, (r - K[1, 2]) / K[1, 1] * z], -1)
+    expect = np.zeros((H, W, 2))
+    for f in range(2):
+        A = np.c_[V[F[f], :2], np.ones(3)]
+        M = np.linalg.solve(A, T[TF[f]])
+        sel = ras.face_id == f
+        expect[sel] = np.c_[xy[sel], np.ones(sel.sum())] @ M
+    ref = render.sample_bilinear(tex, render.texcoords_to_pixels(expect, 120, 120))
+    assert np.abs(img[mask] - ref[mask]).max() < 0.05
+    assert np.all(img[~mask] == 0)
+    # the two charts really are different parts of the texture
+    assert not np.allclose(img[ras.face_id == 0].mean(0), img[ras.face_id == 1].mean(0))
+
+
+# ------------------------------------------------------------------------------------------------
+# edge cases
+# ------------------------------------------------------------------------------------------------
+
+def test_empty_mesh():
+    K = camera(50.0, 40, 30)
+    for V in (np.zeros((0, 3)), np.array([[0.0, 0.0, 1.0]])):
+        ras = render.rasterize(V, np.zeros((0, 3), np.int32), K, 40, 30)
+        assert ras.depth.shape == (30, 40) and not ras.depth.any()
+        assert (ras.face_id == -1).all() and not ras.bary.any()
+        vis, cos = render.face_visibility(V, np.zeros((0, 3), int), K, ras.depth)
+        assert vis.shape == (0,) and cos.shape == (0,)
+        vvis, _ = render.vertex_visibility(V, np.zeros((0, 3), int), K, ras.depth)
+        assert vvis.shape == (len(V),) and not vvis.any()
+    img, mask = render.render_textured(np.zeros((0, 3)), np.zeros((0, 3), int), np.zeros((0, 2)),
+                                       np.zeros((0, 3), int), np.zeros((4, 4, 3)), K, 40, 30)
+    assert img.shape == (30, 40, 3) and not mask.any()
+
+
+def test_vertices_behind_camera_are_skipped():
+    K = camera(50.0, 40, 30)
+    V = np.array([[-1, -1, 2.0], [1, -1, 2.0], [0, 1, 2.0],        # in front
+                  [-1, -1, -1.0], [1, -1, 2.0], [0, 1, 0.0],       # crosses z = 0
+                  [-1, -1, -2.0], [1, -1, -2.0], [0, 1, -2.0]])    # behind
+    F = np.arange(9).reshape(3, 3)
+    ras = render.rasterize(V, F, K, 40, 30)
+    assert set(np.unique(ras.face_id)) <= {-1, 0} and (ras.face_id == 0).sum() > 50
+    vis, _ = render.face_visibility(V, F, K, ras.depth)
+    assert not vis[1:].any()
+    # huge but finite coordinates just in front of the near plane
+    V2 = np.array([[-1e6, -1e6, 1.1e-3], [1e6, -1e6, 1.1e-3], [0, 1e6, 1.1e-3]])
+    ras2 = render.rasterize(V2, [[0, 1, 2]], K, 40, 30)
+    assert (ras2.face_id == 0).all()
+
+
+def test_bad_input_raises():
+    K = camera(50.0, 40, 30)
+    V = np.tile(np.array([[0.0, 0.0, 1.0]]), (8, 1))
+    V[5, 1] = np.nan
+    F = np.array([[0, 1, 2], [3, 4, 5]])
+    with pytest.raises(ValueError, match="vertex index 5"):
+        render.rasterize(V, F, K, 40, 30)
+    with pytest.raises(ValueError, match="vertex index 5"):
+        render.face_visibility(V, F, K, np.zeros((30, 40), np.float32))
+    V[5, 1] = 0.0
+    with pytest.raises(ValueError, match="face 1"):
+        render.rasterize(V, np.array([[0, 1, 2], [3, 4, 8]]), K, 40, 30)
+    with pytest.raises(ValueError):
+        render.rasterize(V[:, :2], F, K, 40, 30)
+    with pytest.raises(ValueError):
+        render.rasterize(V, F, np.eye(4), 40, 30)
