@@ -170,7 +170,7 @@ def test_watertight_grid_and_tie_rule():
     # equal depth: the lowest face index wins; the same input gives the same bytes
     F2 = np.concatenate([F[:, ::-1], F])   # duplicate faces, first copy reversed
     r1 = render.rasterize(V, F2, K, W, H)
-    r2 = render.rasterize(V.astype(np.float32), F2.astype(np.int32), K, W, H)
+    r2 = render.rasterize(V.copy(), F2.astype(np.int32), K, W, H)
     assert r1.face_id.max() < len(F)
     for x, y in zip(r1, r2):
         assert x.tobytes() == y.tobytes()
@@ -237,17 +237,20 @@ def test_face_visibility_at_depth_camera_resolution(depth_view):
 
 
 def test_face_visibility_against_ray_casting(small_view, depth_view):
-    """A random sample of front-facing faces, checked by ray casting to 4 points of each face."""
+    """Faces checked by ray casting to 4 points of each: every front-facing face (cos > 0.05)
+    that face_visibility rejects, plus a random sample of those it accepts."""
     V, F, K, ras = depth_view["V"], depth_view["F"], depth_view["K"], depth_view["ras"]
     vis, cos = render.face_visibility(V, F, K, ras.depth)
     rng = np.random.default_rng(1)
-    sel = rng.choice(np.flatnonzero(cos > 0.05), 500, replace=False)
+    rejected = np.flatnonzero((cos > 0.05) & ~vis)
+    accepted = rng.choice(np.flatnonzero(vis), 400, replace=False)
+    sel = np.concatenate([rejected, accepted])
     tri = V[F[sel]]
     cen = tri.mean(axis=1, keepdims=True)
     pts = np.concatenate([0.9 * tri + 0.1 * cen, cen], axis=1).reshape(-1, 3)
     first = small_view["rmi"].intersects_first(np.zeros_like(pts), pts / np.linalg.norm(pts, axis=1, keepdims=True))
     truth = (first.reshape(-1, 4) == sel[:, None]).all(axis=1)
-    assert (~truth).sum() >= 5, "the sample should contain occluded faces"
+    assert (~truth).sum() >= 5, "the blob should hide some front-facing faces"
     assert not (vis[sel] & ~truth).any(), "visible faces that are occluded"
     assert not (truth & ~vis[sel] & (cos[sel] > 0.1)).any(), "visible faces (cos > 0.1) missed"
 
