@@ -98,14 +98,14 @@ class FolderSource(Source):
             return None
         tmpl = self.template()
         if tmpl is not None:
-            check_same_topology(tmpl.faces, mesh, str(self.ds.mesh_path(fid)))
+            check_same_topology(tmpl.faces, len(tmpl.vertices), mesh, str(self.ds.mesh_path(fid)))
         return mesh.vertices
 
     def frames(self, start: int, stop: int):
         for pos in range(start, stop):
             fid = self.frame_ids[pos]
             mask = self.ds.mask(fid) if self.ds.has_masks else None
-            yield pos, self.ds.color(fid), self.ds.depth(fid), mask, float(pos), None
+            yield pos, self.ds.color(fid), self.ds.depth(fid), mask, pos / self.cfg["fps"], None
 
 
 class MkvSource(Source):
@@ -188,6 +188,8 @@ def write_scene(source_cfg: dict, block: int, out: str | Path) -> None:
                 v = src.given_vertices(pos)
                 if v is None:
                     raise ValueError(f"given mesh missing for frame {src.frame_ids[pos]} (frame {src.frame_ids[0]} has one)")
+                if v.shape != first.shape:
+                    raise ValueError(f"given mesh of frame {src.frame_ids[pos]} has {len(v)} vertices, frame {src.frame_ids[0]} has {len(first)}")
                 if not np.isfinite(v).all():
                     raise ValueError(f"given mesh of frame {src.frame_ids[pos]} has non-finite vertices")
                 arr[pos] = v

@@ -110,7 +110,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         arrays={
             "appearance": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "true texture of the object at each frame, in template/texcoords", (1, "W", "W", 3)),
             "mask": ArraySpec(("T", "Hc", "Wc"), "bool", "1", "true object masks at colour resolution", (1, "Hc", "Wc")),
-            "depth": ArraySpec(("T", "Hd", "Wd"), "float32", "m", "noise-free depth, 0 = background beyond the far plane", (1, "Hd", "Wd")),
+            "depth": ArraySpec(("T", "Hd", "Wd"), "float32", "m", "noise-free depth (the background wall where the object is absent)", (1, "Hd", "Wd")),
         },
         attrs={"frame_ids": "list[int]"},
     ),

@@ -245,6 +245,35 @@ def test_without_masks_meshes_or_template(tmp_path, synth):
     pos, c, d, m, ts, extra = next(iter(src.frames(0, 1)))
     assert pos == 0 and m is None
     np.testing.assert_array_equal(c, synth.color[0])
+    cfg = folder_cfg(root, "stex")
+    write_scene(cfg, 2, tmp_path / "scene.zarr")
+    g = open_store(tmp_path / "scene.zarr", "scene")
+    assert g.attrs["has_template"] is False and "template/vertices" not in g and "given/vertices" not in g
+    write_frames_block(cfg, 0, 2, tmp_path / "f.zarr")
+    f = open_store(tmp_path / "f.zarr", "frames")
+    assert "mask" not in f
+    np.testing.assert_array_equal(f["depth"][:], np.stack(synth.depth[:2]))
+
+
+def test_stex_layout_default_template_is_first_given_mesh(tmp_path, synth):
+    s = synth
+    root = make_stex(tmp_path / "ds", s, template=False)
+    src = FolderSource(folder_cfg(root, "stex", start=FIRST + 1)["folder"])
+    assert src.ds.template_path() == root / "meshes" / f"{FIRST + 1:06d}.obj"
+    np.testing.assert_allclose(src.template().vertices, s.verts[1], atol=1e-9)
+    assert src.template().texcoords is None
+    bad = root / "meshes" / f"{FIRST + 3:06d}.obj"
+    _write_obj(bad, s.verts[3], s.faces[:, [1, 2, 0]])  # same triangles, other corner order
+    with pytest.raises(ValueError, match=re.escape(bad.name) + ": mesh topology differs"):
+        write_scene(folder_cfg(root, "stex"), 2, tmp_path / "scene.zarr")
+    assert not (tmp_path / "scene.zarr").exists()
+
+
+def test_given_mesh_with_an_extra_vertex_is_refused(tmp_path, stex_ds, synth):
+    bad = stex_ds / "meshes" / f"{FIRST + 3:06d}.obj"
+    _write_obj(bad, np.vstack([synth.verts[3], [[0.0, 0.0, 1.0]]]), synth.faces)  # one unused extra vertex
+    with pytest.raises(ValueError, match=re.escape(bad.name)):
+        write_scene(folder_cfg(stex_ds, "stex"), 2, tmp_path / "scene.zarr")
 
 
 # -- ingest -------------------------------------------------------------------------------------

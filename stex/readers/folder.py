@@ -18,7 +18,7 @@ stex layout (``layout: stex``), see docs/datasets.md::
     <root>/depth/%06d.png                 uint16 millimetres
     <root>/mask/%06d.png                  optional
     <root>/meshes/%06d.{obj,ply,off}      optional per-frame meshes (absolute frame index)
-    <root>/template.{obj,ply,off,glb}     optional template
+    <root>/template.{obj,ply,off,glb}     optional template (default: the first frame's given mesh)
 
 Frame indices in file names are absolute; the reader exposes them as ``frame_ids``.
 """
@@ -217,6 +217,9 @@ class FolderDataset:
             candidates += [self.root / "mesh" / f"Frame_000{e}" for e in _MESH_EXT]
         else:
             candidates += [self.root / f"template{e}" for e in (".obj", ".ply", ".off", ".glb", ".gltf")]
+            first = self.mesh_path(self.frame_ids[0])  # as in the authors' layout: the first given mesh
+            if first is not None:
+                candidates.append(first)
         return next((p for p in candidates if p.is_file()), None)
 
     def load_given_mesh(self, frame_id: int) -> Mesh | None:

@@ -93,12 +93,15 @@ def load_mesh(path: str | Path) -> Mesh:
     return mesh
 
 
-def check_same_topology(reference_faces: np.ndarray, mesh: Mesh, where: str) -> None:
-    """Raise ValueError naming ``where`` if ``mesh`` does not have exactly the reference faces."""
-    if mesh.faces.shape != reference_faces.shape or not np.array_equal(mesh.faces, reference_faces):
+def check_same_topology(reference_faces: np.ndarray, n_vertices: int, mesh: Mesh, where: str) -> None:
+    """Raise ValueError naming ``where`` unless ``mesh`` has exactly the reference faces and
+    ``n_vertices`` vertices (per-frame meshes must share the template's topology)."""
+    if (mesh.faces.shape != reference_faces.shape or not np.array_equal(mesh.faces, reference_faces)
+            or len(mesh.vertices) != n_vertices):
         raise ValueError(
             f"{where}: mesh topology differs from the template "
-            f"({len(mesh.faces)} faces / {len(mesh.vertices)} vertices vs {len(reference_faces)} faces)")
+            f"({len(mesh.faces)} faces / {len(mesh.vertices)} vertices vs "
+            f"{len(reference_faces)} faces / {n_vertices} vertices)")
 
 
 def write_obj(path: str | Path, mesh: Mesh, mtl: str | None = None) -> None:
