@@ -17,31 +17,17 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 try:
     from stex import render
+    from stex.synth.shapes import bumpy_sphere
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from stex import render
+    from stex.synth.shapes import bumpy_sphere
 
 
-# three tall smooth protrusions on the camera-facing side hide parts of the surface behind them
-# (same blob as tests/test_render.py; about 570 of the ~5600 front-facing faces are occluded); (direction, height, width)
-_BUMPS = [((0.6, 0.1, -0.8), 0.6, 0.22), ((-0.5, 0.5, -0.7), 0.5, 0.25), ((-0.2, -0.7, -0.7), 0.5, 0.22)]
 
-
-def bumpy_sphere(subdivisions=5, radius=0.4, distance=1.5):
-    """(vertices (V,3) float64 camera-space metres, faces (F,3) int64) of a self-occluding blob."""
-    m = trimesh.creation.icosphere(subdivisions=subdivisions)
-    d = np.asarray(m.vertices)
-    bump = 0.1 * np.sin(3.0 * d[:, 0] + 0.3) * np.sin(4.0 * d[:, 1] + 1.1) * np.sin(3.0 * d[:, 2] + 0.7)
-    for c, height, width in _BUMPS:
-        c = np.asarray(c) / np.linalg.norm(c)
-        bump += height * np.exp(-((d - c) ** 2).sum(axis=1) / width ** 2)
-    v = d * (radius * (1.0 + bump))[:, None]
-    v[:, 2] += distance
-    return v, np.asarray(m.faces, dtype=np.int64)
 
 
 def _stats(name, times_s):

@@ -328,21 +328,25 @@ def face_normals(vertices, faces) -> np.ndarray:
     return _normalize_rows(_face_cross(V, F))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _tri_cross(V, i0, i1, i2):
+    """(v1 - v0) x (v2 - v0) of one triangle, as three floats."""
+    ax = V[i1, 0] - V[i0, 0]
+    ay = V[i1, 1] - V[i0, 1]
+    az = V[i1, 2] - V[i0, 2]
+    bx = V[i2, 0] - V[i0, 0]
+    by = V[i2, 1] - V[i0, 1]
+    bz = V[i2, 2] - V[i0, 2]
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+
+
 @njit(cache=True, nogil=True)
 def _vertex_normals_kernel(V, F, out):
     out[:] = 0.0
     for f in range(F.shape[0]):
         i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
-        ax = V[i1, 0] - V[i0, 0]
-        ay = V[i1, 1] - V[i0, 1]
-        az = V[i1, 2] - V[i0, 2]
-        bx = V[i2, 0] - V[i0, 0]
-        by = V[i2, 1] - V[i0, 1]
-        bz = V[i2, 2] - V[i0, 2]
         # |cross| = 2 * area: area weighting for free
-        nx = ay * bz - az * by
-        ny = az * bx - ax * bz
-        nz = ax * by - ay * bx
+        nx, ny, nz = _tri_cross(V, i0, i1, i2)
         for i in (i0, i1, i2):
             out[i, 0] += nx
             out[i, 1] += ny
@@ -463,15 +467,7 @@ def _vertex_vis_kernel(V, N, K, Minv, depth, tol, window, plane, vis, cos):
 def _face_vis_kernel(V, F, K, Minv, depth, tol, window, min_cos, plane, vis, cos):
     for f in range(F.shape[0]):
         i0, i1, i2 = F[f, 0], F[f, 1], F[f, 2]
-        ax = V[i1, 0] - V[i0, 0]
-        ay = V[i1, 1] - V[i0, 1]
-        az = V[i1, 2] - V[i0, 2]
-        bx = V[i2, 0] - V[i0, 0]
-        by = V[i2, 1] - V[i0, 1]
-        bz = V[i2, 2] - V[i0, 2]
-        nx = ay * bz - az * by
-        ny = az * bx - ax * bz
-        nz = ax * by - ay * bx
+        nx, ny, nz = _tri_cross(V, i0, i1, i2)
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         cx = (V[i0, 0] + V[i1, 0] + V[i2, 0]) / 3.0
         cy = (V[i0, 1] + V[i1, 1] + V[i2, 1]) / 3.0

@@ -11,28 +11,14 @@ from trimesh.ray.ray_triangle import RayMeshIntersector
 
 from stex import render
 from stex.camera import backproject_depth
+from stex.synth.shapes import bumpy_sphere
 
 # ------------------------------------------------------------------------------------------------
 # fixtures
 # ------------------------------------------------------------------------------------------------
 
-# three tall smooth protrusions on the camera-facing side hide parts of the surface behind them
-# (about 570 of the ~5600 front-facing faces are occluded); (direction, height, width)
-_BUMPS = [((0.6, 0.1, -0.8), 0.6, 0.22), ((-0.5, 0.5, -0.7), 0.5, 0.25), ((-0.2, -0.7, -0.7), 0.5, 0.22)]
+
 CENTRE_Z = 1.5
-
-
-def bumpy_sphere(subdivisions=5, radius=0.4, distance=CENTRE_Z):
-    """20,480-face self-occluding blob, ~0.4 m radius, centred 1.5 m in front of the camera."""
-    m = trimesh.creation.icosphere(subdivisions=subdivisions)
-    d = np.asarray(m.vertices)
-    bump = 0.1 * np.sin(3.0 * d[:, 0] + 0.3) * np.sin(4.0 * d[:, 1] + 1.1) * np.sin(3.0 * d[:, 2] + 0.7)
-    for c, height, width in _BUMPS:
-        c = np.asarray(c) / np.linalg.norm(c)
-        bump += height * np.exp(-((d - c) ** 2).sum(axis=1) / width ** 2)
-    v = d * (radius * (1.0 + bump))[:, None]
-    v[:, 2] += distance
-    return v, np.asarray(m.faces, dtype=np.int64)
 
 
 def camera(f, W, H):
