@@ -149,8 +149,17 @@ class ProceduralBody:
         rng = np.random.default_rng(self.p.seed)
         tex = np.zeros((size, size, 3), np.float32)
         for scale, amp in ((size / 8, 0.5), (size / 32, 0.3)):
-            noise = rng.standard_normal((size, size, 3)).astype(np.float32)
-            noise = ndimage.gaussian_filter(noise, (scale, scale, 0), mode="wrap")
+            # Smooth noise is generated coarse (about 4 samples per sigma) and upsampled: the
+            # same look at any size without a huge blur kernel.
+            n = max(8, int(round(4 * size / scale)))
+            noise = rng.standard_normal((n, n, 3)).astype(np.float32)
+            noise = ndimage.gaussian_filter(noise, (scale * n / size, scale * n / size, 0), mode="wrap")
+            # Pad periodically before upsampling so the texture stays seamless across u = 0/1.
+            f = size / n
+            big = cv2.resize(np.pad(noise, ((2, 2), (2, 2), (0, 0)), mode="wrap"),
+                             (round((n + 4) * f),) * 2, interpolation=cv2.INTER_CUBIC)
+            o = round(2 * f)
+            noise = big[o:o + size, o:o + size]
             noise /= noise.std() + 1e-9
             tex += amp * noise
         tex = 0.55 + 0.18 * tex
