@@ -123,6 +123,39 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         },
         attrs={"frame_ids": "list[int]"},
     ),
+    "template": ArtifactSpec(
+        description="The template mesh of the whole sequence (stex.template): the scene's template "
+        "cleaned and decimated (vertices kept on the original surface, depth-camera coordinates), "
+        "its UV atlas (xatlas, no mirrored UV triangles: signed UV area < 0 with v down), face "
+        "adjacency, the texel -> face map of the atlas, and the embedding of each vertex in the "
+        "original template surface (to carry per-frame meshes of the original topology over). "
+        "E = adjacent face pairs.",
+        path="template.zarr",
+        arrays={
+            "vertices": ArraySpec(("V", 3), "float32", "m", "template vertices, depth-camera coordinates"),
+            "faces": ArraySpec(("F", 3), "int32", "index", "triangles into vertices, counter-clockwise seen from outside"),
+            "texcoords": ArraySpec(("Vt", 2), "float32", "1", "atlas texture coordinates in [0,1]^2 (u right, v down)"),
+            "texcoord_faces": ArraySpec(("F", 3), "int32", "index", "per-corner index into texcoords"),
+            "face_chart": ArraySpec(("F",), "int32", "index", "UV chart of each face (faces sharing texcoords), numbered by first face"),
+            "adjacency/pairs": ArraySpec(("E", 2), "int32", "index", "faces sharing a manifold edge (smaller id first); non-manifold edges give no pair"),
+            "adjacency/edges": ArraySpec(("E", 2), "int32", "index", "the shared edge of each pair, vertex ids (smaller first)"),
+            "texel/face_id": ArraySpec(("W", "W"), "int32", "index", "face whose UV triangle holds texel (r, c)'s centre ((c+.5)/W, (r+.5)/W); -1 = gutter/empty", (1024, 1024)),
+            "texel/bary": ArraySpec(("W", "W", 3), "float32", "1", "barycentrics of the texel centre on texel/face_id (corners 0, 1, 2); 0 where empty", (1024, 1024, 3)),
+            "embedding/face": ArraySpec(("V",), "int32", "index", "face of the ORIGINAL template (scene template/faces) on which each vertex lies"),
+            "embedding/bary": ArraySpec(("V", 3), "float32", "1", "barycentrics of each vertex on embedding/face (stex.template.transfer_vertices)"),
+        },
+        attrs={
+            "atlas_size": "int: atlas side W (texels)",
+            "gutter_px": "int: xatlas padding around every chart (texels); charts end up >= 2*gutter_px+2 texels apart",
+            "counts": "dict: vertices, faces, texcoords, charts, adjacent_pairs, covered_texels, faces_in",
+            "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges)",
+            "decimated": "bool: whether quadric decimation ran",
+            "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed",
+            "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings)",
+            "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",
+            "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
+        },
+    ),
 }
 
 

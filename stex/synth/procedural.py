@@ -6,7 +6,7 @@ to top. Its deformation over time combines a bend, a twist, a volume-preserving 
 breathing bulge, all closed-form functions of time, so any frame (or sub-frame, for motion blur)
 can be generated independently and deterministically.
 
-Its appearance is a high-frequency base texture (colour noise, fine grid lines, dots) modulated by
+Its appearance is a high-frequency base texture (colour noise, random strokes, dots) modulated by
 the shape, because the paper's premise is "similar shape, similar texture":
 
 - wrinkle shading: dark horizontal stripes whose strength follows the local vertical compression
@@ -145,7 +145,7 @@ class ProceduralBody:
 
     # -- appearance ----------------------------------------------------------------------------
     def base_texture(self, size: int) -> np.ndarray:
-        """(size, size, 3) float32 base albedo in [0, 1]: seeded colour noise, grid lines, dots."""
+        """(size, size, 3) float32 base albedo in [0, 1]: seeded colour noise, random strokes, dots."""
         rng = np.random.default_rng(self.p.seed)
         tex = np.zeros((size, size, 3), np.float32)
         for scale, amp in ((size / 8, 0.5), (size / 32, 0.3)):
@@ -163,18 +163,23 @@ class ProceduralBody:
             noise /= noise.std() + 1e-9
             tex += amp * noise
         tex = 0.55 + 0.18 * tex
-        # fine grid lines: the high frequencies texture alignment and blur metrics need
-        u = (np.arange(size) + 0.5) / size
-        lines = (np.abs(_wrap(u * 48)) < 0.06).astype(np.float32)
-        grid = np.maximum(lines[None, :], lines[:, None])
-        tex *= (1 - 0.6 * grid)[..., None]
-        # coloured dots
+        img = (tex * 255).clip(0, 255).astype(np.uint8)
+        # Irregular high-frequency detail (random strokes and dots) rather than a regular grid:
+        # periodic patterns alias under motion and defeat optical flow and texture alignment.
+        n_strokes = max(100, size * size // 600)
+        p0 = rng.uniform(0, size, (n_strokes, 2))
+        ang = rng.uniform(0, np.pi, n_strokes)
+        length = rng.uniform(size / 200, size / 40, n_strokes)
+        p1 = p0 + length[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+        shade = rng.uniform(0.0, 0.35, n_strokes)
+        width = max(1, size // 512)
+        for a, b, g in zip(p0.astype(int), p1.astype(int), shade):  # drawn once per scene
+            cv2.line(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), (float(g) * 255,) * 3, width, cv2.LINE_AA)
         n_dots = max(50, size * size // 1500)
         cx, cy = rng.uniform(0, size, n_dots), rng.uniform(0, size, n_dots)
         rad = rng.uniform(size / 400, size / 120, n_dots)
         col = rng.uniform(0.05, 0.95, (n_dots, 3))
-        img = (tex * 255).clip(0, 255).astype(np.uint8)
-        for x, y, r, c in zip(cx, cy, rad, col):  # a few hundred dots, drawn once per scene
+        for x, y, r, c in zip(cx, cy, rad, col):
             cv2.circle(img, (int(x), int(y)), max(1, int(r)), tuple(float(v) * 255 for v in c), -1, cv2.LINE_AA)
         return img.astype(np.float32) / 255.0
 

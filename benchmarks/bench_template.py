@@ -1,0 +1,102 @@
+"""Benchmark the template stage on a 100k-face input (acceptance: decimation + atlas <= 30 s).
+
+Input: the bumpy sphere of ``stex.synth.shapes`` at subdivision 7 (327,680 faces), decimated once
+(untimed) to 100,000 faces. Timed, median of ``--runs`` runs each: cleaning, decimation to
+``--target`` faces, the UV atlas (``--size`` texels, ``--gutter`` texels), the embedding in the
+input surface, the texel map; plus one end-to-end :func:`stex.template.prepare_template`.
+Reports the mirrored UV triangles xatlas produced and how many remain (must be 0), texcoords
+outside [0, 1] (must be 0), and the smallest empty-texel gap between two charts.
+
+    python benchmarks/bench_template.py [--runs 3] [--target 20000] [--size 4096] [--gutter 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+try:
+    from stex import template as T
+    from stex.readers.meshes import Mesh
+    from stex.synth.shapes import bumpy_sphere
+except ImportError:  # run from a source checkout without installing the package
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from stex import template as T
+    from stex.readers.meshes import Mesh
+    from stex.synth.shapes import bumpy_sphere
+
+
+def _timed(fn, runs):
+    times, out = [], None
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return out, times
+
+
+def _line(name, times):
+    t = np.asarray(times)
+    print(f"{name:<34s} median {np.median(t):7.2f} s   min {t.min():7.2f} s   max {t.max():7.2f} s   (n={t.size})")
+    return float(np.median(t))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--input-faces", type=int, default=100_000)
+    ap.add_argument("--target", type=int, default=20_000)
+    ap.add_argument("--size", type=int, default=4096)
+    ap.add_argument("--gutter", type=int, default=4)
+    args = ap.parse_args(argv)
+
+    V, F = bumpy_sphere(subdivisions=7)
+    V, F = T.decimate(V, F, args.input_faces)
+    print(f"input: {len(F)} faces, {len(V)} vertices; target {args.target} faces, atlas {args.size}^2, "
+          f"gutter {args.gutter} px; {args.runs} runs per step")
+
+    (Vc, Fc, _), t_clean = _timed(lambda: T.clean_mesh(V, F), args.runs)
+    (Vd, Fd), t_dec = _timed(lambda: T.decimate(Vc, Fc, args.target), args.runs)
+    (face, bary, closest, dist), t_emb = _timed(lambda: T.embed_vertices(Vd, V, F), args.runs)
+    (tc, tf, info), t_atlas = _timed(lambda: T.build_atlas(closest, Fd, args.size, args.gutter, return_info=True), args.runs)
+    (fid, _), t_tex = _timed(lambda: T.texel_map(tc, tf, args.size), args.runs)
+    m_clean = _line("clean_mesh", t_clean)
+    m_dec = _line(f"decimate -> {len(Fd)} faces", t_dec)
+    m_emb = _line("embed_vertices", t_emb)
+    m_atlas = _line("build_atlas", t_atlas)
+    _line("texel_map", t_tex)
+    print(f"  atlas: charting {info['time_chart_s']:.2f} s + packing {info['time_pack_s']:.2f} s (last run), "
+          f"{info['charts']} charts, utilization {100 * info['utilization']:.1f} %, "
+          f"{info['texels_per_unit']:.0f} texels/m")
+    print(f"decimation + atlas (medians): {m_dec + m_atlas:.2f} s  "
+          f"(+ clean + embedding: {m_clean + m_dec + m_emb + m_atlas:.2f} s; acceptance <= 30 s)")
+
+    flipped = int(T.uv_flipped(tc, tf).sum())
+    outside = int(((tc < 0) | (tc > 1)).any(1).sum())
+    chart = T.uv_charts(tf)
+    gap = 0
+    while T.gutter_conflicts(fid, chart, gap + 1) == 0 and gap < 4 * args.gutter + 8:
+        gap += 1
+    missing = len(Fd) - len(np.unique(fid[fid >= 0]))
+    print(f"mirrored UV triangles: xatlas {info['flipped_xatlas']} of {len(Fd)} "
+          f"({info['flipped_charts']} charts) -> after fix {flipped}")
+    print(f"texcoords outside [0,1]: {outside}; smallest gap between charts: {gap} empty texels "
+          f"(gutter {args.gutter}); faces covering no texel centre: {missing}")
+    print(f"embedding: largest move onto the input surface {1e3 * dist.max():.3f} mm")
+
+    t0 = time.perf_counter()
+    out = T.prepare_template(Mesh(V, F), dict(decimate=True, target_faces=args.target,
+                                              atlas_size=args.size, gutter_px=args.gutter))
+    print(f"prepare_template end to end: {time.perf_counter() - t0:.2f} s  "
+          f"(steps: {', '.join(f'{k} {v:.2f}' for k, v in out['attrs']['timings_s'].items())})")
+    ok = flipped == 0 and outside == 0 and gap >= args.gutter and m_dec + m_atlas <= 30
+    print("acceptance:", "PASS" if ok else "FAIL")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,669 @@
+"""Template stage: clean, decimate and UV-unwrap the template mesh once for the whole sequence.
+
+What it computes
+----------------
+- :func:`clean_mesh` — merges exactly duplicated vertices, drops degenerate and duplicated faces
+  and unreferenced vertices, and reports non-manifold and boundary edges (reported, not fixed).
+- :func:`decimate` — pymeshlab quadric edge collapse to a target face count (the paper's
+  templates have 10-30k faces; default 20k). A no-op when the mesh is already small enough.
+- :func:`build_atlas` — a UV atlas from xatlas in one square ``resolution`` x ``resolution``
+  texture with ``gutter_px`` empty texels between charts, and **no mirrored UV triangles**.
+- :func:`face_adjacency` — pairs of faces sharing a manifold edge and that edge.
+- :func:`texel_map` — per texel of the atlas: the face whose UV triangle holds its centre and
+  the barycentrics of that centre.
+- :func:`embed_vertices` / :func:`transfer_vertices` — where each template vertex lies on the
+  *original* template surface, so per-frame meshes of the original topology (``given/vertices``,
+  ``truth/vertices`` in the scene store) can be carried to the decimated topology.
+- :func:`prepare_template` / :func:`write_template` — the whole stage (scene store in,
+  ``template`` store out, see :mod:`stex.io`).
+
+Conventions
+-----------
+Vertices are metres in depth-camera coordinates (never recentred); faces are counter-clockwise
+seen from outside. Texcoords follow stex (see :mod:`stex.render`): u right, v **down**, origin at
+the texture's top-left corner, texel (r, c) centred at ((c + .5) / W, (r + .5) / W).
+
+**UV orientation.** With v pointing down, a UV triangle is *front-facing* (the texture image shows
+the surface as seen from outside, not mirrored) when its signed area
+
+    A = (u1 - u0) (v2 - v0) - (v1 - v0) (u2 - u0)
+
+is **negative**: counter-clockwise on the screen with rows growing downward. (Exported to OBJ,
+v -> 1 - v, this becomes the usual positive / counter-clockwise UV winding of OpenGL tools.)
+:func:`uv_flipped` marks faces with A > 0; :func:`build_atlas` guarantees there are none.
+
+Why xatlas mirrors charts, and the fix
+--------------------------------------
+xatlas' packer may "rotate" a chart by 90 degrees to pack it better (``PackOptions.rotate_charts``,
+on by default), and it does so by swapping u and v — a *transposition*, i.e. a mirror image.
+``ChartOptions.fix_winding`` does not help (it concerns the parameterisation, which is fine).
+Measured: a subdivision-5 icosphere comes out with 10,240 of its 20,480 UV triangles mirrored
+(3 of 6 charts); with ``rotate_charts`` off, none. :func:`build_atlas` therefore
+
+1. charts and packs with xatlas' defaults (pass 1),
+2. mirrors every chart whose area-weighted orientation is wrong (u -> -u, turning the
+   transposition into a true 90-degree rotation); a face still wrong after that (a fold inside a
+   chart; not observed so far) becomes a chart of its own and is mirrored alone,
+3. repacks the fixed charts with xatlas (``use_input_mesh_uvs``, ``rotate_charts`` off, so no new
+   mirror images) into exactly ``resolution`` x ``resolution`` texels, searching the texel density
+   (texels per metre) that just fits one atlas,
+4. checks that no triangle is mirrored and all texcoords lie in [0, 1].
+
+The repack costs a fraction of pass 1 (charting dominates: ~3 s for 20k faces).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("stex.template")
+
+__all__ = [
+    "clean_mesh",
+    "nonmanifold_edges",
+    "decimate",
+    "build_atlas",
+    "uv_signed_area",
+    "uv_flipped",
+    "uv_charts",
+    "face_adjacency",
+    "texel_map",
+    "gutter_conflicts",
+    "embed_vertices",
+    "transfer_vertices",
+    "prepare_template",
+    "write_template",
+    "atlas_preview",
+    "preview_template",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# cleaning
+# --------------------------------------------------------------------------------------------
+
+def _edge_table(faces: np.ndarray):
+    """Undirected edges of every face corner: (sorted edges (3F, 2) int64, face of each (3F,))."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e.sort(axis=1)
+    fid = np.tile(np.arange(len(f), dtype=np.int64), 3)
+    return e, fid
+
+
+def nonmanifold_edges(faces) -> tuple[np.ndarray, np.ndarray]:
+    """Edges used by more than two faces, and boundary edges (used by exactly one face).
+
+    Args:
+        faces: (F, 3) integer vertex indices.
+
+    Returns:
+        (nonmanifold (N, 2) int32, boundary (B, 2) int32): vertex ids, smaller id first, sorted.
+    """
+    e, _ = _edge_table(faces)
+    if len(e) == 0:
+        z = np.zeros((0, 2), np.int32)
+        return z, z
+    uniq, counts = np.unique(e, axis=0, return_counts=True)
+    return uniq[counts > 2].astype(np.int32), uniq[counts == 1].astype(np.int32)
+
+
+def clean_mesh(vertices, faces, area_tol: float = 1e-12):
+    """Clean a triangle mesh for decimation and unwrapping.
+
+    Steps: merge vertices with exactly equal coordinates; drop faces that use a vertex twice or
+    whose area is below ``area_tol`` x (bounding-box diagonal)^2; drop repeated faces (same three
+    vertices in any order, keeping the first); drop vertices no face uses. Non-manifold edges
+    (shared by more than two faces) and boundary edges are counted, not repaired.
+
+    Args:
+        vertices: (V, 3) float, metres.
+        faces: (F, 3) int vertex indices.
+        area_tol: relative area below which a face is degenerate.
+
+    Returns:
+        (vertices (V', 3) float64 m, faces (F', 3) int32, report): ``report`` is a JSON-able dict
+        with ``vertices_in/out``, ``faces_in/out``, ``duplicate_vertices`` (merged),
+        ``degenerate_faces``, ``duplicate_faces``, ``unreferenced_vertices`` (removed),
+        ``nonmanifold_edges``, ``boundary_edges`` (counts) and ``nonmanifold_examples`` (up to 10
+        vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
+    """
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (V, 3), got {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3:
+        raise ValueError(f"faces must have shape (F, 3), got {F.shape}")
+    if len(F) and (F.min() < 0 or F.max() >= len(V)):
+        raise ValueError(f"faces index vertices outside 0..{len(V) - 1}")
+    if not np.isfinite(V).all():
+        raise ValueError(f"vertex {int(np.flatnonzero(~np.isfinite(V).all(1))[0])} is not finite")
+    report = {"vertices_in": len(V), "faces_in": len(F)}
+
+    uniq, first, inverse = np.unique(V, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    report["duplicate_vertices"] = int(len(V) - len(uniq))
+    # Keep the first occurrence's position order: renumber merged vertices by first appearance.
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    V1 = uniq[order]
+    F1 = rank[inverse][F]
+
+    repeated = (F1[:, 0] == F1[:, 1]) | (F1[:, 1] == F1[:, 2]) | (F1[:, 2] == F1[:, 0])
+    diag2 = float(((V1.max(0) - V1.min(0)) ** 2).sum()) if len(V1) else 0.0
+    area = 0.5 * np.linalg.norm(np.cross(V1[F1[:, 1]] - V1[F1[:, 0]], V1[F1[:, 2]] - V1[F1[:, 0]]), axis=1)
+    degenerate = repeated | (area <= area_tol * diag2)
+    report["degenerate_faces"] = int(degenerate.sum())
+    F1 = F1[~degenerate]
+
+    key = np.sort(F1, axis=1)
+    _, keep = np.unique(key, axis=0, return_index=True)
+    keep.sort()
+    report["duplicate_faces"] = int(len(F1) - len(keep))
+    F1 = F1[keep]
+
+    used = np.zeros(len(V1), bool)
+    used[F1.ravel()] = True
+    report["unreferenced_vertices"] = int((~used).sum())
+    remap = np.cumsum(used) - 1
+    V2 = V1[used]
+    F2 = remap[F1].astype(np.int32)
+
+    nm, boundary = nonmanifold_edges(F2)
+    report.update(vertices_out=len(V2), faces_out=len(F2), nonmanifold_edges=int(len(nm)),
+                  boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist())
+    if len(nm):
+        log.warning("template: %d non-manifold edges (shared by > 2 faces), e.g. %s",
+                    len(nm), nm[:3].tolist())
+    if len(F2) == 0:
+        raise ValueError("the mesh has no non-degenerate faces")
+    return V2, F2, report
+
+
+# --------------------------------------------------------------------------------------------
+# decimation
+# --------------------------------------------------------------------------------------------
+
+def decimate(vertices, faces, target_faces: int):
+    """Quadric edge-collapse decimation (pymeshlab) to ``target_faces`` faces.
+
+    Normals are preserved (no face flips), topology is preserved (no holes closed or opened,
+    genus kept), boundaries are kept, planar regions get the planar quadric, vertices go to their
+    quadric-optimal positions. Returns the input unchanged when it has at most ``target_faces``
+    faces.
+
+    Args:
+        vertices: (V, 3) float, metres.
+        faces: (F, 3) int.
+        target_faces: wanted face count (> 0).
+
+    Returns:
+        (vertices (V', 3) float64 m, faces (F', 3) int32), unreferenced vertices removed.
+    """
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int32)
+    target_faces = int(target_faces)
+    if target_faces < 1:
+        raise ValueError(f"target_faces must be positive, got {target_faces}")
+    if len(F) <= target_faces:
+        return V.copy(), F.copy()
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F))
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=target_faces, qualitythr=0.3, preserveboundary=True, boundaryweight=1.0,
+        preservenormal=True, preservetopology=True, optimalplacement=True, planarquadric=True,
+        autoclean=True)
+    m = ms.current_mesh()
+    V2 = np.asarray(m.vertex_matrix(), np.float64)
+    F2 = np.asarray(m.face_matrix(), np.int32)
+    used = np.zeros(len(V2), bool)
+    used[F2.ravel()] = True
+    if not used.all():
+        remap = np.cumsum(used) - 1
+        V2, F2 = V2[used], remap[F2].astype(np.int32)
+    return V2, F2
+
+
+# --------------------------------------------------------------------------------------------
+# UV atlas
+# --------------------------------------------------------------------------------------------
+
+def uv_signed_area(texcoords, texcoord_faces) -> np.ndarray:
+    """(F,) float64 signed area of each UV triangle, in texcoord units (u right, v down).
+
+    Negative = front-facing in stex's convention (see the module docstring), positive = mirrored.
+    """
+    p = np.asarray(texcoords, np.float64)[np.asarray(texcoord_faces)]
+    d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    return d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
+
+
+def uv_flipped(texcoords, texcoord_faces) -> np.ndarray:
+    """(F,) bool: UV triangles that are mirrored (signed area > 0 with v pointing down).
+
+    Zero-area UV triangles are not counted as flipped (see :func:`uv_signed_area`).
+    """
+    return uv_signed_area(texcoords, texcoord_faces) > 0
+
+
+def uv_charts(texcoord_faces, n_texcoords: int | None = None) -> np.ndarray:
+    """(F,) int32 chart id of each face: connected components of faces sharing a texcoord.
+
+    Charts are numbered by their lowest face index (chart 0 holds face 0).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tf = np.asarray(texcoord_faces, np.int64)
+    F = len(tf)
+    n_t = int(tf.max()) + 1 if n_texcoords is None else int(n_texcoords)
+    # bipartite graph faces <-> texcoords; components restricted to faces
+    rows = np.repeat(np.arange(F), 3)
+    cols = F + tf.ravel()
+    g = coo_matrix((np.ones(len(rows), np.int8), (rows, cols)), shape=(F + n_t, F + n_t))
+    _, lab = connected_components(g, directed=False)
+    lab = lab[:F]
+    _, first = np.unique(lab, return_index=True)
+    order = np.argsort(first)  # component ids in order of first face
+    relabel = np.empty(lab.max() + 1, np.int64)
+    relabel[np.unique(lab)[order]] = np.arange(len(order))
+    return relabel[lab].astype(np.int32)
+
+
+def _xatlas_pack_options(resolution, gutter_px, rotate, texels_per_unit=0.0):
+    import xatlas
+
+    po = xatlas.PackOptions()
+    po.resolution = int(resolution)
+    po.padding = int(gutter_px)
+    po.bilinear = True
+    po.rotate_charts = bool(rotate)
+    po.texels_per_unit = float(texels_per_unit)
+    return po
+
+
+def _repack(positions, tfaces, uv, resolution, gutter_px, texels_per_unit):
+    """xatlas pack of given UV charts into one resolution^2 atlas; None if they do not fit."""
+    import xatlas
+
+    a = xatlas.Atlas()
+    a.add_mesh(positions.astype(np.float32), tfaces.astype(np.uint32), None, uv.astype(np.float32))
+    co = xatlas.ChartOptions()
+    co.use_input_mesh_uvs = True
+    a.generate(co, _xatlas_pack_options(resolution, gutter_px, False, texels_per_unit))
+    if a.atlas_count != 1:
+        return None
+    if (a.width, a.height) != (resolution, resolution):
+        raise RuntimeError(f"xatlas packed into {a.width}x{a.height}, expected {resolution}^2")
+    vmap, idx, out_uv = a[0]
+    return np.asarray(vmap, np.int64), np.asarray(idx, np.int64), np.asarray(out_uv, np.float64), a.utilization
+
+
+def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, return_info: bool = False,
+                pack_search_steps: int = 6):
+    """A UV atlas of the mesh: xatlas charts packed into one square texture, no mirrored charts.
+
+    See the module docstring for the procedure and why pass 1's charts need fixing.
+
+    Args:
+        vertices: (V, 3) float, metres.
+        faces: (F, 3) int, counter-clockwise seen from outside; no degenerate faces
+            (run :func:`clean_mesh` first).
+        resolution: side of the square atlas W, texels.
+        gutter_px: empty texels xatlas keeps between charts (its ``padding``; with bilinear
+            filtering space reserved on top).
+        return_info: also return a dict of statistics.
+        pack_search_steps: repacks tried when searching the largest texel density that fits.
+
+    Returns:
+        texcoords (Vt, 2) float32 in [0, 1]^2 (u right, v down), texcoord_faces (F, 3) int32
+        (face i of ``faces`` <-> row i), and with ``return_info`` a dict: ``flipped_xatlas``
+        (mirrored triangles in xatlas' own output), ``flipped_charts`` (charts mirrored back),
+        ``fold_faces`` (faces split into their own chart), ``charts``, ``texels_per_unit``
+        (texels per metre), ``utilization`` (fraction of the atlas covered), timings in s.
+    """
+    import xatlas
+
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    resolution, gutter_px = int(resolution), int(gutter_px)
+    if resolution < 8 or gutter_px < 0:
+        raise ValueError(f"need resolution >= 8 and gutter_px >= 0, got {resolution}, {gutter_px}")
+    info: dict = {}
+    t0 = time.perf_counter()
+    a = xatlas.Atlas()
+    a.add_mesh(V.astype(np.float32), F.astype(np.uint32))
+    co = xatlas.ChartOptions()
+    co.fix_winding = True
+    a.generate(co, _xatlas_pack_options(resolution, gutter_px, True))
+    vmap, idx, uv = (np.asarray(x) for x in a[0])
+    vmap, idx = vmap.astype(np.int64), idx.astype(np.int64)
+    if idx.shape != F.shape or not np.array_equal(vmap[idx], F):
+        raise RuntimeError("xatlas changed the faces (degenerate faces? run clean_mesh first)")
+    w1, h1, tpu1 = a.width, a.height, float(a.texels_per_unit)
+    info["time_chart_s"] = time.perf_counter() - t0
+
+    # xatlas' uv have v growing with its image rows, and front-facing = positive area in them
+    # (before its packer transposes charts). Work in texel units.
+    px = uv.astype(np.float64) * [w1, h1]
+    area = uv_signed_area(px, idx)
+    info["flipped_xatlas"] = int((area < 0).sum())
+    chart = uv_charts(idx, len(px))
+    n_charts = int(chart.max()) + 1
+    mirrored = np.bincount(chart, area, n_charts) < 0
+    info["flipped_charts"] = int(mirrored.sum())
+    t_chart = np.empty(len(px), np.int64)
+    t_chart[idx.ravel()] = np.repeat(chart, 3)
+    px[mirrored[t_chart], 0] *= -1.0
+    fold = uv_signed_area(px, idx) < 0
+    info["fold_faces"] = int(fold.sum())
+    if fold.any():  # each folded face becomes a chart of its own, mirrored
+        fi = np.flatnonzero(fold)
+        new = px[idx[fi]].reshape(-1, 2).copy()
+        new[:, 0] *= -1.0
+        base = len(px)
+        px = np.concatenate([px, new])
+        vmap = np.concatenate([vmap, vmap[idx[fi]].ravel()])
+        idx = idx.copy()
+        idx[fi] = base + np.arange(3 * len(fi)).reshape(-1, 3)
+        log.warning("template: %d UV triangles folded inside their chart; split into own charts", len(fi))
+
+    # Repack into exactly resolution^2: largest texel density (texels per metre) that fits.
+    t1 = time.perf_counter()
+    positions = V[vmap]
+    uv_in = (px - px.min(0)) / max(float(np.ptp(px, axis=0).max()), 1e-12)
+    tpu = tpu1 * resolution / max(w1, h1)
+    best, best_tpu, lo, hi = None, None, None, None
+    for _ in range(max(1, pack_search_steps) + 20):
+        r = _repack(positions, idx, uv_in, resolution, gutter_px, tpu)
+        if r is not None:
+            best, best_tpu, lo = r, tpu, tpu
+        else:
+            hi = tpu
+        if best is not None and _ >= pack_search_steps - 1:
+            break
+        if hi is None:
+            tpu *= 1.08
+        elif lo is None:
+            tpu *= 0.9
+        else:
+            tpu = 0.5 * (lo + hi)
+    if best is None:
+        raise RuntimeError(f"xatlas could not pack the charts into one {resolution}^2 atlas")
+    vmap2, idx2, uv2, util = best
+    if not np.array_equal(vmap[vmap2[idx2]], F):
+        raise RuntimeError("xatlas repack changed the faces")
+    info["time_pack_s"] = time.perf_counter() - t1
+    texcoords = uv2.copy()
+    texcoords[:, 1] = 1.0 - texcoords[:, 1]  # xatlas rows -> stex v (front-facing: area < 0)
+    texcoords = texcoords.astype(np.float32)
+    tfaces = idx2.astype(np.int32)
+    flipped = uv_flipped(texcoords, tfaces)
+    if flipped.any():
+        raise RuntimeError(f"{int(flipped.sum())} UV triangles still mirrored after the fix")
+    if texcoords.min() < 0 or texcoords.max() > 1:
+        raise RuntimeError("texcoords outside [0, 1] after packing")
+    info.update(charts=int(uv_charts(tfaces, len(texcoords)).max()) + 1, texels_per_unit=best_tpu,
+                utilization=float(util), degenerate_uv_faces=int((uv_signed_area(texcoords, tfaces) == 0).sum()))
+    log.info("template: atlas %d^2, %d charts (%d mirrored by xatlas, %d triangles), %.1f%% used, "
+             "%.1f s charting + %.1f s packing", resolution, info["charts"], info["flipped_charts"],
+             info["flipped_xatlas"], 100 * info["utilization"], info["time_chart_s"], info["time_pack_s"])
+    return (texcoords, tfaces, info) if return_info else (texcoords, tfaces)
+
+
+# --------------------------------------------------------------------------------------------
+# adjacency, texel map
+# --------------------------------------------------------------------------------------------
+
+def face_adjacency(faces, return_nonmanifold: bool = False):
+    """Faces sharing an edge.
+
+    Every edge used by exactly two faces gives one pair. Edges used by more than two faces
+    (non-manifold) give no pair; they are logged and, with ``return_nonmanifold``, returned.
+
+    Args:
+        faces: (F, 3) int vertex indices.
+
+    Returns:
+        pairs (E, 2) int32 face ids with pairs[:, 0] < pairs[:, 1], sorted by shared edge;
+        edges (E, 2) int32 the shared edge's vertex ids, smaller first;
+        and with ``return_nonmanifold`` the (N, 2) int32 non-manifold edges.
+    """
+    e, fid = _edge_table(faces)
+    if len(e) == 0:
+        z = np.zeros((0, 2), np.int32)
+        return (z, z, z) if return_nonmanifold else (z, z)
+    order = np.lexsort((fid, e[:, 1], e[:, 0]))
+    e, fid = e[order], fid[order]
+    new = np.ones(len(e), bool)
+    new[1:] = (e[1:] != e[:-1]).any(1)
+    start = np.flatnonzero(new)
+    count = np.diff(np.append(start, len(e)))
+    two = start[count == 2]
+    pairs = np.stack([fid[two], fid[two + 1]], 1).astype(np.int32)
+    edges = e[two].astype(np.int32)
+    nm = e[start[count > 2]].astype(np.int32)
+    if len(nm):
+        log.warning("face adjacency: %d non-manifold edges have no face pair", len(nm))
+    return (pairs, edges, nm) if return_nonmanifold else (pairs, edges)
+
+
+def texel_map(texcoords, texcoord_faces, size: int):
+    """Rasterise a UV layout: which face and where on it each texel centre lies.
+
+    Texel (r, c) of a size x size atlas samples texcoord ((c + .5) / size, (r + .5) / size).
+    A centre on a shared edge goes to one face; where UV triangles overlap, the lowest face
+    index wins (see :func:`stex.render.rasterize`).
+
+    Args:
+        texcoords: (Vt, 2) float, u right, v down.
+        texcoord_faces: (F, 3) int.
+        size: atlas side W, texels.
+
+    Returns:
+        (face_id (size, size) int32, -1 where no face; bary (size, size, 3) float32, weights of
+        the face's corners 0, 1, 2, summing to 1; 0 where no face).
+    """
+    from stex.render import rasterize
+
+    tc = np.asarray(texcoords, np.float64)
+    px = np.column_stack([tc[:, 0] * size - 0.5, tc[:, 1] * size - 0.5, np.ones(len(tc))])
+    r = rasterize(px, texcoord_faces, np.eye(3), size, size)
+    return r.face_id, r.bary
+
+
+def gutter_conflicts(face_id, face_chart, gutter_px: int) -> int:
+    """Number of covered texels with a texel of *another* chart within ``gutter_px`` texels
+    (Chebyshev distance): 0 means every two charts are at least ``gutter_px`` empty texels
+    apart (at texel-centre coverage, as rasterised by :func:`texel_map`)."""
+    from scipy import ndimage
+
+    fid = np.asarray(face_id)
+    lab = np.where(fid >= 0, np.asarray(face_chart)[np.maximum(fid, 0)], -1).astype(np.int32)
+    if gutter_px <= 0:
+        return 0
+    size = 2 * int(gutter_px) + 1
+    big = int(lab.max()) + 1  # (a huge cval would overflow inside ndimage)
+    mx = ndimage.maximum_filter(lab, size=size, mode="constant", cval=-1)
+    mn = ndimage.minimum_filter(np.where(lab >= 0, lab, big), size=size, mode="constant", cval=big)
+    covered = lab >= 0
+    return int((covered & ((mx != lab) | (mn != lab))).sum())
+
+
+# --------------------------------------------------------------------------------------------
+# embedding in the original surface
+# --------------------------------------------------------------------------------------------
+
+def embed_vertices(points, orig_vertices, orig_faces):
+    """Closest point of each point on the original surface, as face id + barycentrics.
+
+    Faces of zero area are skipped (their barycentrics are undefined).
+
+    Args:
+        points: (V, 3) float, metres.
+        orig_vertices: (V0, 3) float, metres; orig_faces: (F0, 3) int.
+
+    Returns:
+        (face (V,) int32 original face id, bary (V, 3) float32 (sum 1), closest (V, 3) float64
+        the closest points, distance (V,) float64 m).
+    """
+    import trimesh
+
+    V0 = np.asarray(orig_vertices, np.float64)
+    F0 = np.asarray(orig_faces, np.int64)
+    tri = V0[F0]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    ok = np.flatnonzero(area > 0)
+    tm = trimesh.Trimesh(V0, F0[ok], process=False, validate=False)
+    pts = np.asarray(points, np.float64)
+    closest, dist, tid = trimesh.proximity.closest_point(tm, pts)
+    face = ok[tid]
+    bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
+    bary = np.clip(bary, 0.0, None)
+    bary /= bary.sum(1, keepdims=True)
+    return face.astype(np.int32), bary.astype(np.float32), closest, np.asarray(dist)
+
+
+def transfer_vertices(orig_frame_vertices, orig_faces, embedding_face, embedding_bary) -> np.ndarray:
+    """Carry a mesh of the original topology to the template's topology.
+
+    Args:
+        orig_frame_vertices: (..., V0, 3) float, metres, e.g. one frame (V0, 3) or (T, V0, 3).
+        orig_faces: (F0, 3) int, the original template's faces.
+        embedding_face: (V,) int original face of each template vertex.
+        embedding_bary: (V, 3) float barycentrics on that face.
+
+    Returns:
+        (..., V, 3) float64 template vertices: sum_k bary[:, k] * orig[faces[face, k]].
+        Exact for any affine motion of the original (rigid motions included).
+    """
+    X = np.asarray(orig_frame_vertices, np.float64)
+    corners = np.asarray(orig_faces, np.int64)[np.asarray(embedding_face, np.int64)]  # (V, 3)
+    b = np.asarray(embedding_bary, np.float64)
+    return np.einsum("...vkd,vk->...vd", X[..., corners, :], b)
+
+
+# --------------------------------------------------------------------------------------------
+# the stage
+# --------------------------------------------------------------------------------------------
+
+def prepare_template(mesh, params: dict) -> dict:
+    """Run the template stage on a mesh.
+
+    Args:
+        mesh: :class:`stex.readers.meshes.Mesh` (original template, depth-camera coordinates, m).
+        params: the ``template`` config section: ``target_faces``, ``decimate``, ``atlas_size``,
+            ``gutter_px``.
+
+    Returns:
+        dict with the ``template`` store's arrays (keys as in :data:`stex.io.ARTIFACTS`) and
+        ``"attrs"``: a JSON-able dict of the stage's report.
+    """
+    t0 = time.perf_counter()
+    V, F, report = clean_mesh(mesh.vertices, mesh.faces)
+    log.info("template: cleaned %d -> %d faces (%s)", report["faces_in"], report["faces_out"],
+             {k: report[k] for k in ("duplicate_vertices", "degenerate_faces", "duplicate_faces",
+                                     "unreferenced_vertices", "nonmanifold_edges", "boundary_edges")})
+    t1 = time.perf_counter()
+    decimated = bool(params.get("decimate", True)) and len(F) > int(params["target_faces"])
+    if decimated:
+        V, F = decimate(V, F, int(params["target_faces"]))
+        log.info("template: decimated to %d faces, %d vertices", len(F), len(V))
+    t2 = time.perf_counter()
+    # Keep the template on the original surface so that transfer_vertices reproduces it exactly.
+    emb_face, emb_bary, closest, dist = embed_vertices(V, mesh.vertices, mesh.faces)
+    V = closest
+    t3 = time.perf_counter()
+    size, gutter = int(params["atlas_size"]), int(params["gutter_px"])
+    tc, tf, info = build_atlas(V, F, size, gutter, return_info=True)
+    t4 = time.perf_counter()
+    pairs, edges = face_adjacency(F)
+    face_id, bary = texel_map(tc, tf, size)
+    chart = uv_charts(tf, len(tc))
+    conflicts = gutter_conflicts(face_id, chart, gutter)
+    if conflicts:
+        log.warning("template: %d texels closer than %d texels to another chart", conflicts, gutter)
+    t5 = time.perf_counter()
+    attrs = {
+        "atlas_size": size, "gutter_px": gutter,
+        "counts": {"vertices": len(V), "faces": len(F), "texcoords": len(tc), "charts": info["charts"],
+                   "adjacent_pairs": len(pairs), "covered_texels": int((face_id >= 0).sum()),
+                   "faces_in": int(len(mesh.faces))},
+        "clean_report": report,
+        "decimated": decimated,
+        "flipped_fixed": info["flipped_xatlas"],
+        "atlas": {k: v for k, v in info.items()},
+        "gutter_conflicts": conflicts,
+        "embedding_max_distance_m": float(dist.max()) if len(dist) else 0.0,
+        "timings_s": {"clean": t1 - t0, "decimate": t2 - t1, "embed": t3 - t2, "atlas": t4 - t3,
+                      "adjacency_texels": t5 - t4},
+    }
+    return {
+        "vertices": V.astype(np.float32), "faces": F.astype(np.int32),
+        "texcoords": tc, "texcoord_faces": tf, "face_chart": chart,
+        "adjacency/pairs": pairs, "adjacency/edges": edges,
+        "texel/face_id": face_id, "texel/bary": bary,
+        "embedding/face": emb_face, "embedding/bary": emb_bary,
+        "attrs": attrs,
+    }
+
+
+def write_template(scene_path, params: dict, out) -> None:
+    """Read the template mesh from the ``scene`` store, run the stage, write the ``template`` store."""
+    from stex.io import create_store, open_store
+    from stex.readers.meshes import Mesh
+
+    scene = open_store(scene_path, "scene")
+    if not scene.attrs.get("has_template", False) or "template/vertices" not in scene:
+        kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
+        raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template")
+    mesh = Mesh(np.asarray(scene["template/vertices"][...], np.float64),
+                np.asarray(scene["template/faces"][...], np.int32))
+    result = prepare_template(mesh, params)
+    attrs = result.pop("attrs")
+    with create_store(out, "template", attrs=attrs, params=params) as store:
+        for name, arr in result.items():
+            store.write(name, arr)
+    log.info("template: wrote %s (%d faces, atlas %d^2)", out, attrs["counts"]["faces"], attrs["atlas_size"])
+
+
+# --------------------------------------------------------------------------------------------
+# preview
+# --------------------------------------------------------------------------------------------
+
+def atlas_preview(texcoords, texcoord_faces, face_chart, size: int = 1024) -> np.ndarray:
+    """(size, size, 3) uint8 RGB picture of the atlas: each chart in its own colour (the same
+    hue family, lighter towards higher face ids inside a chart), empty texels dark grey."""
+    import colorsys
+
+    face_id, _ = texel_map(texcoords, texcoord_faces, size)
+    chart = np.asarray(face_chart)
+    n = int(chart.max()) + 1 if len(chart) else 0
+    golden = 0.618033988749895
+    palette = np.array([colorsys.hsv_to_rgb((k * golden) % 1.0, 0.55 + 0.35 * ((k * 7) % 3) / 2, 0.95)
+                        for k in range(max(n, 1))]) * 255
+    img = np.full((size, size, 3), 40, np.uint8)
+    hit = face_id >= 0
+    img[hit] = palette[chart[face_id[hit]]].astype(np.uint8)
+    return img
+
+
+def preview_template(template_path, out_png, size: int = 1024) -> None:
+    """Write the atlas picture of a ``template`` store to ``out_png``."""
+    from stex.io import open_store
+    from stex.preview import _label, write_png
+
+    g = open_store(template_path, "template")
+    img = atlas_preview(g["texcoords"][...], g["texcoord_faces"][...], g["face_chart"][...], size)
+    c = g.attrs["counts"]
+    title = (f"atlas {g.attrs['atlas_size']}^2, {c['charts']} charts, {c['faces']} faces, "
+             f"gutter {g.attrs['gutter_px']} px")
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    write_png(out_png, _label(img, title))

@@ -1,0 +1,33 @@
+# Template: clean + decimate the template mesh, UV atlas, face adjacency, texel map (one job).
+
+
+rule template:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+    output:
+        directory(f"{RESULTS}/template.zarr"),
+    params:
+        template=config["template"],
+    log:
+        f"{RESULTS}/logs/template.log",
+    conda:
+        ENV
+    script:
+        "../scripts/template.py"
+
+
+rule template_preview:
+    input:
+        f"{RESULTS}/template.zarr",
+    output:
+        report(
+            f"{RESULTS}/previews/template_atlas.png",
+            caption="../report/template.rst",
+            category="Template",
+        ),
+    log:
+        f"{RESULTS}/logs/template_preview.log",
+    conda:
+        ENV
+    script:
+        "../scripts/template_preview.py"
