@@ -156,6 +156,22 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
         },
     ),
+    "poses": ArtifactSpec(
+        description="Rigid poses between every pair of frames (stex.poses): K_{t->t'} maps frame "
+        "t's mesh onto frame t' (x' = R x + t, depth-camera coordinates), from RANSAC over "
+        "same-index vertex pairs plus robust point-to-plane ICP; estimated for t < t', the other "
+        "half is the exact inverse, the diagonal is the identity. Used by E_glo.",
+        path="poses.zarr",
+        arrays={
+            "poses": ArraySpec(("T", "T", 4, 4), "float64", "m", "poses[t, t'] = K_{t->t'} (4x4 rigid, translation in metres); poses[t', t] = inv(poses[t, t'])", (1, "T", 4, 4)),
+            "inlier_ratio": ArraySpec(("T", "T"), "float32", "1", "fraction of vertices within poses.inlier_threshold_m of their partner after alignment (symmetric, 1 on the diagonal)"),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each row/column",
+            "vertices_source": "str: the store the per-frame vertices were read from",
+            "vertices_array": "str: the array read from it",
+        },
+    ),
 }
 
 

@@ -48,6 +48,10 @@ from numba import njit
 
 log = logging.getLogger("stex.poses")
 
+#: RANSAC stops once an all-inlier sample of the best model so far would have been drawn with
+#: this probability (standard adaptive stopping); ``ransac_iterations`` is the upper bound.
+_CONFIDENCE = 0.999
+
 #: Defaults of the ``poses`` config section (config/schema.yaml documents each).
 DEFAULT_PARAMS = {
     "ransac_iterations": 500,
@@ -233,14 +237,20 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
     best = np.inf
     found = False
     S = sub.shape[0]
-    for h in range(samples.shape[0]):
+    n_samples = samples.shape[0]
+    n_needed = n_samples
+    for h in range(n_samples):
         a, b, c = sub[samples[h, 0]], sub[samples[h, 1]], sub[samples[h, 2]]
         # a rigid motion keeps the three distances
         if (abs(_dist(P[a], P[b]) - _dist(Q[a], Q[b])) > 2 * thresh
                 or abs(_dist(P[a], P[c]) - _dist(Q[a], Q[c])) > 2 * thresh
                 or abs(_dist(P[b], P[c]) - _dist(Q[b], Q[c])) > 2 * thresh):
+            if h + 1 >= n_needed:
+                break
             continue
         if not _triad(P[a], P[b], P[c], Fp) or not _triad(Q[a], Q[b], Q[c], Fq):
+            if h + 1 >= n_needed:
+                break
             continue
         Rh[:, :] = Fq @ Fp.T
         for k in range(3):
@@ -248,10 +258,15 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
         for k in range(3):
             th[k] = (Q[a, k] + Q[b, k] + Q[c, k]) / 3.0 - (Rh[k, 0] * cp[0] + Rh[k, 1] * cp[1] + Rh[k, 2] * cp[2])
         score = 0.0
+        m = 0
         for s in range(S):
             v = sub[s]
             e = _sqerr(Rh, th, P[v], Q[v])
-            score += e if e < th2 else th2
+            if e < th2:
+                score += e
+                m += 1
+            else:
+                score += th2
             if score >= best:
                 break
         if score < best:
@@ -259,6 +274,17 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
             R[:, :] = Rh
             t[:] = th
             found = True
+            # adaptive stopping: enough samples to have drawn an all-inlier triple of a model
+            # with this inlier fraction with probability _CONFIDENCE
+            w3 = (m / S) ** 3
+            if w3 >= 1.0:
+                n_needed = 1
+            elif w3 <= 0.0:
+                n_needed = n_samples
+            else:
+                n_needed = int(np.ceil(np.log(1.0 - _CONFIDENCE) / np.log(1.0 - w3)))
+        if h + 1 >= n_needed:
+            break
     V = P.shape[0]
     w = np.zeros(V)
     if not found:
@@ -268,6 +294,7 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
             for n in range(V):
                 t[k] += (Q[n, k] - P[n, k]) / V
     n_in = 0
+    prev = -1
     for it in range(4):
         n_in = 0
         for n in range(V):
@@ -276,8 +303,9 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
                 n_in += 1
             else:
                 w[n] = 0.0
-        if it == 3 or n_in < 3:
+        if it == 3 or n_in < 3 or n_in == prev:
             break
+        prev = n_in
         _kabsch_w(P, Q, w, R, t)
     return n_in
 
@@ -367,7 +395,7 @@ def _icp_pair(P, Q, N, thresh, n_iter, point_weight, R, t):
         tn = Rw @ t
         for k in range(3):
             t[k] = tn[k] + x[3 + k]
-        if ang < 1e-10 and abs(x[3]) + abs(x[4]) + abs(x[5]) < 1e-10:
+        if ang < 1e-7 and abs(x[3]) + abs(x[4]) + abs(x[5]) < 1e-7:  # 0.1 µrad, 0.1 µm
             break
     n_in = 0
     for n in range(V):
@@ -648,7 +676,8 @@ def pose_table(vertices, faces, params: dict | None = None, seed: int | None = N
 # --------------------------------------------------------------------------------------------
 
 def read_vertices(source, array: str | None = None):
-    """Per-frame vertices, faces and frame ids from a store.
+    """Per-frame vertices (T, V, 3) float64, faces (F, 3) or None, frame ids and the array name
+    read, from a store.
 
     ``source`` is a zarr store path. ``array`` names the (T, V, 3) array; by default
     ``given/vertices`` if present, else ``truth/vertices`` (a ``scene`` store), else
@@ -678,7 +707,7 @@ def read_vertices(source, array: str | None = None):
             faces = np.asarray(g[name][...])
             break
     frame_ids = g.attrs.get("frame_ids", list(range(X.shape[0])))
-    return X, faces, list(frame_ids)
+    return X, faces, list(frame_ids), array
 
 
 def write_pose_table(vertices_source, out, params: dict | None = None, array: str | None = None,
@@ -691,22 +720,23 @@ def write_pose_table(vertices_source, out, params: dict | None = None, array: st
         out: output store path (``poses.zarr``), written atomically.
         params: the ``poses`` config section.
         array: name of the vertices array in the store (default: see :func:`read_vertices`).
-        faces: (F, 3) int faces, or a store path holding ``template/faces``; default: the
-            vertices store's own faces.
+        faces: (F, 3) int faces, or a store path holding ``template/faces`` or ``faces`` (a
+            ``scene`` or ``template`` store); default: the vertices store's own faces.
         threads: worker threads.
     """
     from stex.io import create_store
 
     p = _params(params)
-    X, own_faces, frame_ids = read_vertices(vertices_source, array)
+    X, own_faces, frame_ids, array = read_vertices(vertices_source, array)
     if faces is None:
         faces = own_faces
     elif isinstance(faces, (str, os.PathLike)):
         import zarr
         g = zarr.open_group(str(faces), mode="r")
-        if "template/faces" not in g:
-            raise ValueError(f"{faces}: no template/faces array")
-        faces = np.asarray(g["template/faces"][...])
+        name = next((n for n in ("template/faces", "faces") if n in g), None)
+        if name is None:
+            raise ValueError(f"{faces}: no template/faces or faces array")
+        faces = np.asarray(g[name][...])
     if faces is None:
         if p["icp_iterations"] > 0:
             raise ValueError(f"{vertices_source}: no faces found for the point-to-plane ICP "
@@ -715,6 +745,6 @@ def write_pose_table(vertices_source, out, params: dict | None = None, array: st
     poses, ratio = pose_table(X, faces, p, threads=threads)
     with create_store(out, "poses", attrs={"frame_ids": frame_ids,
                                            "vertices_source": str(vertices_source),
-                                           "vertices_array": array or ""}, params=p) as s:
+                                           "vertices_array": array}, params=p) as s:
         s.write("poses", poses)
         s.write("inlier_ratio", ratio)

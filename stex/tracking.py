@@ -223,6 +223,7 @@ class TrackParams:
     huber_m: float = 0.005
     w_flow: float = 1.0
     flow_consistency_px: float = 1.0
+    key_overlap: float = 0.7
     min_normal_dot: float = 0.5
     cg_tol: float = 1e-6
     damping: float = 1e-6
@@ -407,31 +408,89 @@ class Observation:
     target: DepthTarget
     gray: np.ndarray | None = None
     calibration: object | None = None
+    mask: np.ndarray | None = None  # (Hc, Wc) bool foreground, for the flow term
 
 
-def flow_constraints(prev_vertices, faces, prev_gray, gray, calibration, consistency_px=1.0):
-    """Where optical flow (DIS, forward-backward checked) moves the colour-visible vertices of the
-    previous frame: returns (vertex ids (n,), target colour pixels (n, 2))."""
+def _colour_view(vertices, faces, calibration):
+    """Vertices in the colour camera, their raster, visibility/cos and pixel positions."""
+    c = calibration.color
+    Vc = transform_points(calibration.depth_to_color, vertices)
+    raster = rasterize(Vc, faces, c.K, c.width, c.height)
+    vis, cos = vertex_visibility(Vc, faces, c.K, raster.depth)
+    uv, _ = project_points(Vc, c.K)
+    return Vc, raster, vis, cos, uv
+
+
+def predicted_image(pred_vertices, faces, key_vertices, key_gray, calibration):
+    """The keyframe's image warped to the predicted pose: render the predicted mesh in the colour
+    camera, move each pixel's surface point to where it was at the keyframe, and sample the
+    keyframe image there (pixels hidden at the keyframe are left 0 and masked out).
+
+    Returns (image (Hc, Wc) float32, valid (Hc, Wc) bool, predicted-view tuple)."""
+    from stex.render import sample_bilinear
+
+    view = _colour_view(pred_vertices, faces, calibration)
+    _, raster, _, _, _ = view
+    hit = raster.face_id >= 0
+    f = faces[raster.face_id[hit]]
+    b = raster.bary[hit].astype(np.float64)
+    Xk = (b[:, :, None] * key_vertices[f]).sum(1)
+    Kc = transform_points(calibration.depth_to_color, Xk)
+    uk, zk = project_points(Kc, calibration.color.K)
+    kview = rasterize(transform_points(calibration.depth_to_color, key_vertices), faces, calibration.color.K,
+                      calibration.color.width, calibration.color.height)
+    c = calibration.color
+    pk = np.rint(np.nan_to_num(uk, nan=-1)).astype(np.int64)
+    inside = (pk[:, 0] >= 0) & (pk[:, 0] < c.width) & (pk[:, 1] >= 0) & (pk[:, 1] < c.height)
+    seen = np.zeros(len(uk), bool)
+    seen[inside] = np.abs(kview.depth[pk[inside, 1], pk[inside, 0]] - zk[inside]) < 0.01
+    img = np.zeros(hit.shape, np.float32)
+    valid = np.zeros(hit.shape, bool)
+    rr, cc = np.nonzero(hit)
+    img[rr[seen], cc[seen]] = sample_bilinear(key_gray, uk[seen])
+    valid[rr[seen], cc[seen]] = True
+    return img, valid, view
+
+
+def flow_constraints(pred_vertices, faces, key_vertices, key_gray, gray, mask, calibration,
+                     consistency_px=1.0, min_cos=0.3, erode_px=3):
+    """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
+    keyframe's appearance warped to the predicted pose to the current image.
+
+    Anchoring to a keyframe instead of the previous frame keeps flow errors from accumulating.
+    Only vertices seen at a good angle, away from the silhouette (``mask`` eroded by
+    ``erode_px``) in the predicted view and in the current mask, are used.
+    Returns (vertex ids (n,), target colour pixels (n, 2)).
+    """
     import cv2
 
     from stex.render import sample_bilinear
 
+    pred, valid, (_, raster, vis, cos, uv) = predicted_image(pred_vertices, faces, key_vertices, key_gray, calibration)
     c = calibration.color
-    Vc = transform_points(calibration.depth_to_color, prev_vertices)
-    raster = rasterize(Vc, faces, c.K, c.width, c.height)
-    vis, _ = vertex_visibility(Vc, faces, c.K, raster.depth)
-    uv, _ = project_points(Vc, c.K)
-    ids = np.flatnonzero(vis)
+    core = cv2.erode(valid.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+    ids = np.flatnonzero(vis & (cos > min_cos))
+    px = np.rint(uv[ids]).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
+    ids, px = ids[ok], px[ok]
+    ok = core[px[:, 1], px[:, 0]]
+    ids = ids[ok]
     if len(ids) == 0:
         return ids, np.zeros((0, 2))
+    # Fill the unknown part of the prediction with the current image so flow sees no false edges.
+    pred8 = np.where(valid, pred, gray).clip(0, 255).astype(np.uint8)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fw = dis.calc(prev_gray, gray, None)
-    bw = dis.calc(gray, prev_gray, None)
+    fw = dis.calc(pred8, gray, None)
+    bw = dis.calc(gray, pred8, None)
     u0 = uv[ids]
     u1 = u0 + sample_bilinear(fw, u0)
     back = sample_bilinear(bw, u1)
-    ok = (np.linalg.norm(u1 + back - u0, axis=1) < consistency_px)
+    ok = np.linalg.norm(u1 + back - u0, axis=1) < consistency_px
     ok &= (u1[:, 0] >= 0) & (u1[:, 0] <= c.width - 1) & (u1[:, 1] >= 0) & (u1[:, 1] <= c.height - 1)
+    if mask is not None:
+        m = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+        q = np.rint(u1).astype(np.int64).clip(0, [c.width - 1, c.height - 1])
+        ok &= m[q[:, 1], q[:, 0]]
     return ids[ok], u1[ok]
 
 
@@ -446,26 +505,45 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     F = np.asarray(faces, np.int64)
     graph = build_graph(V0, F, params.node_spacing_m, params.k_nodes)
     log.info("tracking: %d vertices, %d nodes, %d node edges", len(V0), len(graph.nodes), len(graph.edges))
-    prev = V0
-    prev_x = identity_params(len(graph.nodes))
-    prev_gray = None
+    # The rigid stage is the same solve with one node that carries every vertex.
+    centre = int(np.argmin(np.linalg.norm(V0 - V0.mean(0), axis=1)))
+    rigid_graph = DeformationGraph(np.array([centre], np.int32), np.zeros((len(V0), 1), np.int32),
+                                   np.ones((len(V0), 1)), np.zeros((0, 2), np.int32))
+    rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1})
+    prev = before = V0
+    key = None  # (vertices, grey image, visible-vertex mask) of the keyframe
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
+        # Constant-velocity prediction of the vertices (helps with fast turns).
+        pred = 2 * prev - before if (params.constant_velocity and pos > 1) else prev
         flow = None
-        if params.w_flow > 0 and obs.gray is not None and prev_gray is not None:
-            fid, u1 = flow_constraints(prev, F, prev_gray, obs.gray, obs.calibration, params.flow_consistency_px)
+        use_flow = params.w_flow > 0 and obs.gray is not None
+        if use_flow and key is not None:
+            fid, u1 = flow_constraints(pred, F, key[0], key[1], obs.gray, obs.mask, obs.calibration,
+                                       params.flow_consistency_px)
             flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color)
-        # The graph follows the mesh (nodes sit at the previous frame's vertices); bindings
-        # are kept from the template, so they do not drift.
-        x_init = prev_x if (params.constant_velocity and pos > 1) else identity_params(len(graph.nodes))
-        x, stats = _solve_frame(prev, F, prev[graph.nodes], graph, obs.target, params, x_init, flow)
-        cur = deform(prev, prev[graph.nodes], graph, x)
+        # 1. rigid part, so that unseen regions follow the global motion exactly
+        xr, _ = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
+                             identity_params(1), flow)
+        U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        c = pred[centre]
+        rigid = (pred - c) @ R.T + c + xr[0, 9:]
+        # 2. non-rigid increment on top, with the graph's nodes at the current vertices (the
+        # bindings stay those of the template, so they do not drift)
+        x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target, params,
+                                identity_params(len(graph.nodes)), flow)
+        cur = deform(rigid, rigid[graph.nodes], graph, x)
         stats["seconds"] = time.perf_counter() - tf
         if progress:
             log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s)",
                      pos, stats["n_corr"], 1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0))
+        before, prev = prev, cur
+        if use_flow:
+            # A new keyframe when less than key_overlap of what it saw is still visible.
+            vis = _colour_view(cur, F, obs.calibration)[2]
+            if key is None or (vis & key[2]).sum() < params.key_overlap * key[2].sum():
+                key = (cur, obs.gray, vis)
+                stats["keyframe"] = True
         yield pos, cur, stats
-        prev_x = x
-        prev = cur
-        prev_gray = obs.gray

@@ -35,14 +35,14 @@ class ProceduralParams:
     radius: float = 0.15
     n_around: int = 96
     n_rings: int = 48
-    bend: float = 0.8          # total bend angle amplitude
-    bend_period: float = 2.4
-    twist: float = 0.5         # total twist amplitude, top relative to bottom
-    twist_period: float = 3.1
-    squash: float = 0.12       # relative height change amplitude
-    squash_period: float = 1.7
-    bulge: float = 0.35        # breathing bulge amplitude, relative to radius
-    bulge_period: float = 2.0
+    bend: float = 0.5          # total bend angle amplitude
+    bend_period: float = 6.0
+    twist: float = 0.35        # total twist amplitude, top relative to bottom
+    twist_period: float = 7.0
+    squash: float = 0.06       # relative height change amplitude
+    squash_period: float = 5.0
+    bulge: float = 0.15        # breathing bulge amplitude, relative to radius
+    bulge_period: float = 4.0
     seed: int = 0
 
 

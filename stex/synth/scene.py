@@ -85,7 +85,10 @@ class SyntheticScene:
             p = cfg["procedural"]
             self.body = ProceduralBody(ProceduralParams(
                 height=p["height_m"], radius=p["radius_m"], n_around=p["n_around"],
-                n_rings=p["n_rings"], seed=self.seed))
+                n_rings=p["n_rings"], bend=p["bend_rad"], bend_period=p["bend_period_s"],
+                twist=p["twist_rad"], twist_period=p["twist_period_s"], squash=p["squash"],
+                squash_period=p["squash_period_s"], bulge=p["bulge"], bulge_period=p["bulge_period_s"],
+                seed=self.seed))
             self._base = self.body.base_texture(self.texture_size)
         elif kind == "gltf":
             from stex.synth.skinned import SkinnedBody
