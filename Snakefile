@@ -14,6 +14,8 @@ validate(config, "config/schema.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/masks.smk"
+include: "workflow/rules/template.smk"
+include: "workflow/rules/tracking.smk"
 
 
 rule all:

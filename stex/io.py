@@ -156,6 +156,19 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
         },
     ),
+    "tracking": ArtifactSpec(
+        description="Per-frame vertices of the template (stex.tracking): embedded deformation with "
+        "the L0 motion regulariser tracked through the depth stream (mode 'track'), or the "
+        "source's own per-frame meshes carried over to the template topology (mode 'given').",
+        path="tracking.zarr",
+        arrays={
+            "vertices": ArraySpec(("T", "V", 3), "float32", "m", "template vertices at each frame, depth-camera coordinates (faces: template.zarr)", (1, "V", 3)),
+            "residual_m": ArraySpec(("T",), "float32", "m", "RMS point-to-plane residual of the fit over its correspondences (-1: not tracked)"),
+            "n_correspondences": ArraySpec(("T",), "int32", "1", "depth correspondences used at the last iteration"),
+            "seconds": ArraySpec(("T",), "float32", "s", "solve time per frame"),
+        },
+        attrs={"frame_ids": "list[int]", "mode": "'track' or 'given'"},
+    ),
     "poses": ArtifactSpec(
         description="Rigid poses between every pair of frames (stex.poses): K_{t->t'} maps frame "
         "t's mesh onto frame t' (x' = R x + t, depth-camera coordinates), from RANSAC over "

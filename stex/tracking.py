@@ -227,7 +227,7 @@ class TrackParams:
     min_normal_dot: float = 0.5
     cg_tol: float = 1e-6
     damping: float = 1e-6
-    constant_velocity: bool = True
+    constant_velocity: bool = False
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrackParams":
@@ -547,3 +547,67 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 key = (cur, obs.gray, vis)
                 stats["keyframe"] = True
         yield pos, cur, stats
+
+
+# -- the stage ------------------------------------------------------------------------------------
+
+def observations_from_stores(frames, masks, calibration, use_flow: bool = True):
+    """Yield :class:`Observation` of every frame of ``frames``/``masks`` (:class:`FrameSequence`)."""
+    import cv2
+
+    K = calibration.depth.K
+    for fid in frames.frame_ids:
+        depth_mm = frames.read("depth", fid)
+        mask = masks.read("mask", fid)
+        fg = mask_in_depth(mask, depth_mm, calibration)
+        target = depth_target(depth_mm.astype(np.float64) / 1000.0, K, fg)
+        gray = cv2.cvtColor(frames.read("color", fid), cv2.COLOR_RGB2GRAY) if use_flow else None
+        yield Observation(target, gray, calibration, mask)
+
+
+def write_tracking(scene_path, template_path, frames_paths, masks_paths, params: dict, out) -> None:
+    """Tracking stage: per-frame vertices of the template, written as the ``tracking`` store.
+
+    ``params`` is the ``tracking`` config section. Mode ``track`` runs :func:`track_sequence` on
+    the depth stream; mode ``given`` carries the source's per-frame meshes (``given/vertices`` of
+    the scene, on the original template's topology) over to the template's topology.
+    """
+    from stex.camera import Calibration
+    from stex.io import FrameSequence, create_store, open_store
+    from stex.template import transfer_vertices
+
+    scene = open_store(scene_path, "scene")
+    template = open_store(template_path, "template")
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    frames = FrameSequence(frames_paths, "frames")
+    V0 = np.asarray(template["vertices"][...], np.float64)
+    F = np.asarray(template["faces"][...], np.int64)
+    T = len(frames)
+    mode = params["mode"]
+    with create_store(out, "tracking", attrs={"frame_ids": frames.frame_ids, "mode": mode}, params=params) as store:
+        verts = store.create("vertices", (T, len(V0), 3))
+        residual = np.full(T, np.nan)
+        n_corr = np.zeros(T, np.int64)
+        seconds = np.zeros(T)
+        if mode == "given":
+            if "given/vertices" not in scene:
+                raise ValueError(f"{scene_path}: tracking.mode is 'given' but the source supplied no per-frame meshes")
+            given = scene["given/vertices"]
+            orig_faces = np.asarray(scene["template/faces"][...])
+            ef, eb = template["embedding/face"][...], template["embedding/bary"][...]
+            for k in range(T):
+                verts[k] = transfer_vertices(given[k], orig_faces, ef, eb)
+        elif mode == "track":
+            masks = FrameSequence(masks_paths, "masks")
+            obs = observations_from_stores(frames, masks, cal, use_flow=params["w_flow"] > 0)
+            tp = TrackParams.from_dict(params)
+            for k, V, st in track_sequence(V0, F, obs, tp):
+                verts[k] = V
+                residual[k] = st["data_rms_m"]
+                n_corr[k] = st["n_corr"]
+                seconds[k] = st["seconds"]
+        else:
+            raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
+        store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
+        store.write("n_correspondences", n_corr)
+        store.write("seconds", seconds)

@@ -11,16 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stex.render import rasterize
 from stex.synth.gltf import load_skinned_gltf, pose_vertices
-
-
-def texel_faces(texcoords: np.ndarray, texcoord_faces: np.ndarray, size: int):
-    """Rasterise a UV layout: per texel of a size x size atlas, the face id (-1 = none) and
-    barycentrics. Returns (face_id (size, size) int32, bary (size, size, 3) float32)."""
-    px = np.column_stack([texcoords[:, 0] * size - 0.5, texcoords[:, 1] * size - 0.5, np.ones(len(texcoords))])
-    r = rasterize(px, texcoord_faces, np.eye(3), size, size)
-    return r.face_id, r.bary
 
 
 class SkinnedBody:
@@ -51,7 +42,9 @@ class SkinnedBody:
             self.base = base.astype(np.float32) / 255.0
         else:
             self.base = ProceduralBody(ProceduralParams(n_around=8, n_rings=4, seed=seed)).base_texture(texture_size)
-        self.texel_face, self.texel_bary = texel_faces(self.texcoords, self.texcoord_faces, texture_size)
+        from stex.template import texel_map
+
+        self.texel_face, self.texel_bary = texel_map(self.texcoords, self.texcoord_faces, texture_size)
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
         self.edges = np.unique(np.sort(e, axis=1), axis=0)
         self.rest_len = np.linalg.norm(self.rest_vertices[self.edges[:, 0]] - self.rest_vertices[self.edges[:, 1]], axis=1)

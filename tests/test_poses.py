@@ -1,0 +1,201 @@
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from stex import poses
+from stex.config import load_config
+from stex.io import create_store, open_store
+from stex.synth.procedural import ProceduralBody
+from stex.synth.scene import SyntheticScene
+
+
+def _random_rotation(rng, angle_deg=None):
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    ang = np.deg2rad(angle_deg if angle_deg is not None else rng.uniform(5, 170))
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+
+
+def _body(n_around=48, n_rings=24):
+    b = ProceduralBody(dataclasses.replace(ProceduralBody().p, n_around=n_around, n_rings=n_rings))
+    return b.vertices(0.3) + np.array([0.0, 0.0, 1.0]), b.faces
+
+
+def _scene(variant="full", **synthetic):
+    cfg = load_config(overrides={"source": {"synthetic": {
+        "n_frames": 12, "procedural": {"n_around": 48, "n_rings": 24}, **synthetic}}})["source"]["synthetic"]
+    s = SyntheticScene(cfg)
+    if variant == "core":  # only the local belly bulge deforms: a genuinely rigid core
+        s.body = ProceduralBody(dataclasses.replace(s.body.p, bend=0.0, twist=0.0, squash=0.0, bulge=0.35))
+    X = np.stack([s.true_vertices(t) for t in range(s.n_frames)])
+    M = np.stack([s.object_to_depth(s.time_of(t)) for t in range(s.n_frames)])
+    K_true = M[None, :] @ poses.invert_rigid(M)[:, None]  # [t, t'] = obj2depth(t') inv(obj2depth(t))
+    return s, X, K_true
+
+
+def _pair_errors(P, K_true, X):
+    """Rotation error (°) and translation error (m) of every pair t != t', the translation
+    measured where it matters, at the object (frame t's vertex centroid): the transforms' own
+    translations are at the camera centre ~1 m away and carry ~17 mm per degree."""
+    i, j = np.nonzero(~np.eye(P.shape[0], dtype=bool))
+    return poses.pose_error(P[i, j], K_true[i, j], center=X.mean(1)[i])
+
+
+def test_kabsch_exact_batched():
+    rng = np.random.default_rng(0)
+    R = np.stack([_random_rotation(rng) for _ in range(6)]).reshape(2, 3, 3, 3)
+    t = rng.normal(size=(2, 3, 3))
+    P = rng.normal(size=(2, 3, 25, 3))
+    Q = np.einsum("abij,abnj->abni", R, P) + t[:, :, None]
+    Re, te = poses.kabsch(P, Q)
+    assert Re.shape == (2, 3, 3, 3) and te.shape == (2, 3, 3)
+    np.testing.assert_allclose(Re, R, atol=1e-10)
+    np.testing.assert_allclose(te, t, atol=1e-10)
+    # weights: corrupt some points, give them weight 0
+    Qc = Q.copy()
+    Qc[..., :5, :] += 1.0
+    w = np.ones(P.shape[:-1])
+    w[..., :5] = 0.0
+    Rw, tw = poses.kabsch(P, Qc, w)
+    np.testing.assert_allclose(Rw, R, atol=1e-10)
+    np.testing.assert_allclose(tw, t, atol=1e-10)
+    # mirrored data: still a proper rotation
+    Rm, _ = poses.kabsch(P[0, 0], P[0, 0] * np.array([1.0, 1.0, -1.0]))
+    assert np.linalg.det(Rm) == pytest.approx(1.0)
+
+
+def test_ransac_recovers_rigid_motion_with_40_percent_outliers():
+    rng = np.random.default_rng(1)
+    P, _ = _body()
+    R = _random_rotation(rng, 35.0)
+    t = np.array([0.08, -0.05, 0.12])
+    Q = P @ R.T + t
+    out = rng.random(P.shape[0]) < 0.4
+    # non-rigid displacement of the outliers: smooth-ish random field, 2-20 cm
+    d = rng.normal(size=(out.sum(), 3))
+    d *= (rng.uniform(0.02, 0.2, out.sum()) / np.linalg.norm(d, axis=1))[:, None]
+    Q[out] += d
+    T, mask = poses.ransac_rigid(P, Q, n_iter=500, inlier_thresh_m=0.01, rng=np.random.default_rng(3))
+    rot, trans = poses.pose_error(T, poses.to_matrix(R, t))
+    assert rot < 0.1 and trans < 1e-3
+    assert np.array_equal(mask, ~out)
+    # the batched version over several pairs agrees
+    X = np.stack([P, Q, P @ R.T])
+    Tb, ratio = poses.pairwise_ransac(X, pairs=[(0, 1), (0, 2)], seed=5)
+    rot, trans = poses.pose_error(Tb, poses.to_matrix(np.stack([R, R]), np.stack([t, np.zeros(3)])))
+    assert (rot < 0.1).all() and (trans < 1e-3).all()
+    assert ratio[0] == pytest.approx(1 - out.mean(), abs=1e-6) and ratio[1] == 1.0
+
+
+def test_icp_refines_perturbed_start():
+    rng = np.random.default_rng(2)
+    P, F = _body()
+    from stex.render import vertex_normals
+
+    R = _random_rotation(rng, 20.0)
+    t = np.array([0.02, 0.01, -0.03])
+    Q = P @ R.T + t
+    Q[:50] += 0.3  # a few far outliers, gated out
+    N = vertex_normals(Q, F)
+    T_true = poses.to_matrix(R, t)
+    T0 = poses.to_matrix(_random_rotation(rng, 1.5), np.array([0.004, -0.003, 0.002])) @ T_true
+    rot0, trans0 = poses.pose_error(T0, T_true)
+    T, ratio = poses.icp_point_to_plane(np.stack([P, P]), np.stack([Q, Q]), np.stack([N, N]),
+                                        np.stack([T0, T_true]), n_iter=10, inlier_thresh_m=0.05)
+    rot, trans = poses.pose_error(T, T_true)
+    assert rot0 > 1.0 and (rot < 1e-3).all() and (trans < 1e-5).all()
+    np.testing.assert_allclose(ratio, 1 - 50 / P.shape[0], atol=1e-6)
+    # pure point-to-plane also converges here (the body is not rotationally symmetric)
+    T1, _ = poses.icp_point_to_plane(P, Q, N, T0, n_iter=10, inlier_thresh_m=0.05, point_weight=0.0)
+    rot1, trans1 = poses.pose_error(T1, T_true)
+    assert rot1 < 1e-2 and trans1 < 1e-4
+
+
+def test_pose_table_consistency_and_determinism():
+    rng = np.random.default_rng(4)
+    P, F = _body(32, 16)
+    X = np.stack([P @ _random_rotation(rng).T + rng.normal(0, 0.1, 3)
+                  + rng.normal(0, 0.001, P.shape) for _ in range(5)])
+    A, ra = poses.pose_table(X, F, {"ransac_iterations": 200}, seed=7, threads=1)
+    B, rb = poses.pose_table(X, F, {"ransac_iterations": 200}, seed=7, threads=2)
+    assert A.shape == (5, 5, 4, 4) and A.dtype == np.float64 and ra.shape == (5, 5) and ra.dtype == np.float32
+    assert A.tobytes() == B.tobytes() and ra.tobytes() == rb.tobytes()
+    np.testing.assert_array_equal(A[np.arange(5), np.arange(5)], np.broadcast_to(np.eye(4), (5, 4, 4)))
+    np.testing.assert_allclose(A @ np.swapaxes(A, 0, 1), np.broadcast_to(np.eye(4), (5, 5, 4, 4)), atol=1e-12)
+    np.testing.assert_array_equal(ra, ra.T)
+    assert (ra > 0.9).all()
+    # poses[t, t'] maps frame t onto frame t'
+    moved = np.einsum("ij,vj->vi", A[1, 3, :3, :3], X[1]) + A[1, 3, :3, 3]
+    assert np.sqrt(((moved - X[3]) ** 2).sum(1).mean()) < 0.003
+
+
+def test_synthetic_scene_rigid_motion():
+    """The brief's scene (12 frames at the default 30 fps): every pair within 1° / 5 mm."""
+    s, X, K_true = _scene()
+    P, ratio = poses.pose_table(X, s.faces, load_config()["poses"])
+    rot, trans = _pair_errors(P, K_true, X)
+    assert rot.max() <= 1.0, (np.median(rot), rot.max())
+    assert trans.max() <= 0.005, (np.median(trans), trans.max())
+
+
+def test_synthetic_rigid_core_over_the_whole_motion():
+    """A body whose only deformation is the local belly bulge (a genuinely rigid core), sampled
+    over 8 s of its motion (12 frames at 1.5 fps): every pair within 1° / 5 mm."""
+    s, X, K_true = _scene("core", fps=1.5)
+    P, ratio = poses.pose_table(X, s.faces, load_config()["poses"])
+    rot, trans = _pair_errors(P, K_true, X)
+    assert rot.max() <= 1.0 and trans.max() <= 0.005, (rot.max(), trans.max())
+
+
+def _true_inlier_ratio(X, K_true, thresh):
+    i, j = np.triu_indices(X.shape[0], 1)
+    K = K_true[i, j]
+    moved = np.einsum("pab,pvb->pva", K[:, :3, :3], X[i]) + K[:, None, :3, 3]
+    return (np.linalg.norm(moved - X[j], axis=-1) < thresh).mean(1)
+
+
+def test_full_deformation_ransac_finds_the_largest_rigid_part():
+    """With bend, twist and squash over the whole motion, RANSAC's consensus set is at least as
+    large as the true object motion's: the estimator does its job even where its answer differs
+    from the object frame (see the xfail test below)."""
+    s, X, K_true = _scene(fps=1.5)
+    T, ratio = poses.pairwise_ransac(X, seed=0)
+    true = _true_inlier_ratio(X, K_true, 0.01)
+    assert np.median(ratio - true) >= 0.0 and (ratio >= true - 0.02).mean() >= 0.9
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "definition, not estimator: under bend/twist/squash the object frame is not the most rigid "
+    "part; RANSAC locks onto the least-deformed region (near the thin ends), whose motion differs "
+    "from obj2depth by the local bend/twist rotation (demo scene, 120 frames: median 3.9°, max "
+    "20.9°; even an all-vertex least-squares fit: median 0.7°, max 3.0°)"))
+def test_full_deformation_matches_object_frame_over_the_whole_motion():
+    s, X, K_true = _scene(fps=1.5)
+    P, _ = poses.pose_table(X, s.faces, load_config()["poses"])
+    rot, trans = _pair_errors(P, K_true, X)
+    assert rot.max() <= 1.0 and trans.max() <= 0.005
+
+
+def test_write_pose_table_store(tmp_path, caplog):
+    s, X, K_true = _scene(n_frames=4)
+    scene = tmp_path / "scene.zarr"
+    with create_store(scene, "scene", attrs={"frame_ids": [10, 11, 12, 13]}) as w:
+        w.write("template/faces", s.faces)
+        w.write("truth/vertices", X)
+    out = tmp_path / "poses.zarr"
+    with caplog.at_level(logging.INFO, logger="stex.poses"):
+        poses.write_pose_table(scene, out, load_config()["poses"])
+    assert any("6 / 6 pairs" in r.getMessage() for r in caplog.records)
+    g = open_store(out, "poses")
+    assert g["poses"].shape == (4, 4, 4, 4) and g["poses"].chunks == (1, 4, 4, 4)
+    assert g["inlier_ratio"].dtype == np.float32
+    assert g.attrs["frame_ids"] == [10, 11, 12, 13] and g.attrs["vertices_array"] == "truth/vertices"
+    assert g.attrs["params"]["inlier_threshold_m"] == 0.01
+    P, r = poses.pose_table(X, s.faces, load_config()["poses"])
+    np.testing.assert_array_equal(g["poses"][...], P)
+    with pytest.raises(ValueError, match="no array 'nope'"):
+        poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
+    assert not (tmp_path / "x.zarr").exists()

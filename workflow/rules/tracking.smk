@@ -1,0 +1,19 @@
+# Tracking: per-frame vertices of the template (ED + L0 through the depth stream, or given meshes).
+
+
+rule tracking:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        template=f"{RESULTS}/template.zarr",
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
+    output:
+        directory(f"{RESULTS}/tracking.zarr"),
+    params:
+        tracking=config["tracking"],
+    log:
+        f"{RESULTS}/logs/tracking.log",
+    conda:
+        ENV
+    script:
+        "../scripts/tracking.py"
