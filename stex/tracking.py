@@ -223,7 +223,8 @@ class TrackParams:
     huber_m: float = 0.005
     w_flow: float = 1.0
     flow_consistency_px: float = 1.0
-    key_overlap: float = 0.7
+    model_size: int = 1024
+    model_min_cos: float = 0.5
     min_normal_dot: float = 0.5
     cg_tol: float = 1e-6
     damping: float = 1e-6
@@ -421,60 +422,81 @@ def _colour_view(vertices, faces, calibration):
     return Vc, raster, vis, cos, uv
 
 
-def predicted_image(pred_vertices, faces, key_vertices, key_gray, calibration):
-    """The keyframe's image warped to the predicted pose: render the predicted mesh in the colour
-    camera, move each pixel's surface point to where it was at the keyframe, and sample the
-    keyframe image there (pixels hidden at the keyframe are left 0 and masked out).
+class AppearanceModel:
+    """A grey texture of the template in a UV atlas, each texel filled when first seen well.
 
-    Returns (image (Hc, Wc) float32, valid (Hc, Wc) bool, predicted-view tuple)."""
-    from stex.render import sample_bilinear
+    The tracker's flow term compares the current image with this model rendered at the
+    predicted pose, so flow errors do not accumulate from frame to frame: a surface point's
+    appearance is fixed the first time it is seen at a good angle.
+    """
 
-    view = _colour_view(pred_vertices, faces, calibration)
-    _, raster, _, _, _ = view
-    hit = raster.face_id >= 0
-    f = faces[raster.face_id[hit]]
-    b = raster.bary[hit].astype(np.float64)
-    Xk = (b[:, :, None] * key_vertices[f]).sum(1)
-    Kc = transform_points(calibration.depth_to_color, Xk)
-    uk, zk = project_points(Kc, calibration.color.K)
-    kview = rasterize(transform_points(calibration.depth_to_color, key_vertices), faces, calibration.color.K,
-                      calibration.color.width, calibration.color.height)
-    c = calibration.color
-    pk = np.rint(np.nan_to_num(uk, nan=-1)).astype(np.int64)
-    inside = (pk[:, 0] >= 0) & (pk[:, 0] < c.width) & (pk[:, 1] >= 0) & (pk[:, 1] < c.height)
-    seen = np.zeros(len(uk), bool)
-    seen[inside] = np.abs(kview.depth[pk[inside, 1], pk[inside, 0]] - zk[inside]) < 0.01
-    img = np.zeros(hit.shape, np.float32)
-    valid = np.zeros(hit.shape, bool)
-    rr, cc = np.nonzero(hit)
-    img[rr[seen], cc[seen]] = sample_bilinear(key_gray, uk[seen])
-    valid[rr[seen], cc[seen]] = True
-    return img, valid, view
+    def __init__(self, texcoords, texcoord_faces, faces, size: int = 1024):
+        from stex.template import texel_map
+
+        self.texcoords = np.asarray(texcoords, np.float64)
+        self.texcoord_faces = np.asarray(texcoord_faces, np.int64)
+        self.faces = np.asarray(faces, np.int64)
+        face_id, bary = texel_map(self.texcoords, self.texcoord_faces, size)
+        self.texels = np.flatnonzero(face_id.ravel() >= 0)
+        self.texel_face = face_id.ravel()[self.texels]
+        self.texel_bary = bary.reshape(-1, 3)[self.texels].astype(np.float64)
+        self.texture = np.zeros((size, size, 2), np.float32)  # grey, filled
+        self.size = size
+
+    def capture(self, vertices, gray, calibration, min_cos: float = 0.5) -> int:
+        """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``gray``; returns how many."""
+        from stex.render import face_visibility, sample_bilinear
+
+        c = calibration.color
+        Vc = transform_points(calibration.depth_to_color, vertices)
+        depth = rasterize(Vc, self.faces, c.K, c.width, c.height).depth
+        vis, _ = face_visibility(Vc, self.faces, c.K, depth, min_cos=min_cos)
+        flat = self.texture.reshape(-1, 2)
+        todo = vis[self.texel_face] & (flat[self.texels, 1] == 0)
+        if not todo.any():
+            return 0
+        f = self.faces[self.texel_face[todo]]
+        X = (self.texel_bary[todo][:, :, None] * Vc[f]).sum(1)
+        uv, _ = project_points(X, c.K)
+        idx = self.texels[todo]
+        flat[idx, 0] = sample_bilinear(gray, uv)
+        flat[idx, 1] = 1.0
+        return int(todo.sum())
+
+    def render(self, vertices, calibration):
+        """The model at ``vertices`` in the colour camera: (grey (Hc, Wc) float32, valid bool)."""
+        from stex.render import render_textured
+
+        c = calibration.color
+        Vc = transform_points(calibration.depth_to_color, vertices)
+        img, mask = render_textured(Vc, self.faces, self.texcoords, self.texcoord_faces, self.texture,
+                                    c.K, c.width, c.height)
+        return img[..., 0], mask & (img[..., 1] > 0.999)
 
 
-def flow_constraints(pred_vertices, faces, key_vertices, key_gray, gray, mask, calibration,
+def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, calibration,
                      consistency_px=1.0, min_cos=0.3, erode_px=3):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
-    keyframe's appearance warped to the predicted pose to the current image.
+    appearance model rendered at the predicted pose to the current image.
 
-    Anchoring to a keyframe instead of the previous frame keeps flow errors from accumulating.
-    Only vertices seen at a good angle, away from the silhouette (``mask`` eroded by
-    ``erode_px``) in the predicted view and in the current mask, are used.
+    Only vertices seen at a good angle, away from the silhouette and from unknown model texels
+    (eroded by ``erode_px``), whose flow lands inside the current ``mask``, are used.
     Returns (vertex ids (n,), target colour pixels (n, 2)).
     """
     import cv2
 
     from stex.render import sample_bilinear
 
-    pred, valid, (_, raster, vis, cos, uv) = predicted_image(pred_vertices, faces, key_vertices, key_gray, calibration)
     c = calibration.color
-    core = cv2.erode(valid.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+    pred, valid = model.render(pred_vertices, calibration)
+    _, _, vis, cos, uv = _colour_view(pred_vertices, faces, calibration)
+    kernel = np.ones((2 * erode_px + 1,) * 2, np.uint8)
+    core = cv2.erode(valid.astype(np.uint8), kernel) > 0
     ids = np.flatnonzero(vis & (cos > min_cos))
     px = np.rint(uv[ids]).astype(np.int64)
     ok = (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
     ids, px = ids[ok], px[ok]
-    ok = core[px[:, 1], px[:, 0]]
-    ids = ids[ok]
+    ids = ids[core[px[:, 1], px[:, 0]]]
     if len(ids) == 0:
         return ids, np.zeros((0, 2))
     # Fill the unknown part of the prediction with the current image so flow sees no false edges.
@@ -488,18 +510,21 @@ def flow_constraints(pred_vertices, faces, key_vertices, key_gray, gray, mask, c
     ok = np.linalg.norm(u1 + back - u0, axis=1) < consistency_px
     ok &= (u1[:, 0] >= 0) & (u1[:, 0] <= c.width - 1) & (u1[:, 1] >= 0) & (u1[:, 1] <= c.height - 1)
     if mask is not None:
-        m = cv2.erode(mask.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+        m = cv2.erode(mask.astype(np.uint8), kernel) > 0
         q = np.rint(u1).astype(np.int64).clip(0, [c.width - 1, c.height - 1])
         ok &= m[q[:, 1], q[:, 0]]
     return ids[ok], u1[ok]
 
 
-def track_sequence(template_vertices, faces, observations, params: TrackParams, progress=True):
+def track_sequence(template_vertices, faces, observations, params: TrackParams, progress=True,
+                   texcoords=None, texcoord_faces=None):
     """Track the template through a sequence of :class:`Observation`; yields
     (frame position, vertices (V, 3) float64 depth-camera metres, stats dict).
 
     The template must be roughly aligned with the first frame (as the synthetic scenes' and
     the authors' templates are); frame 0 is solved like any other, starting from the template.
+    The flow term's appearance model lives in the template's atlas (``texcoords`` (Vt, 2),
+    ``texcoord_faces`` (F, 3)); without one, an atlas is built with xatlas.
     """
     V0 = np.asarray(template_vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -511,7 +536,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                                    np.ones((len(V0), 1)), np.zeros((0, 2), np.int32))
     rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1})
     prev = before = V0
-    key = None  # (vertices, grey image, visible-vertex mask) of the keyframe
+    model = None
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
@@ -519,8 +544,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         pred = 2 * prev - before if (params.constant_velocity and pos > 1) else prev
         flow = None
         use_flow = params.w_flow > 0 and obs.gray is not None
-        if use_flow and key is not None:
-            fid, u1 = flow_constraints(pred, F, key[0], key[1], obs.gray, obs.mask, obs.calibration,
+        if use_flow and model is not None:
+            fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
                                        params.flow_consistency_px)
             flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color)
         # 1. rigid part, so that unseen regions follow the global motion exactly
@@ -541,11 +566,12 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                      pos, stats["n_corr"], 1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0))
         before, prev = prev, cur
         if use_flow:
-            # A new keyframe when less than key_overlap of what it saw is still visible.
-            vis = _colour_view(cur, F, obs.calibration)[2]
-            if key is None or (vis & key[2]).sum() < params.key_overlap * key[2].sum():
-                key = (cur, obs.gray, vis)
-                stats["keyframe"] = True
+            if model is None:
+                if texcoords is None:
+                    from stex.template import build_atlas
+                    texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
+                model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
+            stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos)
         yield pos, cur, stats
 
 
@@ -601,7 +627,8 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
             masks = FrameSequence(masks_paths, "masks")
             obs = observations_from_stores(frames, masks, cal, use_flow=params["w_flow"] > 0)
             tp = TrackParams.from_dict(params)
-            for k, V, st in track_sequence(V0, F, obs, tp):
+            for k, V, st in track_sequence(V0, F, obs, tp, texcoords=template["texcoords"][...],
+                                           texcoord_faces=template["texcoord_faces"][...]):
                 verts[k] = V
                 residual[k] = st["data_rms_m"]
                 n_corr[k] = st["n_corr"]

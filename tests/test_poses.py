@@ -194,8 +194,9 @@ def test_write_pose_table_store(tmp_path, caplog):
     assert g["inlier_ratio"].dtype == np.float32
     assert g.attrs["frame_ids"] == [10, 11, 12, 13] and g.attrs["vertices_array"] == "truth/vertices"
     assert g.attrs["params"]["inlier_threshold_m"] == 0.01
-    P, r = poses.pose_table(X, s.faces, load_config()["poses"])
+    P, r = poses.pose_table(X.astype(np.float32), s.faces, load_config()["poses"])  # stored as float32
     np.testing.assert_array_equal(g["poses"][...], P)
+    np.testing.assert_array_equal(g["inlier_ratio"][...], r)
     with pytest.raises(ValueError, match="no array 'nope'"):
         poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
     assert not (tmp_path / "x.zarr").exists()
