@@ -15,8 +15,10 @@ then Open3D point-to-plane ICP, and sets T[j, i] = inv(T[i, j]). stex does the s
    vertex-to-vertex distances change by more than 2·threshold between the frames (it cannot be
    rigid). Hypotheses are scored on the subset with the MSAC loss Σ min(d², θ²) (d: distance
    between the moved vertex and its partner, θ = ``inlier_threshold_m``), stopping a score as
-   soon as it exceeds the best so far. The best one is then refitted (weighted Kabsch) on its
-   inliers among *all* vertices, three times.
+   soon as it exceeds the best so far; sampling stops once an all-inlier sample of the best
+   model would have been drawn with probability 0.999 (``ransac_iterations`` is the upper
+   bound). The best model is then refitted (Kabsch) on its inliers among *all* vertices, up to
+   three times (until the inlier count stops changing).
 2. **ICP** (:func:`icp_point_to_plane`). With known correspondences ICP is a weighted
    least-squares alignment, iterated Gauss-Newton on a linearised rotation: point-to-plane
    residuals n_q·(R p + t − q) (so sliding along the surface, e.g. tracking drift, costs
@@ -25,6 +27,13 @@ then Open3D point-to-plane ICP, and sets T[j, i] = inv(T[i, j]). stex does the s
    axis at no point-to-plane cost). Robust weights: a vertex counts only while it is within θ of
    its partner (the RANSAC inlier gate), and its point-to-plane residual gets a Huber weight
    (δ = θ/4).
+What "the rigid part" is: the largest vertex set that moves rigidly within θ. For an object
+with a rigid core and local deformations that is the core's motion (synthetic body with only the
+belly bulge: ≤ 0.1°, ≤ 0.5 mm at the object). Under bend/twist/squash, however, the largest
+rigid set is wherever the body deforms least (on the procedural body: its thin upper or lower
+third, not the middle that defines its object frame), so K can differ from the object-frame
+motion by the local bend/twist rotation (benchmarks/bench_poses.py measures both).
+
 3. **Tables** (:func:`pose_table`): K is computed only for t < t' (T(T−1)/2 pairs, in blocks on
    ``threads`` threads with nogil numba kernels), and poses[t', t] = inv(poses[t, t']) exactly;
    poses[t, t] = I. ``inlier_ratio[t, t']`` is the fraction of all vertices within θ of their

@@ -670,3 +670,51 @@ def preview_template(template_path, out_png, size: int = 1024) -> None:
              f"gutter {g.attrs['gutter_px']} px")
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
     write_png(out_png, _label(img, title))
+
+
+# --------------------------------------------------------------------------------------------
+# a template from one depth image
+# --------------------------------------------------------------------------------------------
+
+def template_from_depth(depth_m, K, mask=None, stride: int = 2, max_jump_m: float = 0.02):
+    """A triangle mesh of the surface one depth image sees (for sources without a template).
+
+    Pixels on a grid of ``stride`` that have valid depth (and lie in ``mask``) become vertices;
+    each grid square whose corners are valid and whose depth range is below ``max_jump_m``
+    becomes two triangles, oriented so that their normals face the camera (the outside).
+
+    Args:
+        depth_m: (H, W) float depth in metres, 0 = invalid. K: (3, 3) depth camera matrix.
+        mask: (H, W) bool foreground, or None.
+
+    Returns:
+        (vertices (V, 3) float64 camera-space metres, faces (F, 3) int32).
+    """
+    from stex.camera import backproject_depth
+
+    d = np.asarray(depth_m, np.float64)
+    if not np.isfinite(d).all():
+        raise ValueError("depth has non-finite values")
+    ok = d > 0
+    if mask is not None:
+        ok &= np.asarray(mask, bool)
+    P = backproject_depth(d, K)[::stride, ::stride]
+    ok = ok[::stride, ::stride]
+    z = d[::stride, ::stride]
+    h, w = ok.shape
+    index = np.full((h, w), -1, np.int64)
+    index[ok] = np.arange(ok.sum())
+    a, b, c, e = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    zs = np.stack([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]])
+    good = (a >= 0) & (b >= 0) & (c >= 0) & (e >= 0) & (zs.max(0) - zs.min(0) < max_jump_m)
+    # Image x right, y down, camera looking along +z: (a, c, b) winds towards the camera.
+    t1 = np.stack([a[good], c[good], b[good]], 1)
+    t2 = np.stack([b[good], c[good], e[good]], 1)
+    faces = np.concatenate([t1, t2])
+    if len(faces) == 0:
+        raise ValueError("no valid depth surface to build a template from (empty mask or depth?)")
+    V = P[ok]
+    used = np.unique(faces)
+    remap = np.full(len(V), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[faces].astype(np.int32)

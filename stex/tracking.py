@@ -159,6 +159,9 @@ class DepthTarget:
     normals: np.ndarray
     valid: np.ndarray
     K: np.ndarray
+    tree: object = None          # cKDTree of the valid points, built on first use
+    flat_points: np.ndarray | None = None
+    flat_normals: np.ndarray | None = None
 
 
 def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | None = None,
@@ -221,10 +224,14 @@ class TrackParams:
     gn_iterations: int = 4
     max_distance_m: float = 0.05
     huber_m: float = 0.005
+    association: str = "closest"
+    w_point: float = 0.1
     w_flow: float = 1.0
     flow_consistency_px: float = 1.0
+    flow_min_cos: float = 0.15
+    rigid_only: bool = False
     model_size: int = 1024
-    model_min_cos: float = 0.5
+    model_min_cos: float = 0.3
     min_normal_dot: float = 0.5
     cg_tol: float = 1e-6
     damping: float = 1e-6
@@ -236,19 +243,34 @@ class TrackParams:
 
 
 def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: TrackParams, max_dist: float):
-    """Projective association: (vertex ids, target points, target normals) of usable pairs."""
+    """Data association for the camera-visible vertices: (vertex ids, target points, target
+    normals) of usable pairs. ``p.association`` 'closest' pairs each vertex with the nearest
+    foreground depth point (robust to motion along the surface and across the silhouette);
+    'projective' with the depth pixel it projects to (faster, the classic DynamicFusion choice)."""
     H, W = target.valid.shape
     raster = rasterize(Vd, faces, target.K, W, H)
-    vis, cos = vertex_visibility(Vd, faces, target.K, raster.depth)
-    uv, z = project_points(Vd, target.K)
-    px = np.rint(np.nan_to_num(uv, nan=-1)).astype(np.int64)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H) & (z > 0)
-    ids = np.flatnonzero(vis & inside)
-    r, c = px[ids, 1], px[ids, 0]
-    ok = target.valid[r, c]
-    ids, r, c = ids[ok], r[ok], c[ok]
-    q = target.points[r, c]
-    nq = target.normals[r, c]
+    vis, _ = vertex_visibility(Vd, faces, target.K, raster.depth)
+    ids = np.flatnonzero(vis)
+    if p.association == "closest":
+        if target.tree is None:
+            from scipy.spatial import cKDTree
+            target.flat_points = target.points[target.valid]
+            target.flat_normals = target.normals[target.valid]
+            target.tree = cKDTree(target.flat_points)
+        if len(target.flat_points) == 0:
+            return ids[:0], np.zeros((0, 3)), np.zeros((0, 3))
+        dist, j = target.tree.query(Vd[ids], distance_upper_bound=max_dist)
+        ok = np.isfinite(dist)
+        ids, j = ids[ok], j[ok]
+        q, nq = target.flat_points[j], target.flat_normals[j]
+    else:
+        uv, z = project_points(Vd[ids], target.K)
+        px = np.rint(np.nan_to_num(uv, nan=-1)).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H) & (z > 0)
+        ids, px = ids[inside], px[inside]
+        ok = target.valid[px[:, 1], px[:, 0]]
+        ids, px = ids[ok], px[ok]
+        q, nq = target.points[px[:, 1], px[:, 0]], target.normals[px[:, 1], px[:, 0]]
     nv = vertex_normals(Vd, faces)[ids]
     # Depth normals point to the camera; so do the outward normals of visible mesh vertices.
     close = (np.linalg.norm(Vd[ids] - q, axis=1) < max_dist) & ((nv * nq).sum(1) > p.min_normal_dot)
@@ -323,6 +345,18 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 vals.append(v)
                 res.append(rd * sw)
                 nres = len(ids)
+                if p.w_point > 0:  # a little point-to-point: pins motion along flat surfaces
+                    diff = Vd[ids] - q
+                    for axis in range(3):
+                        D = np.zeros((len(ids), 3))
+                        D[:, axis] = 1.0
+                        swp = _huber_sqrt_weight(diff[:, axis], p.huber_m) * np.sqrt(p.w_point)
+                        c, v = _blocks(ids, D, graph, local, swp)
+                        rows.append(nres + np.repeat(np.arange(len(ids)), len(c) // len(ids)))
+                        cols.append(c)
+                        vals.append(v)
+                        res.append(diff[:, axis] * swp)
+                        nres += len(ids)
                 stats["n_corr"] = len(ids)
                 stats["data_rms_m"] = float(np.sqrt(np.mean(rd**2)))
             # flow: (pi(T_dc x'_i) - u_i) * z / fx, about metres at the vertex, Huber weighted
@@ -546,10 +580,10 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         use_flow = params.w_flow > 0 and obs.gray is not None
         if use_flow and model is not None:
             fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
-                                       params.flow_consistency_px)
+                                       params.flow_consistency_px, params.flow_min_cos)
             flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color)
         # 1. rigid part, so that unseen regions follow the global motion exactly
-        xr, _ = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
+        xr, rstats = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
                              identity_params(1), flow)
         U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
         R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
@@ -557,9 +591,12 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         rigid = (pred - c) @ R.T + c + xr[0, 9:]
         # 2. non-rigid increment on top, with the graph's nodes at the current vertices (the
         # bindings stay those of the template, so they do not drift)
-        x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target, params,
-                                identity_params(len(graph.nodes)), flow)
-        cur = deform(rigid, rigid[graph.nodes], graph, x)
+        if params.rigid_only:
+            cur, stats = rigid, rstats
+        else:
+            x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target, params,
+                                    identity_params(len(graph.nodes)), flow)
+            cur = deform(rigid, rigid[graph.nodes], graph, x)
         stats["seconds"] = time.perf_counter() - tf
         if progress:
             log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s)",
@@ -573,6 +610,27 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
             stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos)
         yield pos, cur, stats
+
+
+def depth_residual(vertices, faces, target: DepthTarget, clip_m: float = 0.05, union: bool = True) -> float:
+    """Mean |rendered - observed| depth (m), each difference clipped at ``clip_m``: how well a
+    mesh explains one depth frame. With ``union`` over the union of the mesh's and the
+    foreground's pixels, a pixel covered by only one counting ``clip_m`` (silhouette included);
+    otherwise over the pixels both cover."""
+    H, W = target.valid.shape
+    d = rasterize(vertices, faces, target.K, W, H).depth
+    obs = target.points[..., 2]
+    have_mesh, have_obs = d > 0, target.valid
+    if not union:
+        both = have_mesh & have_obs
+        return float(np.minimum(np.abs(d[both] - obs[both]), clip_m).mean()) if both.any() else 0.0
+    union = have_mesh | have_obs
+    if not union.any():
+        return 0.0
+    diff = np.full(union.sum(), clip_m)
+    both = (have_mesh & have_obs)[union]
+    diff[both] = np.minimum(np.abs(d[union][both] - obs[union][both]), clip_m)
+    return float(diff.mean())
 
 
 # -- the stage ------------------------------------------------------------------------------------

@@ -169,9 +169,11 @@ def test_full_deformation_ransac_finds_the_largest_rigid_part():
 
 @pytest.mark.xfail(strict=True, reason=(
     "definition, not estimator: under bend/twist/squash the object frame is not the most rigid "
-    "part; RANSAC locks onto the least-deformed region (near the thin ends), whose motion differs "
-    "from obj2depth by the local bend/twist rotation (demo scene, 120 frames: median 3.9°, max "
-    "20.9°; even an all-vertex least-squares fit: median 0.7°, max 3.0°)"))
+    "part. RANSAC's consensus set is the least-deformed region, e.g. on the demo scene's worst "
+    "pair 28 % of the vertices on the upper third (h 0.69-0.98) against 18 % around the middle "
+    "for the true object motion, and its motion differs from obj2depth by the local bend/twist "
+    "rotation. Demo scene (120 frames): rotation error median 4.3°, max 21.2°, 28 % of pairs "
+    "within 1°/5 mm; an all-vertex least-squares fit: median 0.63°, max 2.0°"))
 def test_full_deformation_matches_object_frame_over_the_whole_motion():
     s, X, K_true = _scene(fps=1.5)
     P, _ = poses.pose_table(X, s.faces, load_config()["poses"])
@@ -197,6 +199,14 @@ def test_write_pose_table_store(tmp_path, caplog):
     P, r = poses.pose_table(X.astype(np.float32), s.faces, load_config()["poses"])  # stored as float32
     np.testing.assert_array_equal(g["poses"][...], P)
     np.testing.assert_array_equal(g["inlier_ratio"][...], r)
+    # vertices from another store, faces from the scene store (as for the tracking artifact)
+    other = tmp_path / "other.zarr"
+    with create_store(other, "scene", attrs={"frame_ids": [10, 11, 12, 13]}) as w:
+        w.write("given/vertices", X)
+    poses.write_pose_table(other, tmp_path / "p2.zarr", load_config()["poses"], faces=scene)
+    g2 = open_store(tmp_path / "p2.zarr", "poses")
+    np.testing.assert_array_equal(g2["poses"][...], P)
+    assert g2.attrs["vertices_array"] == "given/vertices"
     with pytest.raises(ValueError, match="no array 'nope'"):
         poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
     assert not (tmp_path / "x.zarr").exists()
