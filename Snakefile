@@ -16,6 +16,7 @@ include: "workflow/rules/ingest.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/template.smk"
 include: "workflow/rules/tracking.smk"
+include: "workflow/rules/poses.smk"
 
 
 rule all:

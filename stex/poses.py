@@ -28,11 +28,10 @@ then Open3D point-to-plane ICP, and sets T[j, i] = inv(T[i, j]). stex does the s
    its partner (the RANSAC inlier gate), and its point-to-plane residual gets a Huber weight
    (δ = θ/4).
 What "the rigid part" is: the largest vertex set that moves rigidly within θ. For an object
-with a rigid core and local deformations that is the core's motion (synthetic body with only the
-belly bulge: ≤ 0.1°, ≤ 0.5 mm at the object). Under bend/twist/squash, however, the largest
-rigid set is wherever the body deforms least (on the procedural body: its thin upper or lower
-third, not the middle that defines its object frame), so K can differ from the object-frame
-motion by the local bend/twist rotation (benchmarks/bench_poses.py measures both).
+with a rigid core and deforming parts (a person's hips and legs under a bending torso; the
+procedural body's lower half) that is the core's motion. For a body that deforms everywhere the
+largest rigid set is wherever it deforms least, which need not be the region that defines its
+object frame (benchmarks/bench_poses.py measures both).
 
 3. **Tables** (:func:`pose_table`): K is computed only for t < t' (T(T−1)/2 pairs, in blocks on
    ``threads`` threads with nogil numba kernels), and poses[t', t] = inv(poses[t, t']) exactly;
@@ -64,10 +63,10 @@ _CONFIDENCE = 0.999
 #: Defaults of the ``poses`` config section (config/schema.yaml documents each).
 DEFAULT_PARAMS = {
     "ransac_iterations": 500,
-    "inlier_threshold_m": 0.01,
+    "inlier_threshold_m": 0.005,
     "sample_vertices": 512,
     "icp_iterations": 3,
-    "icp_threshold_m": 0.01,
+    "icp_threshold_m": 0.005,
     "icp_point_weight": 0.1,
     "seed": 0,
 }
@@ -204,41 +203,6 @@ def _sqerr(R, t, p, q):
     y = R[1, 0] * p[0] + R[1, 1] * p[1] + R[1, 2] * p[2] + t[1] - q[1]
     z = R[2, 0] * p[0] + R[2, 1] * p[1] + R[2, 2] * p[2] + t[2] - q[2]
     return x * x + y * y + z * z
-
-
-@njit(cache=True, nogil=True)
-def _kabsch_w(P, Q, w, R, t):
-    """Weighted Kabsch into R (3,3), t (3,). Returns False if the weights sum to ~0."""
-    ws = 0.0
-    cp = np.zeros(3)
-    cq = np.zeros(3)
-    for n in range(P.shape[0]):
-        if w[n] > 0.0:
-            ws += w[n]
-            for k in range(3):
-                cp[k] += w[n] * P[n, k]
-                cq[k] += w[n] * Q[n, k]
-    if ws <= 1e-12:
-        return False
-    cp /= ws
-    cq /= ws
-    H = np.zeros((3, 3))
-    for n in range(P.shape[0]):
-        if w[n] > 0.0:
-            for a in range(3):
-                pa = w[n] * (P[n, a] - cp[a])
-                for b in range(3):
-                    H[a, b] += pa * (Q[n, b] - cq[b])
-    U, S, Vt = np.linalg.svd(H)
-    M = Vt.T @ U.T
-    if np.linalg.det(M) < 0.0:
-        D = np.eye(3)
-        D[2, 2] = -1.0
-        M = Vt.T @ D @ U.T
-    R[:, :] = M
-    for a in range(3):
-        t[a] = cq[a] - (M[a, 0] * cp[0] + M[a, 1] * cp[1] + M[a, 2] * cp[2])
-    return True
 
 
 @njit(cache=True, nogil=True)

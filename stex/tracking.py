@@ -224,8 +224,8 @@ class TrackParams:
     gn_iterations: int = 4
     max_distance_m: float = 0.05
     huber_m: float = 0.005
-    association: str = "closest"
-    w_point: float = 0.1
+    association: str = "projective"
+    w_point: float = 0.0
     w_flow: float = 1.0
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15

@@ -2,9 +2,9 @@
 
 The object is a closed, lumpy body of revolution with a protruding "nose" (so it hides parts of
 itself), parameterised by (s, h): s in [0, 1) around the vertical axis, h in [0, 1] from bottom
-to top. Its deformation over time combines a bend, a twist, a volume-preserving squash and a
-breathing bulge, all closed-form functions of time, so any frame (or sub-frame, for motion blur)
-can be generated independently and deterministically.
+to top. Its lower half is a rigid core; above the waist (h = 0.5) it bends, twists, squashes
+and breathes (a bulge on the back), all closed-form functions of time, so any frame (or
+sub-frame, for motion blur) can be generated independently and deterministically.
 
 Its appearance is a high-frequency base texture (colour noise, random strokes, dots) modulated by
 the shape, because the paper's premise is "similar shape, similar texture":
@@ -124,19 +124,25 @@ class ProceduralBody:
         prof = np.sqrt(np.clip(np.sin(np.pi * h), 0, None)) * (1 + 0.2 * np.sin(2 * np.pi * h + 0.5))
         lumps = 1 + 0.10 * np.sin(2 * np.pi * 3 * s) * np.sin(np.pi * h)
         nose = 0.6 * np.exp(-(_wrap(s - 0.25) ** 2 / 0.05**2 + (h - 0.62) ** 2 / 0.07**2))
-        belly = st["bulge"] * np.exp(-(_wrap(s - 0.75) ** 2 / 0.08**2 + (h - 0.45) ** 2 / 0.12**2))
+        belly = st["bulge"] * np.exp(-(_wrap(s - 0.75) ** 2 / 0.08**2 + (h - 0.7) ** 2 / 0.1**2))
         r = p.radius * prof * (lumps + nose + belly)
-        ang = 2 * np.pi * s + st["twist"] * (h - 0.5)
+        # The lower half is a rigid core (like legs and hips); the upper half twists, squashes
+        # and bends above the waist at h = 0.5, so the object has a well-defined rigid part.
+        up = np.clip(h - 0.5, 0, None)
+        ang = 2 * np.pi * s + st["twist"] * 2 * up
         sq = 1 + st["squash"]
-        x = r * np.cos(ang) / np.sqrt(sq)
-        z = r * np.sin(ang) / np.sqrt(sq)
-        y = p.height * (h - 0.5) * sq
-        kappa = st["bend"] / p.height
+        w = np.clip(up / 0.15, 0, 1)  # squash fades in above the waist
+        thin = 1 + w * (1 / np.sqrt(sq) - 1)
+        x = r * np.cos(ang) * thin
+        z = r * np.sin(ang) * thin
+        y = p.height * (np.minimum(h, 0.5) - 0.5 + up * sq)
+        kappa = st["bend"] / (0.5 * p.height)
         if abs(kappa) > 1e-9:
+            yy = np.clip(y, 0, None)
             rho = 1.0 / kappa - x
-            theta = kappa * y
-            x = 1.0 / kappa - rho * np.cos(theta)
-            y = rho * np.sin(theta)
+            theta = kappa * yy
+            x = np.where(y > 0, 1.0 / kappa - rho * np.cos(theta), x)
+            y = np.where(y > 0, rho * np.sin(theta), y)
         return np.stack([x, y, z], axis=-1)
 
     def vertices(self, time_s: float | None) -> np.ndarray:

@@ -1,0 +1,144 @@
+"""Embedded-deformation tracking with the L0 regulariser."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from conftest import data_samples
+from stex.render import face_normals, rasterize
+from stex.synth.shapes import bumpy_sphere
+from stex.template import template_from_depth
+from stex.tracking import (Observation, TrackParams, _solve_frame, build_graph, deform, depth_residual,
+                           depth_target, identity_params, track_sequence)
+
+K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
+
+
+def _sphere():
+    V, F = bumpy_sphere(subdivisions=3, radius=0.3, distance=1.2)
+    return V, F
+
+
+def test_graph_covers_and_binds():
+    V, F = _sphere()
+    g = build_graph(V, F, 0.08)
+    assert 10 < len(g.nodes) < len(V)
+    assert np.allclose(g.vertex_weights.sum(1), 1)
+    # every vertex is within the spacing of some node (Euclidean is a lower bound of geodesic)
+    d = np.linalg.norm(V[:, None] - V[g.nodes][None], axis=2).min(1)
+    assert d.max() <= 0.08 + 1e-9
+    assert (g.edges[:, 0] < g.edges[:, 1]).all() and len(np.unique(g.edges, axis=0)) == len(g.edges)
+
+
+def test_deform_identity_and_rigid():
+    V, F = _sphere()
+    g = build_graph(V, F, 0.08)
+    nodes = V[g.nodes]
+    assert np.allclose(deform(V, nodes, g, identity_params(len(nodes))), V)
+    R = Rotation.from_euler("xyz", [10, -20, 5], degrees=True).as_matrix()
+    t = np.array([0.01, -0.02, 0.03])
+    # x' = A (v - g) + g + t_j with A = R, t_j = R g + t - g gives R v + t for every node
+    x = np.zeros((len(nodes), 12))
+    x[:, :9] = R.ravel()
+    x[:, 9:] = nodes @ R.T + t - nodes
+    assert np.allclose(deform(V, nodes, g, x), V @ R.T + t)
+
+
+def _target(V, F):
+    d = rasterize(V, F, K, 240, 180).depth.astype(np.float64)
+    return depth_target(d, K)
+
+
+def test_one_frame_recovers_a_small_rigid_motion():
+    V, F = _sphere()
+    R = Rotation.from_euler("xyz", [2, -3, 1], degrees=True).as_matrix()
+    c = V.mean(0)
+    V1 = (V - c) @ R.T + c + np.array([0.01, 0.005, -0.01])
+    g = build_graph(V, F, 0.08)
+    x, stats = _solve_frame(V, F.astype(np.int64), V[g.nodes], g, _target(V1, F), TrackParams(gn_iterations=8),
+                            identity_params(len(g.nodes)))
+    err = np.linalg.norm(deform(V, V[g.nodes], g, x) - V1, axis=1)
+    vis = face_normals(V1, F)  # noqa: F841  (the visible half is what the data constrains)
+    assert stats["n_corr"] > 100
+    assert np.median(err) < 0.002 and err.mean() < 0.004
+
+
+def test_depth_target_rejects_nan():
+    d = np.ones((10, 10))
+    d[3, 4] = np.nan
+    with pytest.raises(ValueError, match="row 3, column 4"):
+        depth_target(d, K)
+
+
+def test_template_from_depth_faces_the_camera():
+    V, F = _sphere()
+    d = rasterize(V, F, K, 240, 180).depth.astype(np.float64)
+    TV, TF = template_from_depth(d, K, stride=2)
+    n = face_normals(TV, TF)
+    assert ((n * TV[TF].mean(1)).sum(1) < 0).all()  # normals point back towards the camera
+    with pytest.raises(ValueError, match="no valid depth"):
+        template_from_depth(np.zeros((20, 20)), K)
+
+
+def test_tracking_follows_a_deforming_synthetic_scene(tiny_config):
+    """A short run on a tiny synthetic scene (low resolution): the tracked mesh stays on the
+    truth; the full-resolution figures are in benchmarks/bench_tracking.py."""
+    import cv2
+
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import mask_in_depth
+    from stex.render import vertex_visibility
+    cfg = tiny_config["source"]["synthetic"]
+    s = SyntheticScene(cfg)
+    cal = s.calibration
+
+    def obs():
+        for t in range(s.n_frames):
+            r = s.render_frame(t)
+            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
+            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
+                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+
+    errors = []
+    for pos, V, st in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(), progress=False,
+                                     texcoords=s.texcoords, texcoord_faces=s.texcoord_faces):
+        Vt = s.true_vertices(pos)
+        d = rasterize(Vt, s.faces, cal.depth.K, *cal.depth.size).depth
+        vis, _ = vertex_visibility(Vt, s.faces, cal.depth.K, d)
+        e = np.linalg.norm(V - Vt, axis=1)
+        errors.append((e[vis].mean(), e.mean()))
+    errors = np.array(errors)
+    moved = np.linalg.norm(s.true_vertices(s.n_frames - 1) - s.true_vertices(0), axis=1).mean()
+    assert moved > 0.02  # the object really moves
+    assert errors[:, 0].max() < 0.006 and errors[:, 1].max() < 0.012, errors
+
+
+REAL = data_samples()
+
+
+@pytest.mark.skipif(not (REAL / "killingfusion_snoopy").is_dir(), reason="shared data samples absent")
+def test_real_pairs_fit_better_than_rigid():
+    import cv2
+    from scipy import ndimage
+
+    sd = REAL / "killingfusion_snoopy" / "frames_000050_000051"
+    Ks = np.array([[517.0, 0, 320], [0, 517.0, 240], [0, 0, 1]])
+    pairs = [(Ks, [cv2.imread(str(sd / f"snoopy_depth_0000{i}.png"), -1) / 1000.0 for i in (50, 51)],
+              [cv2.imread(str(sd / f"snoopy_omask_0000{i}.png"), 0) > 0 for i in (50, 51)])]
+    dd = REAL / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017"
+    Kd = np.loadtxt(dd / "intrinsics.txt")[:3, :3]
+    ds = [cv2.imread(str(dd / "depth" / f"000{i}.png"), -1) / 1000.0 for i in (300, 600)]
+
+    def largest(m):
+        lab, n = ndimage.label(m)
+        return lab == (np.argmax(np.bincount(lab.ravel())[1:]) + 1)
+    pairs.append((Kd, ds, [largest((d > 0) & (d < 2.05)) for d in ds]))
+    for Kp, depths, masks in pairs:
+        V, F = template_from_depth(depths[0], Kp, masks[0], stride=2)
+        targets = [depth_target(d, Kp, m) for d, m in zip(depths, masks)]
+        res = {}
+        for mode in ("rigid", "ed"):
+            p = TrackParams(rigid_only=mode == "rigid", w_flow=0.0, gn_iterations=8)
+            *_, (_, Vb, _) = track_sequence(V, F, [Observation(t) for t in targets], p, progress=False)
+            res[mode] = depth_residual(Vb, F, targets[1], union=False)
+        before = depth_residual(V, F, targets[1], union=False)
+        assert res["ed"] < res["rigid"] <= before + 1e-4, (before, res)
