@@ -150,6 +150,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "counts": "dict: vertices, faces, texcoords, charts, adjacent_pairs, covered_texels, faces_in",
             "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges)",
             "decimated": "bool: whether quadric decimation ran",
+            "subdivided": "int: midpoint subdivisions applied to a low-poly mesh",
             "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed",
             "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings)",
             "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",

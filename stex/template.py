@@ -191,6 +191,23 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
 # decimation
 # --------------------------------------------------------------------------------------------
 
+def subdivide_midpoint(vertices, faces):
+    """Split every triangle into four at its edge midpoints (shape unchanged: new vertices lie on
+    the old faces). Returns (vertices (V + E, 3) float64, faces (4F, 3) int32)."""
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    key = np.sort(e, axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    mid = len(V) + inv.reshape(3, -1).T  # (F, 3): midpoints of edges 01, 12, 20
+    V2 = np.concatenate([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
+    a, b, c = F[:, 0], F[:, 1], F[:, 2]
+    ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
+    F2 = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
+                         np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
+    return V2, F2.astype(np.int32)
+
+
 def decimate(vertices, faces, target_faces: int):
     """Quadric edge-collapse decimation (pymeshlab) to ``target_faces`` faces.
 
@@ -579,6 +596,14 @@ def prepare_template(mesh, params: dict) -> dict:
     if decimated:
         V, F = decimate(V, F, int(params["target_faces"]))
         log.info("template: decimated to %d faces, %d vertices", len(F), len(V))
+    # Low-poly assets (e.g. game models) are split until they have enough vertices to carry the
+    # tracker's data term; midpoint splits leave the shape exactly as it was.
+    subdivided = 0
+    while not decimated and len(F) * 4 <= int(params.get("min_faces", 0)):
+        V, F = subdivide_midpoint(V, F)
+        subdivided += 1
+    if subdivided:
+        log.info("template: subdivided %d times to %d faces", subdivided, len(F))
     t2 = time.perf_counter()
     # Keep the template on the original surface so that transfer_vertices reproduces it exactly.
     emb_face, emb_bary, closest, dist = embed_vertices(V, mesh.vertices, mesh.faces)
@@ -601,6 +626,7 @@ def prepare_template(mesh, params: dict) -> dict:
                    "faces_in": int(len(mesh.faces))},
         "clean_report": report,
         "decimated": decimated,
+        "subdivided": subdivided,
         "flipped_fixed": info["flipped_xatlas"],
         "atlas": {k: v for k, v in info.items()},
         "gutter_conflicts": conflicts,

@@ -229,6 +229,7 @@ class TrackParams:
     w_flow: float = 1.0
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15
+    flow_age_frames: float = 0.0
     rigid_only: bool = False
     model_size: int = 1024
     model_min_cos: float = 0.3
@@ -361,7 +362,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 stats["data_rms_m"] = float(np.sqrt(np.mean(rd**2)))
             # flow: (pi(T_dc x'_i) - u_i) * z / fx, about metres at the vertex, Huber weighted
             if flow is not None and len(flow[0]):
-                fid, u_t, Kc, Tdc = flow
+                fid, u_t, Kc, Tdc, fw = flow
                 Xc = Vd[fid] @ Tdc[:3, :3].T + Tdc[:3, 3]
                 z = Xc[:, 2]
                 proj = np.stack([Kc[0, 0] * Xc[:, 0] / z + Kc[0, 2], Kc[1, 1] * Xc[:, 1] / z + Kc[1, 2]], 1)
@@ -371,7 +372,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 Jx = np.stack([np.stack([Kc[0, 0] / z, 0 * z, -Kc[0, 0] * Xc[:, 0] / z**2], 1),
                                np.stack([0 * z, Kc[1, 1] / z, -Kc[1, 1] * Xc[:, 1] / z**2], 1)], 1) * scale[:, None, None]
                 Dm = Jx @ Tdc[:3, :3]                               # (n, 2, 3)
-                sqw = np.sqrt(p.w_flow)
+                sqw = np.sqrt(p.w_flow * fw)
                 for m in range(2):
                     sw = _huber_sqrt_weight(rf[:, m], p.huber_m) * sqw
                     c, v = _blocks(fid, Dm[:, m], graph, local, sw)
@@ -475,9 +476,14 @@ class AppearanceModel:
         self.texel_face = face_id.ravel()[self.texels]
         self.texel_bary = bary.reshape(-1, 3)[self.texels].astype(np.float64)
         self.texture = np.zeros((size, size, 2), np.float32)  # grey, filled
+        self.captured_at = np.full(size * size, -1, np.int32)  # frame position of each texel's capture
         self.size = size
+        # one texcoord per vertex (any corner's): where a vertex sits in the atlas
+        self.vertex_texel = np.zeros(int(self.faces.max()) + 1, np.int64)
+        px = np.clip((self.texcoords[self.texcoord_faces.ravel()] * size).astype(np.int64), 0, size - 1)
+        self.vertex_texel[self.faces.ravel()] = px[:, 1] * size + px[:, 0]
 
-    def capture(self, vertices, gray, calibration, min_cos: float = 0.5) -> int:
+    def capture(self, vertices, gray, calibration, min_cos: float = 0.5, frame: int = 0) -> int:
         """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``gray``; returns how many."""
         from stex.render import face_visibility, sample_bilinear
 
@@ -495,6 +501,7 @@ class AppearanceModel:
         idx = self.texels[todo]
         flat[idx, 0] = sample_bilinear(gray, uv)
         flat[idx, 1] = 1.0
+        self.captured_at[idx] = frame
         return int(todo.sum())
 
     def render(self, vertices, calibration):
@@ -568,7 +575,11 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     centre = int(np.argmin(np.linalg.norm(V0 - V0.mean(0), axis=1)))
     rigid_graph = DeformationGraph(np.array([centre], np.int32), np.zeros((len(V0), 1), np.int32),
                                    np.ones((len(V0), 1)), np.zeros((0, 2), np.int32))
-    rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1})
+    # The rigid stage is cheap (12 unknowns): more iterations and a wider association radius
+    # let it catch fast turns before the non-rigid stage refines.
+    rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1,
+                                  "gn_iterations": 3 * params.gn_iterations,
+                                  "max_distance_m": 2 * params.max_distance_m})
     prev = before = V0
     model = None
     t0 = time.perf_counter()
@@ -581,7 +592,11 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         if use_flow and model is not None:
             fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
                                        params.flow_consistency_px, params.flow_min_cos)
-            flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color)
+            # Texels captured early carry less accumulated error: trust them more.
+            age = model.captured_at[model.vertex_texel[fid]].astype(np.float64)
+            age[age < 0] = pos
+            weight = 1.0 / (1.0 + age / params.flow_age_frames) if params.flow_age_frames > 0 else np.ones(len(fid))
+            flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color, weight)
         # 1. rigid part, so that unseen regions follow the global motion exactly
         xr, rstats = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
                              identity_params(1), flow)
@@ -608,7 +623,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                     from stex.template import build_atlas
                     texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
                 model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
-            stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos)
+            stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos, pos)
         yield pos, cur, stats
 
 

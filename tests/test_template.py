@@ -198,3 +198,22 @@ def test_write_template_without_template_mesh(tmp_path):
         write_template(scene, {"decimate": True, "target_faces": 100, "atlas_size": 64, "gutter_px": 1},
                        tmp_path / "template.zarr")
     assert not (tmp_path / "template.zarr").exists()
+
+
+def test_low_poly_meshes_are_subdivided_without_changing_shape():
+    import trimesh as _tm
+
+    from stex.readers.meshes import Mesh
+    from stex.template import prepare_template, subdivide_midpoint, transfer_vertices
+    m = _tm.creation.icosphere(1)  # 80 faces
+    V, F = subdivide_midpoint(m.vertices, m.faces)
+    t = _tm.Trimesh(V, F, process=False)
+    assert len(F) == 320 and t.is_watertight and t.is_winding_consistent and t.volume > 0
+    assert abs(t.area - m.area) < 1e-12  # midpoints lie on the old faces
+    out = prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)),
+                           {"target_faces": 20000, "min_faces": 1000, "decimate": True, "atlas_size": 256, "gutter_px": 2})
+    assert len(out["faces"]) == 320 and out["attrs"]["subdivided"] == 1  # 1280 would exceed 1000
+    # the embedding carries the original mesh's motion to the subdivided one exactly
+    moved = np.asarray(m.vertices) * 1.5 + 0.1
+    assert np.allclose(transfer_vertices(moved, m.faces, out["embedding/face"], out["embedding/bary"]),
+                       out["vertices"] * 1.5 + 0.1, atol=1e-6)
