@@ -516,7 +516,7 @@ class AppearanceModel:
 
 
 def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, calibration,
-                     consistency_px=1.0, min_cos=0.3, erode_px=3):
+                     consistency_px=1.0, min_cos=0.3, erode_px=3, prev_gray=None):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
     appearance model rendered at the predicted pose to the current image.
 
@@ -540,8 +540,11 @@ def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, c
     ids = ids[core[px[:, 1], px[:, 0]]]
     if len(ids) == 0:
         return ids, np.zeros((0, 2))
-    # Fill the unknown part of the prediction with the current image so flow sees no false edges.
-    pred8 = np.where(valid, pred, gray).clip(0, 255).astype(np.uint8)
+    # Fill what the model does not know with the previous image (the prediction is the previous
+    # pose): it moves like the object does, whereas pasting the current image there would pin the
+    # flow to zero around it and make the tracker lag behind the motion.
+    fill = gray if prev_gray is None else prev_gray
+    pred8 = np.where(valid, pred, fill).clip(0, 255).astype(np.uint8)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     fw = dis.calc(pred8, gray, None)
     bw = dis.calc(gray, pred8, None)
@@ -582,6 +585,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                                   "max_distance_m": 2 * params.max_distance_m})
     prev = before = V0
     model = None
+    prev_gray = None
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
@@ -591,7 +595,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         use_flow = params.w_flow > 0 and obs.gray is not None
         if use_flow and model is not None:
             fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
-                                       params.flow_consistency_px, params.flow_min_cos)
+                                       params.flow_consistency_px, params.flow_min_cos, prev_gray=prev_gray)
             # Texels captured early carry less accumulated error: trust them more.
             age = model.captured_at[model.vertex_texel[fid]].astype(np.float64)
             age[age < 0] = pos
@@ -624,6 +628,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                     texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
                 model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
             stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos, pos)
+            prev_gray = obs.gray
         yield pos, cur, stats
 
 
