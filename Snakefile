@@ -17,6 +17,7 @@ include: "workflow/rules/masks.smk"
 include: "workflow/rules/template.smk"
 include: "workflow/rules/tracking.smk"
 include: "workflow/rules/poses.smk"
+include: "workflow/rules/projection.smk"
 
 
 rule all:

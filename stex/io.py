@@ -186,6 +186,31 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "vertices_array": "str: the array read from it",
         },
     ),
+    "projection": ArtifactSpec(
+        description="The tracked mesh in every colour image (stex.projection): Φ, the vertices "
+        "moved through depth_to_color and projected with the colour pinhole, and visibility "
+        "decided in the colour camera (depth test against the colour-camera render of the mesh, "
+        "facing, image margin, eroded foreground mask; a face is visible only with its 3 "
+        "vertices). Cosines are stored for every vertex/face (0 = back-facing) so later stages "
+        "apply their own threshold (θ_n). Rows are one frame per chunk: the stage writes one "
+        "frame at a time, the texture-coordinate optimisation reads one frame at a time, and a "
+        "whole [T, F] table (5 MB of bools, 21 MB of cosines on the paper scene) is read in one "
+        "pass over the T chunks.",
+        path="projection.zarr",
+        arrays={
+            "phi": ArraySpec(("T", "V", 2), "float32", "px", "colour-image coordinates (u column, v row; integer = pixel centre) of every vertex", (1, "V", 2)),
+            "vertex_visible": ArraySpec(("T", "V"), "bool", "1", "vertex seen in the colour image (depth test, facing, margin, mask)", (1, "V")),
+            "vertex_cos": ArraySpec(("T", "V"), "float32", "1", "cosine between the area-weighted vertex normal and the view ray (attr cos_mode), clipped to [0, 1], every vertex", (1, "V")),
+            "face_visible": ArraySpec(("T", "F"), "bool", "1", "face seen: its own test (face normal, depth test of its corners against its plane) and its 3 vertices visible", (1, "F")),
+            "face_cos": ArraySpec(("T", "F"), "float32", "1", "cosine between the face normal and the view ray from its centroid (attr cos_mode), clipped to [0, 1], every face", (1, "F")),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each row",
+            "color_size": "[Wc, Hc]: colour image size (px)",
+            "cos_mode": "'view_ray' (cosine to the ray to the camera centre) or 'optical_axis' (to the camera z axis, as the authors' code)",
+            "visible_area_fraction": "list[float]: fraction of the surface area in visible faces, per frame",
+        },
+    ),
 }
 
 

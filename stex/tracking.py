@@ -226,7 +226,7 @@ class TrackParams:
     huber_m: float = 0.005
     association: str = "projective"
     w_point: float = 0.0
-    w_flow: float = 1.0
+    w_flow: float = 0.25
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15
     flow_age_frames: float = 0.0

@@ -60,7 +60,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     assert run.returncode == 0, out[-2000:]
     jobs = set(re.findall(r"^rule (\w+):", out, flags=re.M))
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
-    assert jobs == {"all", "masks", "masks_preview", "tracking", "poses"}, out
+    assert jobs == {"all", "masks", "masks_preview", "tracking", "poses", "projection", "projection_preview"}, out
     assert "Params have changed since last execution" in out
 
 

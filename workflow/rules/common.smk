@@ -22,6 +22,7 @@ def all_outputs():
     out = [f"{RESULTS}/scene.zarr", f"{RESULTS}/previews/masks.png"]
     out += [f"{RESULTS}/template.zarr", f"{RESULTS}/previews/template_atlas.png"]
     out += [f"{RESULTS}/tracking.zarr", f"{RESULTS}/poses.zarr"]
+    out += [f"{RESULTS}/projection.zarr", f"{RESULTS}/previews/projection.png"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
     out += expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS)
     if SYNTHETIC:

@@ -1,0 +1,325 @@
+"""Projection stage: Φ and visibility of the deformed template in every colour image.
+
+For every frame t, the tracked vertices (``tracking`` store, depth-camera coordinates) are moved
+into the colour camera through ``Calibration.depth_to_color`` and projected with the colour
+pinhole: Φ_t (V, 2) colour-pixel coordinates (integer = pixel centre). Texture comes from the
+colour images, so visibility is decided **in the colour camera**: the mesh is rasterised there
+(:func:`stex.render.rasterize`) and every vertex / face is tested against that depth map. The
+texture-coordinate optimisation starts from Φ, and the tables (E_qual, candidates) read the
+per-(frame, face) visibility and cosine.
+
+Visibility rules (``params`` = the ``projection`` config section), and how they compare with the
+authors' code (``Mapper4D.cpp::ConstructVertree``, see ``official_code_notes.md`` §2.2):
+
+- **Depth test** against the colour-camera render of the mesh itself, with the tangent-plane test
+  of :func:`stex.render.vertex_visibility` / :func:`stex.render.face_visibility` and tolerance
+  ``depth_tol_m`` (default 1 cm) over a (2·``window_px``+1)² neighbourhood. The authors compare
+  the vertex depth with the *sensor* depth at the nearest depth pixel with 5 cm. Rendering the
+  tracked mesh is exact for self-occlusion, needs no depth-to-colour warp, is unaffected by depth
+  holes and noise, and lets the tolerance be 1 cm instead of 5 cm (5 cm lets a fold's far side
+  through). What it cannot see is occlusion by *other* objects (hands, props); the foreground mask
+  below removes most of those.
+- **Facing**: cosine between the surface normal (area-weighted vertex normal, or face normal) and
+  the direction to the camera. ``cos_mode: view_ray`` (default) uses the ray from the point to the
+  colour-camera centre — the true foreshortening of the surface in the image. ``optical_axis``
+  reproduces the authors' code (normal · camera z axis; their view-ray variant is commented out
+  at L306): off the image centre it over- or under-states the foreshortening by up to the ray's
+  angle to the axis (±34° at the border of a 2048 px image with fx = 1500, ±45° on an Azure
+  Kinect wide colour mode), so a face seen edge-on near the border can get cos ≈ 0.5 and pass the
+  later θ_n = 0.3 quality test. In both modes a point must face the camera along its view ray
+  (cos_view > 0, otherwise its colour is not in the image at all); the mode then decides the
+  stored cosine and the ``min_cos`` threshold (default 0: any front-facing point). The stored
+  cosines are given for **every** vertex/face (clipped to [0, 1]) so later stages can apply
+  θ_n = 0.3 themselves.
+- **Image margin**: the projection must lie at least ``margin_px`` (default 20, as the authors)
+  inside the colour image: u ∈ [m, Wc-1-m], v ∈ [m, Hc-1-m]. The authors also apply it in the
+  depth image; stex does not look at depth images here.
+- **Foreground mask** (``use_mask``, default true): the ``masks`` store's mask, eroded by
+  ``mask_erode_px`` (default 2 px; GrabCut boundaries are a few px off), must be set at the
+  nearest pixel of the projection. The authors drop a (face, frame) when any corner's texture
+  coordinate falls on a mask pixel < 1 (``BackgroundSubtraction``), and keep the frame at weight
+  0.001 in the proxy colour; stex decides it here, once, for vertices and faces alike.
+- **Faces**: a face is visible when its own test passes (front-facing face normal, cos > min_cos,
+  its three corners pass the depth test against the face's plane) **and** its three vertices are
+  visible — the authors' rule that the frame set of a face is the intersection of its vertices'
+  sets. So every visible face has Φ and (later) ξ at all its corners.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import cv2
+import numpy as np
+
+from stex.camera import Calibration, transform_points
+from stex.render import face_normals, face_visibility, rasterize, vertex_normals, vertex_visibility
+
+log = logging.getLogger("stex.projection")
+
+__all__ = ["DEFAULTS", "project_frame", "write_projection", "projection_overlay", "preview_projection"]
+
+#: defaults of the ``projection`` config section (config/schema.yaml is authoritative)
+DEFAULTS = {
+    "depth_tol_m": 0.01,
+    "window_px": 1,
+    "tangent_plane": True,
+    "min_cos": 0.0,
+    "cos_mode": "view_ray",
+    "margin_px": 20,
+    "use_mask": True,
+    "mask_erode_px": 2,
+    "near_m": 0.01,
+}
+
+COS_MODES = ("view_ray", "optical_axis")
+
+
+def _params(params: dict | None) -> dict:
+    p = dict(DEFAULTS)
+    if params:
+        unknown = set(params) - set(DEFAULTS)
+        if unknown:
+            raise ValueError(f"unknown projection parameters {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+        p.update(params)
+    if p["cos_mode"] not in COS_MODES:
+        raise ValueError(f"projection.cos_mode must be one of {COS_MODES}, got {p['cos_mode']!r}")
+    return p
+
+
+def erode_mask(mask: np.ndarray, erode_px: int) -> np.ndarray:
+    """(H, W) bool mask eroded by ``erode_px`` pixels (a disc; 0 = unchanged)."""
+    mask = np.asarray(mask, dtype=bool)
+    if erode_px <= 0:
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+    return cv2.erode(mask.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def project_frame(vertices_depth, faces, calibration: Calibration, params: dict | None = None,
+                  mask: np.ndarray | None = None) -> dict:
+    """Project one frame's mesh into the colour image and decide visibility there.
+
+    Args:
+        vertices_depth: (V, 3) float vertex positions in **depth-camera** coordinates, metres.
+        faces: (F, 3) int triangles, counter-clockwise seen from outside.
+        calibration: the sensor's :class:`~stex.camera.Calibration` (colour intrinsics and
+            ``depth_to_color``).
+        params: the ``projection`` config section (missing keys take :data:`DEFAULTS`):
+            ``depth_tol_m`` (m), ``window_px`` (px), ``tangent_plane``, ``min_cos``,
+            ``cos_mode`` ('view_ray' | 'optical_axis'), ``margin_px`` (px), ``use_mask``,
+            ``mask_erode_px`` (px), ``near_m`` (m). See the module docstring.
+        mask: (Hc, Wc) bool foreground mask of this frame at colour resolution, **not yet
+            eroded**; used when ``params['use_mask']`` (required then).
+
+    Returns:
+        dict with
+        ``phi`` (V, 2) float32 colour-pixel coordinates (u = column, v = row; integer = pixel
+        centre), for every vertex;
+        ``vertex_visible`` (V,) bool; ``vertex_cos`` (V,) float32 in [0, 1];
+        ``face_visible`` (F,) bool; ``face_cos`` (F,) float32 in [0, 1] — cosines per
+        ``cos_mode`` for every vertex/face whatever its visibility (0 when back-facing).
+
+    Raises:
+        ValueError: a vertex at or behind ``near_m`` in the colour camera (it has no
+            projection), a missing mask, or a mask of the wrong size.
+    """
+    p = _params(params)
+    Kc = calibration.color.K
+    Wc, Hc = calibration.color.width, calibration.color.height
+    Vd = np.asarray(vertices_depth, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64)
+    if Vd.ndim != 2 or Vd.shape[1] != 3:
+        raise ValueError(f"vertices must have shape (V, 3), got {Vd.shape}")
+    Xc = transform_points(calibration.depth_to_color, Vd).astype(np.float64)
+    z = Xc[:, 2]
+    bad = ~(z > p["near_m"])
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"vertex {i} is at z = {z[i]:.4f} m in the colour camera (<= near_m "
+                         f"{p['near_m']} m; {int(bad.sum())} such vertices): it has no projection")
+    u = (Kc[0, 0] * Xc[:, 0] + Kc[0, 1] * Xc[:, 1]) / z + Kc[0, 2]
+    v = (Kc[1, 0] * Xc[:, 0] + Kc[1, 1] * Xc[:, 1]) / z + Kc[1, 2]
+    phi = np.stack([u, v], axis=1)
+
+    raster = rasterize(Xc, F, Kc, Wc, Hc, near=p["near_m"])
+    tol, win, plane = float(p["depth_tol_m"]), int(p["window_px"]), bool(p["tangent_plane"])
+    vvis, vcos = vertex_visibility(Xc, F, Kc, raster.depth, depth_tol=tol, window=win,
+                                   tangent_plane=plane)
+    # face_visibility's own min_cos is on the view-ray cosine; the threshold is applied below
+    fvis, fcos = face_visibility(Xc, F, Kc, raster.depth, depth_tol=tol, min_cos=0.0,
+                                 window=win, tangent_plane=plane)
+    if p["cos_mode"] == "optical_axis":
+        # the authors' weight: normal . (0, 0, -1) in the colour camera (normals point outward,
+        # the camera looks along +z); still only for points facing the camera along their ray
+        vcos = np.where(vcos > 0, np.clip(-vertex_normals(Xc, F)[:, 2], 0.0, 1.0), 0.0).astype(np.float32)
+        fcos = np.where(fcos > 0, np.clip(-face_normals(Xc, F)[:, 2], 0.0, 1.0), 0.0).astype(np.float32)
+    min_cos = float(p["min_cos"])
+    vvis &= vcos > min_cos
+    fvis &= fcos > min_cos
+
+    m = float(p["margin_px"])
+    inside = (u >= m) & (u <= Wc - 1 - m) & (v >= m) & (v <= Hc - 1 - m)
+    vvis &= inside
+    if p["use_mask"]:
+        if mask is None:
+            raise ValueError("projection.use_mask is set but no mask was given")
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (Hc, Wc):
+            raise ValueError(f"mask has shape {mask.shape}, the colour image is {(Hc, Wc)}")
+        fg = erode_mask(mask, int(p["mask_erode_px"]))
+        c = np.clip(np.floor(u + 0.5).astype(np.int64), 0, Wc - 1)
+        r = np.clip(np.floor(v + 0.5).astype(np.int64), 0, Hc - 1)
+        vvis &= fg[r, c]
+    # a face's frame set is the intersection of its vertices' sets (the authors' rule)
+    if F.shape[0]:
+        fvis &= vvis[F].all(axis=1)
+    return {
+        "phi": phi.astype(np.float32),
+        "vertex_visible": vvis,
+        "vertex_cos": vcos.astype(np.float32),
+        "face_visible": fvis,
+        "face_cos": fcos.astype(np.float32),
+    }
+
+
+def write_projection(tracking_path, template_path, scene_path, masks_paths, params: dict, out,
+                     frames=None) -> None:
+    """Projection stage: write the ``projection`` store for the tracked frames.
+
+    Args:
+        tracking_path: the ``tracking`` store (vertices [T, V, 3], depth-camera coordinates).
+        template_path: the ``template`` store (faces).
+        scene_path: the ``scene`` store (calibration attr).
+        masks_paths: the ``masks`` frame-block stores (read one frame at a time); may be empty
+            when ``params['use_mask']`` is false.
+        params: the ``projection`` config section.
+        out: path of the store to write.
+        frames: optional list of global frame ids to project (default: every tracked frame), in
+            increasing order.
+
+    Streams frame by frame: memory is one frame's mesh, raster and mask. No colour image is read.
+    """
+    from stex.io import FrameSequence, create_store, open_store
+
+    p = _params(params)
+    scene = open_store(scene_path, "scene")
+    template = open_store(template_path, "template")
+    tracking = open_store(tracking_path, "tracking")
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    F = np.asarray(template["faces"][...], np.int64)
+    track_ids = list(tracking.attrs["frame_ids"])
+    verts = tracking["vertices"]
+    if F.size and verts.shape[1] <= int(F.max()):
+        raise ValueError(f"{tracking_path}: {verts.shape[1]} vertices per frame but {template_path} "
+                         f"faces index vertex {int(F.max())}")
+    ids = track_ids if frames is None else [int(f) for f in frames]
+    missing = [f for f in ids if f not in track_ids]
+    if missing:
+        raise ValueError(f"{tracking_path}: frames {missing[:5]} are not tracked (tracked: "
+                         f"{track_ids[0]}..{track_ids[-1]})")
+    if ids != sorted(set(ids)):
+        raise ValueError(f"frames must be increasing and distinct, got {ids[:10]}...")
+    pos = {f: i for i, f in enumerate(track_ids)}
+    masks = None
+    if p["use_mask"]:
+        if not masks_paths:
+            raise ValueError("projection.use_mask is set but no masks stores were given")
+        masks = FrameSequence(list(masks_paths), "masks")
+        have = set(masks.frame_ids)
+        absent = [f for f in ids if f not in have]
+        if absent:
+            raise ValueError(f"masks stores hold no mask for frames {absent[:5]}")
+    T, V, nF = len(ids), verts.shape[1], F.shape[0]
+    Wc, Hc = cal.color.width, cal.color.height
+    vis_area = np.zeros(T)
+    t0 = time.perf_counter()
+    attrs = {"frame_ids": ids, "color_size": [Wc, Hc], "cos_mode": p["cos_mode"]}
+    with create_store(out, "projection", attrs=attrs, params=p) as store:
+        a_phi = store.create("phi", (T, V, 2))
+        a_vvis = store.create("vertex_visible", (T, V))
+        a_vcos = store.create("vertex_cos", (T, V))
+        a_fvis = store.create("face_visible", (T, nF))
+        a_fcos = store.create("face_cos", (T, nF))
+        for k, fid in enumerate(ids):
+            Vd = np.asarray(verts[pos[fid]], np.float64)
+            mask = masks.read("mask", fid) if masks is not None else None
+            try:
+                r = project_frame(Vd, F, cal, p, mask)
+            except ValueError as exc:
+                raise ValueError(f"{tracking_path}: frame {fid}: {exc}") from exc
+            a_phi[k] = r["phi"]
+            a_vvis[k] = r["vertex_visible"]
+            a_vcos[k] = r["vertex_cos"]
+            a_fvis[k] = r["face_visible"]
+            a_fcos[k] = r["face_cos"]
+            area = 0.5 * np.linalg.norm(np.cross(Vd[F[:, 1]] - Vd[F[:, 0]], Vd[F[:, 2]] - Vd[F[:, 0]]), axis=1)
+            vis_area[k] = area[r["face_visible"]].sum() / max(area.sum(), 1e-30)
+            if (k + 1) % 10 == 0 or k + 1 == T:
+                log.info("projection: frame %d (%d/%d, %.1f frames/s), %.1f %% of the surface visible",
+                         fid, k + 1, T, (k + 1) / (time.perf_counter() - t0), 100 * vis_area[k])
+        store.attrs["visible_area_fraction"] = [round(float(x), 5) for x in vis_area]
+
+
+# --------------------------------------------------------------------------------------------
+# preview
+# --------------------------------------------------------------------------------------------
+
+def projection_overlay(color: np.ndarray, phi: np.ndarray, visible: np.ndarray, cos: np.ndarray,
+                       size: int = 480, title: str = "") -> np.ndarray:
+    """(size, size, 3) uint8 RGB picture: the colour image cropped to the visible vertices (square,
+    with a margin), dimmed, and each visible vertex's Φ drawn as a dot coloured by its cosine
+    (colormap viridis: dark blue 0 -> yellow 1)."""
+    from stex.preview import _label
+
+    H, W = color.shape[:2]
+    pts = phi[visible]
+    if len(pts):
+        lo, hi = pts.min(0), pts.max(0)
+        c = (lo + hi) / 2
+        half = max(hi - lo) / 2 * 1.15 + 8
+    else:
+        c, half = np.array([W / 2, H / 2]), min(W, H) / 2
+    x0, y0 = int(round(c[0] - half)), int(round(c[1] - half))
+    side = max(int(round(2 * half)), 8)
+    # crop with zero padding outside the image
+    crop = np.zeros((side, side, 3), np.uint8)
+    sx0, sy0 = max(x0, 0), max(y0, 0)
+    sx1, sy1 = min(x0 + side, W), min(y0 + side, H)
+    if sx1 > sx0 and sy1 > sy0:
+        crop[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = color[sy0:sy1, sx0:sx1]
+    s = size / side
+    img = cv2.resize(crop, (size, size), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    img = (img.astype(np.float32) * 0.6).astype(np.uint8)
+    if len(pts):
+        lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_VIRIDIS)[:, 0, ::-1]
+        col = lut[np.clip(np.round(cos[visible] * 255), 0, 255).astype(int)]
+        q = (pts - [x0, y0] + 0.5) * s - 0.5
+        radius = 1 if len(pts) > 3000 else 2
+        for (x, y), cc in zip(np.round(q).astype(int), col):  # a few thousand dots: preview only
+            cv2.circle(img, (int(x), int(y)), radius, tuple(int(t) for t in cc), -1, cv2.LINE_AA)
+    return _label(img, title) if title else img
+
+
+def preview_projection(frames_paths: list, projection_path, out, n_show: int = 6) -> None:
+    """Write a PNG montage: for ``n_show`` frames spread over the sequence, the visible vertices'
+    Φ over the colour image, coloured by cosine (:func:`projection_overlay`)."""
+    from stex.io import FrameSequence, open_store
+    from stex.preview import montage, write_png
+
+    frames = FrameSequence(list(frames_paths), "frames")
+    proj = open_store(projection_path, "projection")
+    ids = list(proj.attrs["frame_ids"])
+    frac = proj.attrs.get("visible_area_fraction", [None] * len(ids))
+    pick = np.unique(np.linspace(0, len(ids) - 1, min(n_show, len(ids))).round().astype(int))
+    tiles = []
+    for k in pick:
+        fid = ids[k]
+        vis = proj["vertex_visible"][k]
+        title = f"frame {fid}: {int(vis.sum())} vertices"
+        if frac[k] is not None:
+            title += f", {100 * frac[k]:.0f}% area"
+        tiles.append(projection_overlay(frames.read("color", fid), proj["phi"][k], vis,
+                                        proj["vertex_cos"][k], title=title))
+    write_png(out, montage(tiles))

@@ -1,0 +1,218 @@
+"""Projection stage: Φ against OpenCV, visibility on the tiny synthetic scene, the store."""
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from conftest import TINY_SYNTHETIC
+from stex.camera import Calibration, transform_points
+from stex.config import load_config
+from stex.io import FrameSequence, open_store
+from stex.projection import project_frame, projection_overlay, write_projection
+from stex.render import face_normals
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Scene, frames, truth, masks (GrabCut), template and 'given' tracking of the tiny scene."""
+    from stex.ingest import write_frames_block, write_scene
+    from stex.masks import write_masks_block
+    from stex.template import write_template
+    from stex.tracking import write_tracking
+
+    cfg = load_config(overrides={"scene": "tiny", "frame_block": 4,
+                                 "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}})
+    d = tmp_path_factory.mktemp("proj")
+    write_scene(cfg["source"], cfg["frame_block"], d / "scene.zarr")
+    scene = open_store(d / "scene.zarr", "scene")
+    frames, truth, masks = [], [], []
+    for b, (start, stop) in enumerate(scene.attrs["frame_blocks"]):
+        frames.append(d / f"frames_{b}.zarr")
+        truth.append(d / f"truth_{b}.zarr")
+        masks.append(d / f"masks_{b}.zarr")
+        write_frames_block(cfg["source"], start, stop, frames[-1], truth[-1])
+        write_masks_block(d / "scene.zarr", frames[-1], cfg["masks"], masks[-1])
+    write_template(d / "scene.zarr", cfg["template"], d / "template.zarr")
+    write_tracking(d / "scene.zarr", d / "template.zarr", frames, masks,
+                   dict(cfg["tracking"], mode="given"), d / "tracking.zarr")
+    write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr", masks,
+                     cfg["projection"], d / "projection.zarr")
+    tracking = open_store(d / "tracking.zarr", "tracking")
+    return {
+        "dir": d, "cfg": cfg, "params": cfg["projection"], "masks_paths": masks,
+        "cal": Calibration.from_dict(scene.attrs["calibration"]),
+        "faces": np.asarray(open_store(d / "template.zarr", "template")["faces"][...], np.int64),
+        "vertices": np.asarray(tracking["vertices"][...], np.float64),
+        "frame_ids": list(tracking.attrs["frame_ids"]),
+        "frames": FrameSequence(frames, "frames"),
+        "truth": FrameSequence(truth, "truth"),
+        "masks": FrameSequence(masks, "masks"),
+    }
+
+
+def _frame(tiny, k, **over):
+    p = dict(tiny["params"], **over)
+    fid = tiny["frame_ids"][k]
+    mask = tiny["masks"].read("mask", fid) if p["use_mask"] else None
+    return project_frame(tiny["vertices"][k], tiny["faces"], tiny["cal"], p, mask)
+
+
+def _face_areas(V, F):
+    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
+def test_phi_matches_opencv_projectpoints(tiny):
+    cal = tiny["cal"]
+    T = cal.depth_to_color
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    for k in range(len(tiny["frame_ids"])):
+        r = _frame(tiny, k)
+        ref, _ = cv2.projectPoints(tiny["vertices"][k], rvec, T[:3, 3], cal.color.K, np.zeros(5))
+        assert r["phi"].dtype == np.float32 and r["phi"].shape == (len(tiny["vertices"][k]), 2)
+        assert np.abs(r["phi"] - ref[:, 0]).max() < 1e-4
+
+
+def test_visibility_against_the_truth(tiny):
+    F = tiny["faces"]
+    for k, fid in enumerate(tiny["frame_ids"]):
+        r = _frame(tiny, k)
+        V = tiny["vertices"][k]
+        # visible vertices land on the object (true mask, 1 px of slack for the rounding)
+        true_mask = ndimage.binary_dilation(tiny["truth"].read("mask", fid), iterations=1)
+        uv = np.floor(r["phi"][r["vertex_visible"]] + 0.5).astype(int)
+        assert true_mask[uv[:, 1], uv[:, 0]].all()
+        # about a third of the surface is seen (the scene's design)
+        area = _face_areas(V, F)
+        frac = area[r["face_visible"]].sum() / area.sum()
+        assert 0.2 <= frac <= 0.45, (fid, frac)
+        # faces turned away from the colour camera are never visible
+        Xc = transform_points(tiny["cal"].depth_to_color, V)
+        n = face_normals(Xc, F)
+        cen = Xc[F].mean(axis=1)
+        away = (n * cen).sum(1) / np.linalg.norm(cen, axis=1) > 0.02
+        assert away.sum() > 0.3 * len(F)
+        assert not (r["face_visible"] & away).any()
+        # a face is visible only with its three vertices
+        assert r["vertex_visible"][F[r["face_visible"]]].all()
+        for key in ("vertex_cos", "face_cos"):
+            assert r[key].dtype == np.float32 and r[key].min() >= 0 and r[key].max() <= 1
+        assert (r["face_cos"][r["face_visible"]] > 0).all()
+        assert (r["vertex_cos"][r["vertex_visible"]] > 0).all()
+
+
+def test_far_side_is_occluded_not_only_back_facing(tiny):
+    # the depth test matters: some front-facing faces are hidden behind the body's bend
+    r = _frame(tiny, 0, use_mask=False, margin_px=0)
+    nodepth = _frame(tiny, 0, use_mask=False, margin_px=0, depth_tol_m=10.0)
+    assert not (r["face_visible"] & ~nodepth["face_visible"]).any()
+    assert nodepth["face_visible"].sum() > r["face_visible"].sum()
+
+
+def test_mask_changes_only_the_silhouette(tiny):
+    erode = tiny["params"]["mask_erode_px"]
+    for k, fid in enumerate(tiny["frame_ids"]):
+        with_mask = _frame(tiny, k)
+        without = _frame(tiny, k, use_mask=False)
+        assert not (with_mask["vertex_visible"] & ~without["vertex_visible"]).any()
+        assert not (with_mask["face_visible"] & ~without["face_visible"]).any()
+        dropped = without["vertex_visible"] & ~with_mask["vertex_visible"]
+        # distance of each pixel to the mask's outside: dropped vertices sit near the silhouette
+        inside_dist = ndimage.distance_transform_edt(tiny["masks"].read("mask", fid))
+        uv = np.floor(without["phi"][dropped] + 0.5).astype(int)
+        assert (inside_dist[uv[:, 1], uv[:, 0]] <= erode + 4).all()
+        # (on this 200x150 image the object is ~45 px wide, so the eroded band holds a third of
+        # the visible vertices; at 2048x1536 it is a few per cent)
+        assert 0 < dropped.sum() < 0.5 * without["vertex_visible"].sum()
+        # the rest is untouched
+        assert np.array_equal(with_mask["phi"], without["phi"])
+        assert np.array_equal(with_mask["face_cos"], without["face_cos"])
+
+
+def test_margin(tiny):
+    cal = tiny["cal"]
+    r = _frame(tiny, 2, use_mask=False, margin_px=70)
+    u, v = r["phi"][r["vertex_visible"]].T
+    assert (u >= 70).all() and (u <= cal.color.width - 71).all()
+    assert (v >= 70).all() and (v <= cal.color.height - 71).all()
+    assert r["vertex_visible"].sum() < _frame(tiny, 2, use_mask=False, margin_px=0)["vertex_visible"].sum()
+
+
+def test_cos_modes(tiny):
+    F = tiny["faces"]
+    cal = tiny["cal"]
+    k = 3
+    view = _frame(tiny, k)
+    axis = _frame(tiny, k, cos_mode="optical_axis")
+    Xc = transform_points(cal.depth_to_color, tiny["vertices"][k])
+    n = face_normals(Xc, F)
+    front = view["face_cos"] > 0
+    # optical_axis: cos = -n_z (camera looks along +z), only where the face faces its ray
+    assert np.allclose(axis["face_cos"][front], np.clip(-n[front, 2], 0, 1), atol=1e-6)
+    assert (axis["face_cos"][~front] == 0).all()
+    # |n.d - n.e| <= |d - e| for the unit ray d and the axis e: small near the image centre
+    cen = Xc[F].mean(axis=1)
+    d = cen / np.linalg.norm(cen, axis=1, keepdims=True)
+    bound = np.linalg.norm(d - [0, 0, 1], axis=1)
+    diff = np.abs(view["face_cos"] - axis["face_cos"])[front]
+    assert (diff <= bound[front] + 1e-5).all()
+    assert diff.max() > 0.02
+    # visibility: same depth test, so with min_cos = 0 the sets agree
+    assert np.array_equal(view["face_visible"], axis["face_visible"])
+    # a threshold selects different faces in the two modes
+    v3 = _frame(tiny, k, min_cos=0.3)
+    a3 = _frame(tiny, k, cos_mode="optical_axis", min_cos=0.3)
+    assert (v3["face_visible"] != a3["face_visible"]).any()
+    assert (v3["face_cos"][v3["face_visible"]] > 0.3).all()
+    assert (a3["face_cos"][a3["face_visible"]] > 0.3).all()
+
+
+def test_store_round_trip(tiny):
+    proj = open_store(tiny["dir"] / "projection.zarr", "projection")
+    T, V, nF = len(tiny["frame_ids"]), tiny["vertices"].shape[1], len(tiny["faces"])
+    assert proj.attrs["frame_ids"] == tiny["frame_ids"]
+    assert proj.attrs["params"]["margin_px"] == tiny["params"]["margin_px"]
+    assert proj["phi"].shape == (T, V, 2) and proj["phi"].chunks == (1, V, 2)
+    assert proj["face_visible"].shape == (T, nF) and proj["face_visible"].dtype == bool
+    assert len(proj.attrs["visible_area_fraction"]) == T
+    for k in (0, T - 1):
+        r = _frame(tiny, k)
+        for name, arr in r.items():
+            assert np.array_equal(proj[name][k], arr), name
+    # a subset of frames, without masks
+    out = tiny["dir"] / "projection_sub.zarr"
+    write_projection(tiny["dir"] / "tracking.zarr", tiny["dir"] / "template.zarr",
+                     tiny["dir"] / "scene.zarr", [], dict(tiny["params"], use_mask=False), out,
+                     frames=[1, 4])
+    sub = open_store(out, "projection")
+    assert sub.attrs["frame_ids"] == [1, 4]
+    assert np.array_equal(sub["face_visible"][1], _frame(tiny, 4, use_mask=False)["face_visible"])
+
+
+def test_errors(tiny):
+    d = tiny["dir"]
+    with pytest.raises(ValueError, match="no masks"):
+        write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr", [],
+                         tiny["params"], d / "bad.zarr")
+    with pytest.raises(ValueError, match="not tracked"):
+        write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr",
+                         tiny["masks_paths"], tiny["params"], d / "bad.zarr", frames=[99])
+    assert not (d / "bad.zarr").exists()
+    V = tiny["vertices"][0].copy()
+    V[7] = [0.0, 0.0, -1.0]
+    with pytest.raises(ValueError, match="vertex 7"):
+        project_frame(V, tiny["faces"], tiny["cal"], dict(tiny["params"], use_mask=False))
+    with pytest.raises(ValueError, match="cos_mode"):
+        project_frame(tiny["vertices"][0], tiny["faces"], tiny["cal"], {"cos_mode": "x", "use_mask": False})
+
+
+def test_preview(tiny, tmp_path):
+    from stex.projection import preview_projection
+    out = tmp_path / "projection.png"
+    preview_projection(sorted(tiny["dir"].glob("frames_*.zarr")), tiny["dir"] / "projection.zarr",
+                       out, n_show=3)
+    img = cv2.imread(str(out))
+    assert img is not None and img.shape[1] == 960
+    r = _frame(tiny, 0)
+    pic = projection_overlay(tiny["frames"].read("color", 0), r["phi"], r["vertex_visible"],
+                             r["vertex_cos"], size=200, title="t")
+    assert pic.shape == (200, 200, 3) and pic.dtype == np.uint8
