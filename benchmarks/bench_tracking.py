@@ -41,9 +41,10 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     ap.add_argument("--params", default="{}", help="JSON overrides of the tracking section")
     ap.add_argument("--every", type=int, default=1, help="print every k-th frame")
+    ap.add_argument("--configfile", action="append", default=[], help="extra config files (applied last)")
     args = ap.parse_args()
     cfg = load_config(REPO / "config" / "config.yaml", *[REPO / f for f in SCENES[args.scene]],
-                      overrides={"tracking": json.loads(args.params)})
+                      *args.configfile, overrides={"tracking": json.loads(args.params)})
     if args.scene == "fox":
         cfg["source"]["synthetic"]["gltf"]["path"] = str((REPO / cfg["source"]["synthetic"]["gltf"]["path"]).resolve())
     scene = SyntheticScene(cfg["source"]["synthetic"])

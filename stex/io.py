@@ -211,6 +211,30 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "visible_area_fraction": "list[float]: fraction of the surface area in visible faces, per frame",
         },
     ),
+    "texcoords": ArtifactSpec(
+        description="Optimised texture coordinates (stex.texcoords): ξ, every vertex's position on "
+        "every colour image where it is visible, optimised from Φ so that all frames agree with "
+        "per-sample proxy colours (Eq. 1; Kim et al. 2019 as accelerated in Kim et al. 2021: key "
+        "frames coarse-to-fine over an image pyramid, displacements ξ − Φ interpolated to the "
+        "other frames, refinement over all frames). Energy rows are stages: levels 0 (coarsest) .. "
+        "L-1 on the key frames, then the all-frame refinement (attr energy_rows); columns are the "
+        "energy at the stage's start and after each accepted step, NaN once the stage stopped; "
+        "non-increasing along each row.",
+        path="texcoords.zarr",
+        arrays={
+            "xi": ArraySpec(("T", "V", 2), "float32", "px", "optimised colour-image coordinates (u column, v row; integer = pixel centre); Φ where the vertex is not visible", (1, "V", 2)),
+            "valid": ArraySpec(("T", "V"), "bool", "1", "vertex visible at that frame (projection vertex_visible): ξ is meaningful", (1, "V")),
+            "energy": ArraySpec(("L", "I"), "float64", "(grey/255)^2", "Eq. 1, Σ ((C − P)/255)² over the stage's frames, visible faces and samples (grey image blurred as the stage), per stage (row) and accepted step (column); NaN-padded"),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each row",
+            "keyframes": "list[int]: global frame indices of the key frames",
+            "color_size": "[Wc, Hc]: colour image size (px)",
+            "energy_rows": "list[str]: stage of each energy row ('level 0'.., 'refine')",
+            "stages": "list[dict]: per stage: frames, blurs, iterations, seconds, crop_mb, energy_start, energy_end",
+            "seconds": "float: wall time of the optimisation (s)",
+        },
+    ),
 }
 
 

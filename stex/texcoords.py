@@ -1,0 +1,658 @@
+"""Texture-coordinate optimisation (Kim et al. 2019, accelerated as in Kim et al. 2021 §4).
+
+Tracking and calibration errors make one surface point land on different pixels in different
+frames. For every vertex v and every frame t where it is visible, the stage optimises its texture
+coordinate ξ_t(v) on that frame's colour image (colour pixels, integer = pixel centre; starting
+from Φ, the ``projection`` store) so that the textures of each face taken from all frames agree
+with a proxy colour (the paper's Eq. 1):
+
+    E(ξ, P) = Σ_{t} Σ_{f visible at t} Σ_{s<S} ((C_t(p_tfs) − P_fs) / 255)²,
+    p_tfs   = Σ_k β_sk ξ_t(F_fk)        (S fixed barycentric samples β per face)
+
+What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_code_notes.md``
+§2.2); the differences are listed at the end.
+
+- **Colour**: grey (OpenCV RGB→grey, 0..255), as the authors. C_t is bilinear in the grey image
+  blurred for the current level; its gradient (for Gauss-Newton) is the central difference of
+  bilinear lookups 1 px apart.
+- **Samples**: the authors' 15 barycentric triples (:data:`SAMPLE_BARY`); ``samples_per_face``
+  takes the first S of them.
+- **Proxy colour** of sample s of face f: weighted mean of C_t(p_tfs) over the stage's frames t
+  where f is visible, weight = face cosine (``projection`` face_cos) × mask weight, the mask weight
+  being 1 when the bilinearly interpolated foreground mask at p is 1 and ``background_weight``
+  (0.001, the authors' GrabCut weighting) otherwise. It is recomputed after every step
+  (alternation, as the authors).
+- **Gauss-Newton**, Jacobi style: every (t, v) takes a 2×2 step from its own normal equations with
+  its neighbours held fixed. Photometric residuals r = C_t(p) − P over the samples of the faces
+  around v visible at t, and 2 edge-length residuals per such face,
+  ``edge_weight`` · (|ξ_v − ξ_k| − |Φ_v − Φ_k|) (grey levels; keeps ξ's triangles close to Φ's).
+  Each photometric residual enters v's equations with weight β (v's barycentric) and Jacobian
+  ∇C (the sample moves with v): with the plain Jacobian β∇C every corner of a uniformly shifted
+  face would step ≈ 2.5× the shift when all three move at once. If det(A) < 1e-4, 1e-4 is added
+  to the diagonal (as the authors); NaN steps become 0; each component is clamped to
+  ±``step_clamp_px``; ξ stays inside the frame's working crop (below) and the image.
+- **Monotone energy**: a step of all unknowns is accepted only if E (with the proxy recomputed at
+  the new ξ) does not rise; otherwise it is halved up to ``backtracks`` times, and the level stops
+  when no halving helps or when the relative decrease is below ``rel_tol`` (the authors: 1e-5),
+  or after ``iterations`` steps (the authors: 300). The recorded energy is therefore
+  non-increasing within every level.
+- **Hierarchy**: ``levels`` coarse-to-fine levels over an *image* pyramid: level l (0 = coarsest)
+  uses the grey image blurred by ``levels − l`` successive 3×3 Gaussian blurs (the authors'
+  ``blur_vec``: 6 blurs on the coarsest, 1 on the finest), always at full resolution. **The
+  authors' mesh hierarchy (deformation-oriented decimation, ⌊F/2⌋ faces per coarser level) is
+  not built**: every level optimises the full mesh's vertices.
+- **Schedule** (``main.cpp``): key frames are the frames at positions ``i % keyframe_step == 0``
+  of the sequence; they are optimised jointly coarse-to-fine; the displacements ξ − Φ are then
+  linearly interpolated to the other frames (:func:`interpolate_displacements`, the authors'
+  ``InterpKeytoAll``: per vertex, per run of consecutive frames where it is visible, held constant
+  before the first / after the last key frame of the run, 0 in a run without a key frame); last,
+  ``refine_iterations`` iterations over all frames with 1 blur.
+- **Memory**: colour frames are streamed from the store, one at a time, converted to grey and
+  cropped to the bounding box of the frame's visible ξ plus ``crop_margin_px``. A stage holds,
+  for each of its frames, the unblurred grey crop, the blurred crop of the level and the mask
+  crop, all uint8 (3 B per cropped pixel). Paper scale (265 frames of 2048×1536, object ≈ 1/4 of
+  the image): ≈ 265 × 0.8 Mpx × 3 B ≈ 0.6 GB, worst case (object filling every frame)
+  265 × 3.1 Mpx × 3 B = 2.5 GB; plus ξ/Φ/visibility tables (T·V·(2·8·3) B ≈ 0.5 GB at V = 10k,
+  T = 265 in float64 work arrays) — under the 4 GB target.
+
+Differences from the authors' code, deliberately: the mesh hierarchy above (not built); the
+proxy and the energy use the *level's* blurred image (the authors: the GN step on the blurred
+image, proxy and energy on the unblurred one) so that accepting steps on E is consistent; edge
+rest lengths come from Φ (the authors: the current ξ at the start of each level); bilinear
+interpolation instead of their non-standard 2×2 blend; steps are accepted only when E does not
+rise (the authors accept every step); the mask test is made on the proxy weights only (the
+``projection`` stage already dropped masked-out vertices and faces).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit, prange
+
+log = logging.getLogger("stex.texcoords")
+
+__all__ = ["DEFAULTS", "SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
+           "interpolate_displacements", "photometric_energy", "optimize_level",
+           "optimize_texcoords", "write_texcoords", "texcoords_params"]
+
+#: the authors' 15 barycentric samples per face (Optimizer.cu L5-7), rows (w0, w1, w2)
+SAMPLE_BARY = np.array([
+    (.5, .25, .25), (.25, .5, .25), (.25, .25, .5), (.8, .1, .1), (.1, .8, .1), (.1, .1, .8),
+    (.5, .5, 0), (0, .5, .5), (.5, 0, .5), (.2, .2, .6), (.6, .2, .2), (.2, .6, .2),
+    (.1, .5, .4), (.5, .4, .1), (.4, .1, .5)], dtype=np.float64)
+
+#: defaults of the ``texcoords`` config section (config/schema.yaml is authoritative)
+DEFAULTS = {
+    "samples_per_face": 15,
+    "levels": 6,
+    "iterations": 300,
+    "refine_iterations": 300,
+    "rel_tol": 1.0e-5,
+    "step_clamp_px": 5.0,
+    "keyframe_step": 4,
+    "background_weight": 0.001,
+    "edge_weight": 12.75,
+    "backtracks": 4,
+    "crop_margin_px": 64,
+}
+
+
+def texcoords_params(params: dict | None) -> dict:
+    """``params`` (the ``texcoords`` config section) completed with :data:`DEFAULTS`, checked."""
+    p = dict(DEFAULTS)
+    if params:
+        unknown = set(params) - set(DEFAULTS)
+        if unknown:
+            raise ValueError(f"unknown texcoords parameters {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+        p.update(params)
+    if not 1 <= int(p["samples_per_face"]) <= len(SAMPLE_BARY):
+        raise ValueError(f"texcoords.samples_per_face must be in 1..{len(SAMPLE_BARY)}")
+    if int(p["levels"]) < 1 or int(p["keyframe_step"]) < 1:
+        raise ValueError("texcoords.levels and texcoords.keyframe_step must be >= 1")
+    return p
+
+
+# --------------------------------------------------------------------------------------------
+# images: per-frame crops in one flat buffer
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class CropStack:
+    """Per-frame image crops of one stage, concatenated.
+
+    ``grey`` / ``blur`` / ``mask``: flat uint8 buffers (grey levels 0..255, mask 0/1); frame k's
+    crop is ``buf[off[k]:off[k] + h[k]*w[k]].reshape(h[k], w[k])`` and covers image pixels
+    x0[k]..x0[k]+w[k]-1 (columns) × y0[k]..y0[k]+h[k]-1 (rows). ``blur`` holds ``grey`` after
+    ``n_blur`` 3×3 Gaussian blurs (see :meth:`set_blur`).
+    """
+
+    grey: np.ndarray
+    blur: np.ndarray
+    mask: np.ndarray
+    off: np.ndarray   # (K,) int64
+    h: np.ndarray     # (K,) int64
+    w: np.ndarray     # (K,) int64
+    x0: np.ndarray    # (K,) int64
+    y0: np.ndarray    # (K,) int64
+    n_blur: int = 0
+
+    @property
+    def nbytes(self) -> int:
+        return self.grey.nbytes + self.blur.nbytes + self.mask.nbytes
+
+    def crop(self, k: int, which: str = "blur") -> np.ndarray:
+        buf = getattr(self, which)
+        o, h, w = int(self.off[k]), int(self.h[k]), int(self.w[k])
+        return buf[o:o + h * w].reshape(h, w)
+
+    def set_blur(self, n_blur: int) -> None:
+        """Fill ``blur`` with ``grey`` after ``n_blur`` successive 3×3 Gaussian blurs (float, one
+        rounding at the end), as the authors' image pyramid."""
+        if n_blur == self.n_blur and n_blur > 0:
+            return
+        for k in range(len(self.off)):
+            g = self.crop(k, "grey").astype(np.float32)
+            for _ in range(n_blur):
+                g = cv2.GaussianBlur(g, (3, 3), 0, borderType=cv2.BORDER_REPLICATE)
+            self.crop(k, "blur")[...] = np.clip(np.rint(g), 0, 255).astype(np.uint8)
+        self.n_blur = n_blur
+
+
+def _box(points: np.ndarray, margin: int, width: int, height: int):
+    if len(points) == 0:
+        return 0, 0, 1, 1
+    lo = np.floor(points.min(0)).astype(int) - margin
+    hi = np.ceil(points.max(0)).astype(int) + margin
+    x0, y0 = max(lo[0], 0), max(lo[1], 0)
+    x1, y1 = min(hi[0], width - 1), min(hi[1], height - 1)
+    if x1 < x0 or y1 < y0:
+        return 0, 0, 1, 1
+    return x0, y0, x1 - x0 + 1, y1 - y0 + 1
+
+
+def build_stack(load, frames, xi, valid, margin: int, width: int, height: int) -> CropStack:
+    """Stream frames and crop them around their visible texture coordinates.
+
+    Args:
+        load: callable ``load(t) -> (grey (H, W) uint8, mask (H, W) bool)`` for sequence position
+            t (called once per frame; only one frame is held at a time).
+        frames: sequence positions of the stage's frames (K,).
+        xi: (T, V, 2) float texture coordinates (colour px) of the whole sequence.
+        valid: (T, V) bool vertex visible.
+        margin: crop margin around the visible coordinates (px).
+        width, height: colour image size (px).
+    """
+    boxes = [_box(xi[t][valid[t]], margin, width, height) for t in frames]
+    sizes = np.array([bw * bh for _, _, bw, bh in boxes], np.int64)
+    off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    total = int(sizes.sum())
+    grey = np.zeros(total, np.uint8)
+    mask = np.zeros(total, np.uint8)
+    for k, t in enumerate(frames):
+        x0, y0, bw, bh = boxes[k]
+        g, m = load(int(t))
+        if g.shape != (height, width) or m.shape != (height, width):
+            raise ValueError(f"frame {t}: grey {g.shape} / mask {m.shape}, expected {(height, width)}")
+        grey[off[k]:off[k] + sizes[k]] = g[y0:y0 + bh, x0:x0 + bw].ravel()
+        mask[off[k]:off[k] + sizes[k]] = m[y0:y0 + bh, x0:x0 + bw].ravel()
+    arr = np.array(boxes, np.int64).reshape(-1, 4)
+    return CropStack(grey, grey.copy(), mask, off, arr[:, 3].copy(), arr[:, 2].copy(),
+                     arr[:, 0].copy(), arr[:, 1].copy(), 0)
+
+
+# --------------------------------------------------------------------------------------------
+# numba kernels
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _bilerp(buf, off, h, w, x, y):
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    c0 = int(x)
+    r0 = int(y)
+    c1 = min(c0 + 1, w - 1)
+    r1 = min(r0 + 1, h - 1)
+    a = x - c0
+    b = y - r0
+    return ((1.0 - a) * (1.0 - b) * buf[off + r0 * w + c0] + a * (1.0 - b) * buf[off + r0 * w + c1]
+            + (1.0 - a) * b * buf[off + r1 * w + c0] + a * b * buf[off + r1 * w + c1])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _proxy_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, fvis, fw, bary, bg_weight, proxy):
+    """proxy[f, s] = Σ_k w·C_k(p) / Σ_k w over the frames where f is visible (0 if none)."""
+    K = xi.shape[0]
+    nF = faces.shape[0]
+    S = bary.shape[0]
+    for f in prange(nF):
+        a = faces[f, 0]
+        b = faces[f, 1]
+        c = faces[f, 2]
+        num = np.zeros(S)
+        den = np.zeros(S)
+        for k in range(K):
+            if not fvis[k, f]:
+                continue
+            wf = fw[k, f]
+            o = off[k]
+            h = hh[k]
+            w = ww[k]
+            for s in range(S):
+                u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
+                v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
+                m = _bilerp(mbuf, o, h, w, u, v)
+                wt = wf if m >= 0.999 else wf * bg_weight
+                num[s] += wt * _bilerp(buf, o, h, w, u, v)
+                den[s] += wt
+        for s in range(S):
+            proxy[f, s] = num[s] / den[s] if den[s] > 0 else 0.0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _energy_kernel(buf, off, hh, ww, x0, y0, xi, faces, fvis, bary, proxy, out):
+    """out[k] = Σ_{f visible at k} Σ_s ((C_k(p) − P_fs)/255)²."""
+    K = xi.shape[0]
+    nF = faces.shape[0]
+    S = bary.shape[0]
+    for k in prange(K):
+        e = 0.0
+        o = off[k]
+        h = hh[k]
+        w = ww[k]
+        for f in range(nF):
+            if not fvis[k, f]:
+                continue
+            a = faces[f, 0]
+            b = faces[f, 1]
+            c = faces[f, 2]
+            for s in range(S):
+                u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
+                v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
+                r = (_bilerp(buf, o, h, w, u, v) - proxy[f, s]) / 255.0
+                e += r * r
+        out[k] = e
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge_w, clamp, step):
+    """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed)."""
+    K, V = xi.shape[0], xi.shape[1]
+    nF = faces.shape[0]
+    S = bary.shape[0]
+    for k in prange(K):
+        A = np.zeros((V, 3))   # a11, a12, a22
+        g = np.zeros((V, 2))
+        o = off[k]
+        h = hh[k]
+        w = ww[k]
+        for f in range(nF):
+            if not fvis[k, f]:
+                continue
+            for s in range(S):
+                u = 0.0
+                v = 0.0
+                for j in range(3):
+                    u += bary[s, j] * xi[k, faces[f, j], 0]
+                    v += bary[s, j] * xi[k, faces[f, j], 1]
+                u -= x0[k]
+                v -= y0[k]
+                r = _bilerp(buf, o, h, w, u, v) - proxy[f, s]
+                gx = 0.5 * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
+                gy = 0.5 * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
+                for j in range(3):
+                    bj = bary[s, j]
+                    if bj <= 0.0:
+                        continue
+                    vi = faces[f, j]
+                    A[vi, 0] += bj * gx * gx
+                    A[vi, 1] += bj * gx * gy
+                    A[vi, 2] += bj * gy * gy
+                    g[vi, 0] += bj * gx * r
+                    g[vi, 1] += bj * gy * r
+            if edge_w > 0.0:
+                for j in range(3):
+                    vi = faces[f, j]
+                    for dj in range(1, 3):
+                        vk = faces[f, (j + dj) % 3]
+                        ex = xi[k, vi, 0] - xi[k, vk, 0]
+                        ey = xi[k, vi, 1] - xi[k, vk, 1]
+                        L = np.sqrt(ex * ex + ey * ey)
+                        if L < 1e-9:
+                            continue
+                        px = phi[k, vi, 0] - phi[k, vk, 0]
+                        py = phi[k, vi, 1] - phi[k, vk, 1]
+                        L0 = np.sqrt(px * px + py * py)
+                        re = edge_w * (L - L0)
+                        jx = edge_w * ex / L
+                        jy = edge_w * ey / L
+                        A[vi, 0] += jx * jx
+                        A[vi, 1] += jx * jy
+                        A[vi, 2] += jy * jy
+                        g[vi, 0] += jx * re
+                        g[vi, 1] += jy * re
+        for vi in range(V):
+            a11 = A[vi, 0]
+            a12 = A[vi, 1]
+            a22 = A[vi, 2]
+            det = a11 * a22 - a12 * a12
+            if det < 1e-4:
+                a11 += 1e-4
+                a22 += 1e-4
+                det = a11 * a22 - a12 * a12
+            dx = -(a22 * g[vi, 0] - a12 * g[vi, 1]) / det
+            dy = -(-a12 * g[vi, 0] + a11 * g[vi, 1]) / det
+            if not (dx == dx):
+                dx = 0.0
+            if not (dy == dy):
+                dy = 0.0
+            step[k, vi, 0] = min(max(dx, -clamp), clamp)
+            step[k, vi, 1] = min(max(dy, -clamp), clamp)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _interp_kernel(delta_key, key_pos, valid, out):
+    T, V = valid.shape
+    nK = key_pos.shape[0]
+    for v in prange(V):
+        t = 0
+        while t < T:
+            if not valid[t, v]:
+                out[t, v, 0] = 0.0
+                out[t, v, 1] = 0.0
+                t += 1
+                continue
+            t1 = t
+            while t1 < T and valid[t1, v]:
+                t1 += 1
+            # run [t, t1): key frames inside it
+            prev = -1     # index into key_pos
+            for tt in range(t, t1):
+                # next key frame index at or after tt inside the run
+                nxt = -1
+                for q in range(nK):
+                    if key_pos[q] >= tt and key_pos[q] < t1:
+                        nxt = q
+                        break
+                if nxt >= 0 and key_pos[nxt] == tt:
+                    prev = nxt
+                    out[tt, v, 0] = delta_key[nxt, v, 0]
+                    out[tt, v, 1] = delta_key[nxt, v, 1]
+                elif prev >= 0 and nxt >= 0:
+                    a = (tt - key_pos[prev]) / (key_pos[nxt] - key_pos[prev])
+                    out[tt, v, 0] = (1 - a) * delta_key[prev, v, 0] + a * delta_key[nxt, v, 0]
+                    out[tt, v, 1] = (1 - a) * delta_key[prev, v, 1] + a * delta_key[nxt, v, 1]
+                elif prev >= 0:
+                    out[tt, v, 0] = delta_key[prev, v, 0]
+                    out[tt, v, 1] = delta_key[prev, v, 1]
+                elif nxt >= 0:
+                    out[tt, v, 0] = delta_key[nxt, v, 0]
+                    out[tt, v, 1] = delta_key[nxt, v, 1]
+                else:
+                    out[tt, v, 0] = 0.0
+                    out[tt, v, 1] = 0.0
+            t = t1
+
+
+# --------------------------------------------------------------------------------------------
+# pure functions
+# --------------------------------------------------------------------------------------------
+
+def keyframe_positions(n_frames: int, step: int) -> np.ndarray:
+    """Sequence positions of the key frames: i % step == 0 (the authors' ``ExtractKeyframes``)."""
+    return np.arange(0, n_frames, max(int(step), 1), dtype=np.int64)
+
+
+def interpolate_displacements(delta_key, key_pos, valid) -> np.ndarray:
+    """Linear interpolation of key-frame displacements to every frame (``InterpKeytoAll``).
+
+    Args:
+        delta_key: (K, V, 2) float displacements ξ − Φ at the key frames (px).
+        key_pos: (K,) int increasing sequence positions of the key frames.
+        valid: (T, V) bool vertex visible at each frame.
+
+    Returns:
+        (T, V, 2) float64 displacements: per vertex and per run of consecutive frames where it is
+        visible, linear between the run's key frames at which it is visible, constant before the
+        first / after the last of them, 0 in a run without one, and 0 where not visible.
+    """
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    key_pos = np.asarray(key_pos, np.int64)
+    delta_key = np.ascontiguousarray(delta_key, np.float64)
+    if delta_key.shape != (len(key_pos), valid.shape[1], 2):
+        raise ValueError(f"delta_key has shape {delta_key.shape}, expected {(len(key_pos), valid.shape[1], 2)}")
+    out = np.zeros(valid.shape + (2,), np.float64)
+    if valid.size and len(key_pos):
+        _interp_kernel(delta_key, key_pos, valid, out)
+    return out
+
+
+def _proxy(stack: CropStack, xi, faces, fvis, fw, bary, bg_weight) -> np.ndarray:
+    proxy = np.zeros((faces.shape[0], bary.shape[0]))
+    if faces.shape[0]:
+        _proxy_kernel(stack.blur, stack.mask, stack.off, stack.h, stack.w, stack.x0, stack.y0,
+                      xi, faces, fvis, fw, bary, float(bg_weight), proxy)
+    return proxy
+
+
+def _energy(stack: CropStack, xi, faces, fvis, bary, proxy) -> float:
+    out = np.zeros(xi.shape[0])
+    if faces.shape[0] and xi.shape[0]:
+        _energy_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, faces,
+                       fvis, bary, proxy, out)
+    return float(out.sum())
+
+
+def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, params=None):
+    """Eq. 1 of the stage's frames at ``xi``, with the proxy colours recomputed there.
+
+    Args:
+        stack: the frames' crops (``blur`` is used: call ``stack.set_blur`` first).
+        xi: (K, V, 2) float texture coordinates (colour px) of the stack's frames.
+        faces: (F, 3) int; face_visible: (K, F) bool; face_weight: (K, F) float (cosines).
+        params: ``texcoords`` section (samples_per_face, background_weight).
+
+    Returns:
+        (E, proxy): E float = Σ ((C − P)/255)² over visible faces and samples; proxy (F, S).
+    """
+    p = texcoords_params(params)
+    bary = np.ascontiguousarray(SAMPLE_BARY[: int(p["samples_per_face"])])
+    xi = np.ascontiguousarray(xi, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    fvis = np.ascontiguousarray(face_visible, np.bool_)
+    fw = np.ascontiguousarray(face_weight, np.float64)
+    P = _proxy(stack, xi, faces, fvis, fw, bary, p["background_weight"])
+    return _energy(stack, xi, faces, fvis, bary, P), P
+
+
+def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight, params,
+                   iterations: int, width: int, height: int):
+    """Gauss-Newton iterations of one level on the frames of ``stack``.
+
+    Args:
+        stack: crops of the K frames, ``blur`` set to the level's image.
+        xi0: (K, V, 2) float64 starting texture coordinates (colour px).
+        phi: (K, V, 2) float Φ (edge rest lengths).
+        faces: (F, 3) int; face_visible (K, F) bool; face_weight (K, F) float cosines.
+        params: completed ``texcoords`` section.
+        iterations: maximum number of accepted steps.
+        width, height: colour image size (px).
+
+    Returns:
+        (xi (K, V, 2) float64, energies list[float]: E at the start and after every accepted
+        step — non-increasing).
+    """
+    p = params
+    bary = np.ascontiguousarray(SAMPLE_BARY[: int(p["samples_per_face"])])
+    xi = np.array(xi0, np.float64, order="C")
+    phi = np.ascontiguousarray(phi, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    fvis = np.ascontiguousarray(face_visible, np.bool_)
+    fw = np.ascontiguousarray(face_weight, np.float64)
+    K = xi.shape[0]
+    # ξ stays inside each frame's crop (and so inside the image)
+    lo = np.stack([stack.x0, stack.y0], 1).astype(np.float64)[:, None, :]
+    hi = (np.stack([stack.x0 + stack.w, stack.y0 + stack.h], 1) - 1).astype(np.float64)[:, None, :]
+    hi = np.minimum(hi, np.array([width - 1.0, height - 1.0]))
+    P = _proxy(stack, xi, faces, fvis, fw, bary, p["background_weight"])
+    E = _energy(stack, xi, faces, fvis, bary, P)
+    energies = [E]
+    step = np.zeros_like(xi)
+    for _ in range(int(iterations)):
+        if E <= 0 or K == 0:
+            break
+        _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi, faces,
+                   fvis, bary, P, float(p["edge_weight"]), float(p["step_clamp_px"]), step)
+        alpha, accepted = 1.0, False
+        for _b in range(int(p["backtracks"]) + 1):
+            cand = np.clip(xi + alpha * step, lo, hi)
+            Pc = _proxy(stack, cand, faces, fvis, fw, bary, p["background_weight"])
+            Ec = _energy(stack, cand, faces, fvis, bary, Pc)
+            if Ec <= E:
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            break
+        rel = (E - Ec) / E
+        xi, P, E = cand, Pc, Ec
+        energies.append(E)
+        if rel < float(p["rel_tol"]):
+            break
+    return xi, energies
+
+
+def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, faces,
+                       image_size, params: dict | None = None, progress: bool = True) -> dict:
+    """The whole stage in memory, frames streamed through ``load``.
+
+    Args:
+        load: callable ``load(t) -> (grey (H, W) uint8, mask (H, W) bool)`` for sequence position
+            t in 0..T-1 (grey = the colour image in grey levels, mask = the foreground mask).
+        phi: (T, V, 2) float Φ (colour px). vertex_visible: (T, V) bool.
+        face_visible: (T, F) bool. face_weight: (T, F) float proxy weights (face cosines).
+        faces: (F, 3) int. image_size: (W, H) colour image size (px).
+        params: the ``texcoords`` config section (missing keys: :data:`DEFAULTS`).
+
+    Returns:
+        dict: ``xi`` (T, V, 2) float32 (Φ where not visible), ``valid`` (T, V) bool,
+        ``energy`` (levels + 1, max(iterations, refine_iterations) + 1) float64 — row l < levels is
+        key-frame level l (0 coarsest), the last row the all-frame refinement; column 0 the energy
+        at the start of the stage, column i after accepted step i, NaN after the stage stopped —,
+        ``keyframes`` (K,) int positions, ``stages`` list of dicts (name, frames, blurs,
+        iterations, seconds, crop_mb, energy_start, energy_end).
+    """
+    p = texcoords_params(params)
+    W, H = int(image_size[0]), int(image_size[1])
+    phi = np.asarray(phi, np.float64)
+    valid = np.asarray(vertex_visible, bool)
+    fvis_all = np.asarray(face_visible, bool)
+    fw_all = np.asarray(face_weight, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    T, V = valid.shape
+    L = int(p["levels"])
+    n_it = max(int(p["iterations"]), int(p["refine_iterations"]))
+    energy = np.full((L + 1, n_it + 1), np.nan)
+    stages = []
+    margin = int(p["crop_margin_px"])
+
+    keys = keyframe_positions(T, p["keyframe_step"])
+    xi_key = phi[keys].copy()
+    t0 = time.perf_counter()
+    stack = build_stack(load, keys, phi, valid, margin, W, H)
+    for lev in range(L):
+        ts = time.perf_counter()
+        nb = L - lev
+        stack.set_blur(nb)
+        xi_key, en = optimize_level(stack, xi_key, phi[keys], faces, fvis_all[keys], fw_all[keys],
+                                    p, int(p["iterations"]), W, H)
+        energy[lev, :len(en)] = en
+        stages.append({"name": f"level {lev}", "frames": len(keys), "blurs": nb,
+                       "iterations": len(en) - 1, "seconds": round(time.perf_counter() - ts, 3),
+                       "crop_mb": round(stack.nbytes / 2**20, 1),
+                       "energy_start": en[0], "energy_end": en[-1]})
+        if progress:
+            log.info("texcoords: key frames, level %d/%d (%d blurs): %d iterations, E %.4g -> %.4g (%.1f s)",
+                     lev + 1, L, nb, len(en) - 1, en[0], en[-1], time.perf_counter() - ts)
+    del stack
+    # displacements to every frame
+    delta_key = np.where(valid[keys][..., None], xi_key - phi[keys], 0.0)
+    delta = interpolate_displacements(delta_key, keys, valid)
+    xi = phi + delta
+    xi[..., 0] = np.clip(xi[..., 0], 0, W - 1)
+    xi[..., 1] = np.clip(xi[..., 1], 0, H - 1)
+    # refinement over all frames at the finest image
+    ts = time.perf_counter()
+    allf = np.arange(T)
+    if int(p["refine_iterations"]) >= 0:
+        stack = build_stack(load, allf, xi, valid, margin, W, H)
+        stack.set_blur(1)
+        xi, en = optimize_level(stack, xi, phi, faces, fvis_all, fw_all, p,
+                                int(p["refine_iterations"]), W, H)
+        energy[L, :len(en)] = en
+        stages.append({"name": "refine", "frames": T, "blurs": 1, "iterations": len(en) - 1,
+                       "seconds": round(time.perf_counter() - ts, 3),
+                       "crop_mb": round(stack.nbytes / 2**20, 1),
+                       "energy_start": en[0], "energy_end": en[-1]})
+        if progress:
+            log.info("texcoords: all %d frames: %d iterations, E %.4g -> %.4g (%.1f s; %.1f s in all)",
+                     T, len(en) - 1, en[0], en[-1], time.perf_counter() - ts, time.perf_counter() - t0)
+        del stack
+    xi = np.where(valid[..., None], xi, phi)
+    return {"xi": xi.astype(np.float32), "valid": valid.copy(), "energy": energy,
+            "keyframes": keys, "stages": stages}
+
+
+def write_texcoords(scene, template, projection, frames_paths, masks_paths, params: dict, out) -> None:
+    """Texture-coordinate stage: write the ``texcoords`` store.
+
+    Args:
+        scene: the ``scene`` store (calibration: colour image size).
+        template: the ``template`` store (faces).
+        projection: the ``projection`` store (phi, vertex_visible, face_visible, face_cos, frame_ids).
+        frames_paths: the ``frames`` block stores (colour images, read one frame at a time).
+        masks_paths: the ``masks`` block stores (foreground masks for the proxy weights); empty =
+            every pixel counts as foreground.
+        params: the ``texcoords`` config section.
+        out: path of the store to write.
+    """
+    from stex.camera import Calibration
+    from stex.io import FrameSequence, create_store, open_store
+
+    p = texcoords_params(params)
+    sc = open_store(scene, "scene")
+    cal = Calibration.from_dict(sc.attrs["calibration"])
+    W, H = cal.color.width, cal.color.height
+    F = np.asarray(open_store(template, "template")["faces"][...], np.int64)
+    proj = open_store(projection, "projection")
+    ids = [int(i) for i in proj.attrs["frame_ids"]]
+    phi = np.asarray(proj["phi"][...], np.float64)
+    vvis = np.asarray(proj["vertex_visible"][...], bool)
+    fvis = np.asarray(proj["face_visible"][...], bool)
+    fcos = np.asarray(proj["face_cos"][...], np.float64)
+    frames = FrameSequence(list(frames_paths), "frames")
+    masks = FrameSequence(list(masks_paths), "masks") if masks_paths else None
+
+    def load(t):
+        fid = ids[t]
+        grey = cv2.cvtColor(np.asarray(frames.read("color", fid)), cv2.COLOR_RGB2GRAY)
+        m = np.asarray(masks.read("mask", fid), bool) if masks is not None else np.ones((H, W), bool)
+        return grey, m
+
+    t0 = time.perf_counter()
+    r = optimize_texcoords(load, phi, vvis, fvis, fcos, F, (W, H), p)
+    seconds = time.perf_counter() - t0
+    attrs = {"frame_ids": ids, "keyframes": [ids[k] for k in r["keyframes"]],
+             "color_size": [W, H], "stages": r["stages"], "seconds": round(seconds, 2),
+             "energy_rows": [s["name"] for s in r["stages"]]}
+    with create_store(out, "texcoords", attrs=attrs, params=p) as store:
+        a = store.create("xi", r["xi"].shape)
+        for k in range(len(ids)):
+            a[k] = r["xi"][k]
+        store.write("valid", r["valid"])
+        e = store.create("energy", r["energy"].shape)
+        e[...] = r["energy"]
