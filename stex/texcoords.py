@@ -32,7 +32,8 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   to the diagonal (as the authors); NaN steps become 0; each component is clamped to
   ±``step_clamp_px``; ξ stays inside the frame's working crop (below) and the image.
 - **Monotone energy**: a step of all unknowns is accepted only if E (with the proxy recomputed at
-  the new ξ) does not rise; otherwise it is halved up to ``backtracks`` times, and the level stops
+  the new ξ) does not rise; otherwise it is halved up to ``backtracks`` times (the length carries
+  over to the next step and doubles, up to 1, after each accepted one), and the level stops
   when no halving helps or when the relative decrease is below ``rel_tol`` (the authors: 1e-5),
   or after ``iterations`` steps (the authors: 300). The recorded energy is therefore
   non-increasing within every level.
@@ -502,12 +503,14 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     E = _energy(stack, xi, faces, fvis, bary, P)
     energies = [E]
     step = np.zeros_like(xi)
+    alpha = 1.0
     for _ in range(int(iterations)):
         if E <= 0 or K == 0:
             break
         _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi, faces,
                    fvis, bary, P, float(p["edge_weight"]), float(p["step_clamp_px"]), step)
-        alpha, accepted = 1.0, False
+        # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
+        accepted = False
         for _b in range(int(p["backtracks"]) + 1):
             cand = np.clip(xi + alpha * step, lo, hi)
             Pc = _proxy(stack, cand, faces, fvis, fw, bary, p["background_weight"])
@@ -518,6 +521,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
             alpha *= 0.5
         if not accepted:
             break
+        alpha = min(1.0, 2.0 * alpha)
         rel = (E - Ec) / E
         xi, P, E = cand, Pc, Ec
         energies.append(E)

@@ -225,6 +225,7 @@ class TrackParams:
     max_distance_m: float = 0.05
     huber_m: float = 0.005
     association: str = "projective"
+    rigid_association: str = "projective"
     w_point: float = 0.0
     w_flow: float = 0.25
     flow_consistency_px: float = 1.0
@@ -582,7 +583,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     # let it catch fast turns before the non-rigid stage refines.
     rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1,
                                   "gn_iterations": 3 * params.gn_iterations,
-                                  "max_distance_m": 2 * params.max_distance_m})
+                                  "max_distance_m": 2 * params.max_distance_m,
+                                  "association": params.rigid_association})
     prev = before = V0
     model = None
     prev_gray = None
