@@ -226,6 +226,8 @@ class TrackParams:
     huber_m: float = 0.005
     association: str = "projective"
     rigid_association: str = "projective"
+    rigid_iterations: int = 12
+    rigid_w_flow: float = 0.25
     w_point: float = 0.0
     w_flow: float = 0.25
     flow_consistency_px: float = 1.0
@@ -582,9 +584,10 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     # The rigid stage is cheap (12 unknowns): more iterations and a wider association radius
     # let it catch fast turns before the non-rigid stage refines.
     rigid_params = TrackParams(**{**params.__dict__, "w_rot": 1e4, "l0_rounds": 1,
-                                  "gn_iterations": 3 * params.gn_iterations,
+                                  "gn_iterations": params.rigid_iterations,
                                   "max_distance_m": 2 * params.max_distance_m,
-                                  "association": params.rigid_association})
+                                  "association": params.rigid_association,
+                                  "w_flow": params.rigid_w_flow})
     prev = before = V0
     model = None
     prev_gray = None
