@@ -117,7 +117,7 @@ def test_clean_depth_matches_truth(tiny_config):
 
 def test_tracking_drift_is_tangential_and_bounded(tiny_config):
     cfg = copy.deepcopy(tiny_config["source"]["synthetic"])
-    cfg["degradations"]["tracking_drift"] = {"enabled": True, "amplitude_m": 0.01}
+    cfg["degradations"]["tracking_drift"] = {"enabled": True, "amplitude_m": 0.01, "period_s": 1.0}
     s = SyntheticScene(cfg)
     from stex.render import vertex_normals
     for t in (0, 4):

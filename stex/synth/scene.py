@@ -138,13 +138,15 @@ class SyntheticScene:
         drift = self.cfg["degradations"]["tracking_drift"]
         if not drift["enabled"]:
             return V
-        # Smooth field over the rest shape, changing slowly with time, projected onto the
+        # Smooth field over the rest shape, oscillating in time with period_s, projected onto the
         # tangent plane so it slides the surface along itself (what tracking drift looks like).
+        # It averages out over time: a drift constant in time would be indistinguishable from
+        # a shifted texture, and no photometric method could (or would need to) undo it.
         t = self.time_of(frame)
         rest = self.body.rest_vertices
         field = np.zeros_like(rest)
         for k, d, ph in zip(self._drift_k, self._drift_dir, self._drift_phase):
-            field += np.sin(rest @ k + ph + 0.8 * t)[:, None] * d
+            field += np.sin(rest @ k + ph + 2 * np.pi * t / drift["period_s"])[:, None] * d
         field /= np.abs(field).max() + 1e-12
         n = vertex_normals(V, self.faces).astype(np.float64)
         tangential = field - (field * n).sum(1, keepdims=True) * n

@@ -1,0 +1,21 @@
+# Texture-coordinate optimisation: ξ (Φ refined so that all frames agree with proxy colours, Eq. 1).
+
+
+rule texcoords:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        template=f"{RESULTS}/template.zarr",
+        projection=f"{RESULTS}/projection.zarr",
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
+    output:
+        directory(f"{RESULTS}/texcoords.zarr"),
+    params:
+        texcoords=config["texcoords"],
+    log:
+        f"{RESULTS}/logs/texcoords.log",
+    threads: workflow.cores
+    conda:
+        ENV
+    script:
+        "../scripts/texcoords.py"

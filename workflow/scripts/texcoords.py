@@ -1,0 +1,8 @@
+"""Thin adapter: rule texcoords -> stex.texcoords.write_texcoords."""
+from stex.logs import setup_logging
+from stex.texcoords import write_texcoords
+
+setup_logging(snakemake.log[0])
+write_texcoords(snakemake.input.scene, snakemake.input.template, snakemake.input.projection,
+                list(snakemake.input.frames), list(snakemake.input.masks),
+                snakemake.params.texcoords, snakemake.output[0])
