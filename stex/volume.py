@@ -1,0 +1,352 @@
+"""Texture volume: one W x W slice of the fixed atlas per frame, from the labelled source frames.
+
+What it computes
+----------------
+- :class:`TexelSampler` / :func:`volume_slice` — the slice of one target frame t. For every
+  covered texel of the atlas (``texel/face_id`` >= 0 of the template store): its face f, the label
+  l = ``labels_t[f]`` (the source frame chosen for f at t, -1 = none), the position of the texel on
+  frame l's colour image, ``x = sum_k bary_k * xi_l[faces[f, k]]`` (barycentric interpolation of
+  the face corners' texture coordinates ξ_l, colour pixels, integer = pixel centre), and a bilinear
+  lookup of frame l's colour image there (clamp-to-edge, exactly as
+  :func:`stex.render.sample_bilinear`), rounded to uint8.
+- Gutter filling (:func:`fill_gutter`): covered texels left without colour (face unlabelled, or a
+  non-finite ξ) are filled first, from their coloured neighbours, ring by ring without a distance
+  limit (inside charts only); then ``gutter_px`` rings of empty texels around the charts are
+  filled the same way, so bilinear lookups and mip-maps do not bleed black. Each new texel is the
+  mean of its already-filled 8-neighbours (a nearest-valid dilation). Beyond ``gutter_px`` the
+  atlas stays black (0).
+- :func:`label_colors` — a picture of a label map (each source frame its own colour, -1 black),
+  as the paper's figures.
+
+Cost
+----
+The covered texels are grouped by label with a counting sort, so each source image is read
+**once per slice** and a sequence costs O(T * W^2) (the authors' ``Renderer.cpp`` renders
+T^2 passes, ``official_code_notes.md`` §2.5). Per slice: one pass over the covered texels for the
+lookup, plus one scan of the atlas and the rings for the gutter. Kernels are numba
+``@njit(cache=True, nogil=True)`` (serial; slices are the unit of parallelism).
+
+Label map
+---------
+The returned ``label_map`` (W, W) int32 holds the source frame each texel was sampled from;
+-1 in the gutter, on empty texels, on texels of unlabelled faces and where ξ was not finite
+(those are filled colours, not observations).
+"""
+
+from __future__ import annotations
+
+import colorsys
+
+import numpy as np
+from numba import njit
+
+__all__ = ["TexelSampler", "volume_slice", "fill_gutter", "label_colors"]
+
+
+# --------------------------------------------------------------------------------------------
+# kernels
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _group_by_label(tex_face, labels, n_labels):
+    """Counting sort of the covered texels by their label (labels -1..n_labels-1).
+
+    Returns (texel label (N,) int32, order (N,) int32 texel positions grouped by label,
+    start (n_labels + 2,) int64: group of label l is order[start[l + 1]:start[l + 2]])."""
+    N = tex_face.shape[0]
+    lab = np.empty(N, np.int32)
+    counts = np.zeros(n_labels + 2, np.int64)
+    for i in range(N):
+        l = labels[tex_face[i]]
+        if l < -1 or l >= n_labels:
+            l = -1
+        lab[i] = l
+        counts[l + 2] += 1
+    start = np.zeros(n_labels + 2, np.int64)
+    for k in range(1, n_labels + 2):
+        start[k] = start[k - 1] + counts[k]
+    # start[l + 1] = first position of label l (l = -1 .. n_labels - 1)
+    fill = start.copy()
+    order = np.empty(N, np.int32)
+    for i in range(N):
+        k = lab[i] + 1
+        order[fill[k]] = i
+        fill[k] += 1
+    return lab, order, start
+
+
+@njit(cache=True, nogil=True)
+def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
+    """Sample image ``img`` at the ξ-interpolated positions of the texels ``sel`` (positions in the
+    compact covered-texel arrays); writes ``out`` (W*W, 3) uint8 and ``ok`` (W*W,) bool."""
+    H, Wd, C = img.shape
+    wmax = Wd - 1.0
+    hmax = H - 1.0
+    for j in range(sel.shape[0]):
+        i = sel[j]
+        f = tex_face[i]
+        a0 = faces[f, 0]
+        a1 = faces[f, 1]
+        a2 = faces[f, 2]
+        b0 = np.float64(tex_bary[i, 0])
+        b1 = np.float64(tex_bary[i, 1])
+        b2 = np.float64(tex_bary[i, 2])
+        u = b0 * xi[a0, 0] + b1 * xi[a1, 0] + b2 * xi[a2, 0]
+        v = b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1]
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        u = min(max(u, 0.0), wmax)
+        v = min(max(v, 0.0), hmax)
+        c0 = int(np.floor(u))
+        r0 = int(np.floor(v))
+        c1 = min(c0 + 1, Wd - 1)
+        r1 = min(r0 + 1, H - 1)
+        a = u - c0
+        b = v - r0
+        w00 = (1.0 - a) * (1.0 - b)
+        w01 = a * (1.0 - b)
+        w10 = (1.0 - a) * b
+        w11 = a * b
+        t = tex_index[i]
+        for k in range(3):
+            val = np.float32(w00 * img[r0, c0, k] + w01 * img[r0, c1, k]
+                             + w10 * img[r1, c0, k] + w11 * img[r1, c1, k])
+            x = np.floor(val + np.float32(0.5))
+            out[t, k] = np.uint8(min(max(x, 0.0), 255.0))
+        ok[t] = True
+
+
+@njit(cache=True, nogil=True)
+def _fill_rings(img, valid, allowed, max_rings):
+    """Grow ``valid`` into ``allowed`` texels ring by ring (8-neighbourhood); each new texel gets
+    the mean of its neighbours valid before its ring. ``max_rings`` < 0: no limit.
+    img (H, W, C) uint8 and valid (H, W) bool are modified in place. Returns texels filled."""
+    H, W, C = img.shape
+    mark = np.zeros((H, W), np.uint8)  # 1 = queued in the current frontier
+    n = 0
+    # initial frontier: allowed, invalid, with a valid neighbour
+    cap = 1024
+    fr = np.empty(cap, np.int64)
+    for r in range(H):
+        for c in range(W):
+            if valid[r, c] or not allowed[r, c]:
+                continue
+            hit = False
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= H:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if cc < 0 or cc >= W:
+                        continue
+                    if valid[rr, cc]:
+                        hit = True
+            if hit:
+                if n == cap:
+                    cap *= 2
+                    tmp = np.empty(cap, np.int64)
+                    tmp[:n] = fr[:n]
+                    fr = tmp
+                fr[n] = r * W + c
+                mark[r, c] = 1
+                n += 1
+    total = 0
+    ring = 0
+    acc = np.zeros((max(n, 1), C), np.float32)
+    while n > 0 and (max_rings < 0 or ring < max_rings):
+        ring += 1
+        if acc.shape[0] < n:
+            acc = np.zeros((n, C), np.float32)
+        for j in range(n):
+            p = fr[j]
+            r = p // W
+            c = p - r * W
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            cnt = 0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= H:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if cc < 0 or cc >= W:
+                        continue
+                    if valid[rr, cc]:
+                        s0 += img[rr, cc, 0]
+                        s1 += img[rr, cc, 1]
+                        s2 += img[rr, cc, 2]
+                        cnt += 1
+            acc[j, 0] = s0 / cnt + 0.5
+            acc[j, 1] = s1 / cnt + 0.5
+            acc[j, 2] = s2 / cnt + 0.5
+        for j in range(n):
+            p = fr[j]
+            r = p // W
+            c = p - r * W
+            for k in range(C):
+                img[r, c, k] = np.uint8(min(acc[j, k], 255.0))
+            valid[r, c] = True
+            mark[r, c] = 0
+        total += n
+        if max_rings >= 0 and ring >= max_rings:
+            break
+        # next frontier: allowed invalid neighbours of this ring
+        m = 0
+        nxt = np.empty(max(2 * n, 16), np.int64)
+        for j in range(n):
+            p = fr[j]
+            r = p // W
+            c = p - r * W
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= H:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if cc < 0 or cc >= W:
+                        continue
+                    if valid[rr, cc] or not allowed[rr, cc] or mark[rr, cc]:
+                        continue
+                    if m == nxt.shape[0]:
+                        tmp = np.empty(2 * m, np.int64)
+                        tmp[:m] = nxt[:m]
+                        nxt = tmp
+                    nxt[m] = rr * W + cc
+                    mark[rr, cc] = 1
+                    m += 1
+        fr = nxt
+        n = m
+    return total
+
+
+def fill_gutter(image, valid, covered, gutter_px: int):
+    """Fill texels without colour in place: first the covered ones (no distance limit, inside
+    charts), then ``gutter_px`` rings of empty texels around the charts.
+
+    Args:
+        image: (W, W, 3) uint8, modified in place.
+        valid: (W, W) bool, texels that hold a colour (not modified).
+        covered: (W, W) bool, texels inside a chart (``texel_face >= 0``).
+        gutter_px: rings of empty texels to fill (0: none).
+
+    Returns:
+        (filled_inside, filled_gutter): counts of texels filled.
+    """
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image must be (W, W, 3) uint8, got {image.shape} {image.dtype}")
+    if not image.flags.c_contiguous:
+        raise ValueError("image must be C-contiguous (it is filled in place)")
+    v = np.array(valid, dtype=np.bool_, copy=True)
+    cov = np.ascontiguousarray(covered, dtype=np.bool_)
+    inside = 0
+    if (cov & ~v).any() and v.any():
+        inside = _fill_rings(image, v, cov, -1)
+    gutter = _fill_rings(image, v, ~cov, int(gutter_px)) if gutter_px > 0 and v.any() else 0
+    return int(inside), int(gutter)
+
+
+# --------------------------------------------------------------------------------------------
+# slices
+# --------------------------------------------------------------------------------------------
+
+def _get(source, s):
+    return source(s) if callable(source) else source[s]
+
+
+class TexelSampler:
+    """The atlas-side precomputation of :func:`volume_slice`, done once for the template.
+
+    Args:
+        texel_face: (W, W) int face id per texel, -1 = empty (template ``texel/face_id``).
+        texel_bary: (W, W, 3) float barycentrics (template ``texel/bary``).
+        faces: (F, 3) int vertex indices (template ``faces``): ξ arrays are indexed by vertex.
+    """
+
+    def __init__(self, texel_face, texel_bary, faces):
+        tf = np.asarray(texel_face)
+        if tf.ndim != 2 or tf.shape[0] != tf.shape[1]:
+            raise ValueError(f"texel_face must be (W, W), got {tf.shape}")
+        tb = np.asarray(texel_bary)
+        if tb.shape != tf.shape + (3,):
+            raise ValueError(f"texel_bary must be {tf.shape + (3,)}, got {tb.shape}")
+        self.W = tf.shape[0]
+        self.faces = np.ascontiguousarray(faces, dtype=np.int32)
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise ValueError(f"faces must be (F, 3), got {self.faces.shape}")
+        self.covered = tf >= 0
+        self.index = np.flatnonzero(self.covered.ravel()).astype(np.int64)
+        self.face = np.ascontiguousarray(tf.ravel()[self.index], dtype=np.int32)
+        if len(self.face) and self.face.max() >= len(self.faces):
+            raise ValueError("texel_face refers to faces beyond len(faces)")
+        self.bary = np.ascontiguousarray(tb.reshape(-1, 3)[self.index], dtype=np.float32)
+
+    def slice(self, labels_t, coords, images, gutter_px: int = 4):
+        """One slice; see :func:`volume_slice` (same arguments and result)."""
+        labels = np.ascontiguousarray(labels_t, dtype=np.int32)
+        if labels.shape != (len(self.faces),):
+            raise ValueError(f"labels_t must have shape ({len(self.faces)},), got {labels.shape}")
+        W = self.W
+        n_labels = int(labels.max()) + 1 if labels.size else 0
+        lab, order, start = _group_by_label(self.face, labels, max(n_labels, 0))
+        out = np.zeros((W * W, 3), np.uint8)
+        ok = np.zeros(W * W, np.bool_)
+        for l in range(n_labels):
+            a, b = start[l + 1], start[l + 2]
+            if b <= a:
+                continue
+            xi = np.ascontiguousarray(_get(coords, l), dtype=np.float64)
+            if xi.ndim != 2 or xi.shape[1] != 2:
+                raise ValueError(f"coords[{l}] must be (V, 2), got {xi.shape}")
+            img = np.ascontiguousarray(_get(images, l))
+            if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+                raise ValueError(f"images[{l}] must be (Hc, Wc, 3) uint8, got {img.shape} {img.dtype}")
+            _sample_group(order[a:b], self.index, self.face, self.bary, self.faces, xi, img, out, ok)
+        label_map = np.full(W * W, -1, np.int32)
+        sampled = ok[self.index]
+        label_map[self.index[sampled]] = lab[sampled]
+        image = out.reshape(W, W, 3)
+        fill_gutter(image, ok.reshape(W, W), self.covered, gutter_px)
+        return image, label_map.reshape(W, W)
+
+
+def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter_px: int = 4):
+    """The texture-volume slice of one target frame.
+
+    Args:
+        texel_face: (W, W) int32 face per texel, -1 = empty. texel_bary: (W, W, 3) float32.
+        faces: (F, 3) int vertex indices.
+        labels_t: (F,) int32 source frame of each face at this target frame, -1 = none. Labels
+            index ``coords`` and ``images`` (local frame indices of the sequence).
+        coords: ξ, per source frame s an (V, 2) float array of colour-pixel coordinates of the
+            vertices (integer = pixel centre; NaN = not available): anything ``coords[s]`` works
+            on (a (T, V, 2) array, a zarr array, a dict) or a callable ``coords(s)``.
+        images: source frame s -> (Hc, Wc, 3) uint8 RGB colour image, likewise indexable or
+            callable. Only the frames that occur in ``labels_t`` are read, each once.
+        gutter_px: rings of empty texels around the charts to fill (see :func:`fill_gutter`).
+
+    Returns:
+        (slice (W, W, 3) uint8, label_map (W, W) int32; -1 where the colour is not sampled).
+
+    For many slices of one atlas, build a :class:`TexelSampler` once and call its ``slice``.
+    """
+    return TexelSampler(texel_face, texel_bary, faces).slice(labels_t, coords, images, gutter_px)
+
+
+def label_colors(label_map) -> np.ndarray:
+    """(W, W, 3) uint8 picture of a label map: source frame l in hue (l * golden ratio) mod 1
+    with saturation/value varied by (l mod 3), so neighbouring frames get distinct colours;
+    -1 (no label) black."""
+    lm = np.asarray(label_map)
+    out = np.zeros(lm.shape + (3,), np.uint8)
+    valid = lm >= 0
+    if not valid.any():
+        return out
+    n = int(lm.max()) + 1
+    golden = 0.618033988749895
+    pal = np.array([colorsys.hsv_to_rgb((k * golden) % 1.0, 0.5 + 0.2 * (k % 3), 1.0 - 0.15 * ((k // 3) % 3))
+                    for k in range(n)]) * 255.0
+    out[valid] = np.round(pal[lm[valid]]).astype(np.uint8)
+    return out

@@ -1,0 +1,131 @@
+"""Gradient-domain colour correction (stex.correction): label steps, seams, AMG reuse, temporal."""
+import numpy as np
+import pytest
+
+import stex.correction as C
+from stex.correction import CorrectionSystem, interior_change, label_boundary_step, seam_step
+from stex.template import texel_map
+
+W = 256
+
+
+@pytest.fixture(scope="module")
+def quad():
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    F = np.array([[0, 2, 1], [0, 3, 2]], np.int32)
+    tc = np.array([[.05, .05], [.95, .05], [.95, .95], [.05, .95]], np.float32)
+    face, _ = texel_map(tc, F, W)
+    return V, F, tc, F.copy(), face
+
+
+def _two_labels(face, offset=20.0):
+    cov = face >= 0
+    rr, cc = np.mgrid[0:W, 0:W]
+    base = 100 + 40 * np.sin(rr / 9.0)[..., None] * np.array([1, .5, .2]) + 30 * np.cos(cc / 13.0)[..., None]
+    lm = np.where(cov, (cc >= W // 2).astype(np.int32), -1).astype(np.int32)
+    img = base + np.where(lm[..., None] == 1, offset, 0.0)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    img[~cov] = 0
+    return img, lm
+
+
+@pytest.mark.parametrize("factor", [1, 2])
+def test_label_step_falls_and_interiors_stay(quad, factor):
+    V, F, tc, tf, face = quad
+    img, lm = _two_labels(face)
+    cs = CorrectionSystem(face, tc, tf, F, factor=factor, screen_length=1 / 16, gutter_px=2)
+    out = cs.correct(img, lm)
+    before, after = label_boundary_step(img, lm), label_boundary_step(out, lm)
+    assert before > 18
+    assert after <= 0.4 * before, (before, after)  # falls by >= 60 %
+    assert interior_change(img, out, lm, margin=16) <= 2.0
+    assert out.dtype == np.uint8 and out.shape == img.shape
+
+
+def test_single_label_uniform_slice_is_unchanged(quad):
+    V, F, tc, tf, face = quad
+    img, lm = _two_labels(face, offset=0.0)
+    lm[lm >= 0] = 3
+    cs = CorrectionSystem(face, tc, tf, F, screen_length=1 / 16, gutter_px=2)
+    out = cs.correct(img, lm)
+    cov = face >= 0
+    np.testing.assert_array_equal(out[cov], img[cov])
+
+
+@pytest.fixture(scope="module")
+def strip():
+    """Two squares sharing a 3-D edge, unwrapped into two separate charts (one seam)."""
+    F = np.array([[0, 4, 1], [0, 3, 4], [1, 5, 2], [1, 4, 5]], np.int32)
+    tc = np.array([[.05, .1], [.45, .1], [.45, .9], [.05, .9], [.55, .1], [.95, .1], [.95, .9], [.55, .9]], np.float32)
+    tf = np.array([[0, 2, 1], [0, 3, 2], [4, 6, 5], [4, 7, 6]], np.int32)
+    Wt = 128
+    face, _ = texel_map(tc, tf, Wt)
+    return F, tc, tf, face
+
+
+def test_seam_step_disappears(strip):
+    F, tc, tf, face = strip
+    Wt = face.shape[0]
+    cs = CorrectionSystem(face, tc, tf, F, screen_length=1 / 16, gutter_px=2)
+    assert cs.graph.n_seam_edges == 1 and cs.graph.S.shape[0] > 0
+    cov = face >= 0
+    img = np.zeros((Wt, Wt, 3), np.uint8)
+    chart = cs.chart_tex
+    img[chart == 0] = 100
+    img[chart == 1] = 140
+    lm = np.where(cov, 0, -1).astype(np.int32)  # one label: only the seam is a discontinuity
+    out = cs.correct(img, lm)
+    before, after = seam_step(img, cs), seam_step(out, cs)
+    assert before == pytest.approx(40.0)
+    assert after < 0.15 * before, (before, after)
+
+
+def test_amg_setup_is_reused_across_channels_and_slices(quad, monkeypatch):
+    import pyamg
+
+    calls = []
+    orig = pyamg.smoothed_aggregation_solver
+
+    def counting(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(pyamg, "smoothed_aggregation_solver", counting)
+    V, F, tc, tf, face = quad
+    img, lm = _two_labels(face)
+    cs = CorrectionSystem(face, tc, tf, F, screen_length=1 / 16)
+    cs.correct(img, lm)
+    img2, lm2 = _two_labels(face, offset=-15.0)
+    cs.correct(img2, np.where(lm2 >= 0, 1 - lm2, -1).astype(np.int32))
+    assert len(calls) == 1
+    assert cs.last_stats["iterations"] and max(cs.last_stats["iterations"]) <= 20
+
+
+def test_temporal_coupling_damps_borrowed_regions(quad):
+    V, F, tc, tf, face = quad
+    img, lm = _two_labels(face, offset=0.0)
+    cov = face >= 0
+    prev = img.copy()
+    cur = img.astype(int)
+    cur[lm == 0] += 25  # the borrowed region (label 0 at frame 1) flickers by +25
+    cur = np.clip(cur, 0, 255).astype(np.uint8)
+    kw = dict(screen_length=1 / 16, temporal_length=1 / 64, gutter_px=2)
+    cs = CorrectionSystem(face, tc, tf, F, **kw)
+    plain = cs.correct(cur, lm)
+    damped = cs.correct(cur, lm, previous=prev, frame=1)
+    inner = cov & (lm == 0)
+    d_plain = np.abs(plain[inner].astype(float) - prev[inner]).mean()
+    d_damped = np.abs(damped[inner].astype(float) - prev[inner]).mean()
+    assert d_damped < 0.5 * d_plain, (d_plain, d_damped)
+    # without temporal coupling the option is ignored
+    cs0 = CorrectionSystem(face, tc, tf, F, **{**kw, "temporal_length": None})
+    np.testing.assert_array_equal(cs0.correct(cur, lm, previous=prev, frame=1), cs0.correct(cur, lm))
+
+
+def test_bad_shapes_raise(quad):
+    V, F, tc, tf, face = quad
+    with pytest.raises(ValueError):
+        CorrectionSystem(face, tc, tf, F, factor=3)
+    cs = CorrectionSystem(face, tc, tf, F, factor=4)
+    with pytest.raises(ValueError):
+        cs.correct(np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10), np.int32))
