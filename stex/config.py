@@ -65,3 +65,30 @@ def load_config(*paths: str | Path, overrides: dict | None = None) -> dict:
     for p in paths:
         cfg = deep_update(cfg, yaml.safe_load(Path(p).read_text()) or {})
     return validate_config(deep_update(cfg, overrides or {}))
+
+
+_SCHEMA_CACHE: dict | None = None
+
+
+def section_params(section: str, params: dict | None = None) -> dict:
+    """One config section completed with the schema's defaults and validated.
+
+    The schema is the single source of defaults: library functions called without the workflow
+    (tests, benchmarks, the CLI) get exactly the values Snakemake would fill in. Unknown keys
+    and out-of-range values raise ValueError naming the key.
+    """
+    global _SCHEMA_CACHE
+    if _SCHEMA_CACHE is None:
+        _SCHEMA_CACHE = load_schema()
+    sub = _SCHEMA_CACHE["properties"].get(section)
+    if sub is None:
+        raise ValueError(f"config/schema.yaml has no section {section!r}")
+    schema = {"type": "object", "properties": {section: sub}}
+    cfg = {section: copy.deepcopy(params) if params else {}}
+    validator = _with_defaults(jsonschema.Draft202012Validator)(schema)
+    errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
+    if errors:
+        e = errors[0]
+        where = "/".join(str(p) for p in e.path)
+        raise ValueError(f"config error at {where}: {e.message}")
+    return cfg[section]

@@ -54,30 +54,16 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from stex.config import section_params
+
 log = logging.getLogger("stex.poses")
 
 #: RANSAC stops once an all-inlier sample of the best model so far would have been drawn with
 #: this probability (standard adaptive stopping); ``ransac_iterations`` is the upper bound.
 _CONFIDENCE = 0.999
 
-#: Defaults of the ``poses`` config section (config/schema.yaml documents each).
-DEFAULT_PARAMS = {
-    "ransac_iterations": 500,
-    "inlier_threshold_m": 0.005,
-    "sample_vertices": 512,
-    "icp_iterations": 3,
-    "icp_threshold_m": 0.005,
-    "icp_point_weight": 0.1,
-    "seed": 0,
-}
-
-
 def _params(params: dict | None) -> dict:
-    p = dict(DEFAULT_PARAMS)
-    p.update(params or {})
-    unknown = set(p) - set(DEFAULT_PARAMS)
-    if unknown:
-        raise ValueError(f"unknown poses parameters {sorted(unknown)}; known: {sorted(DEFAULT_PARAMS)}")
+    p = section_params("poses", params)
     if p["ransac_iterations"] < 1 or p["sample_vertices"] < 3 or p["icp_iterations"] < 0:
         raise ValueError(f"poses parameters out of range: {p}")
     if not p["inlier_threshold_m"] > 0:
@@ -665,7 +651,7 @@ def pose_table(vertices, faces, params: dict | None = None, seed: int | None = N
         vertices: (T, V, 3) float per-frame vertices of one topology (metres).
         faces: (F, 3) int triangles (counter-clockwise from outside), for the vertex normals of
             the point-to-plane ICP.
-        params: the ``poses`` config section (keys of :data:`DEFAULT_PARAMS`; missing keys take
+        params: the ``poses`` config section (missing keys take the schema defaults;
             the defaults).
         seed: overrides ``params["seed"]`` when given.
         threads: worker threads (default: all CPUs); the result does not depend on it.

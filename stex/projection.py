@@ -54,35 +54,18 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, transform_points
+from stex.config import section_params
 from stex.render import face_normals, face_visibility, rasterize, vertex_normals, vertex_visibility
 
 log = logging.getLogger("stex.projection")
 
-__all__ = ["DEFAULTS", "project_frame", "write_projection", "projection_overlay", "preview_projection"]
-
-#: defaults of the ``projection`` config section (config/schema.yaml is authoritative)
-DEFAULTS = {
-    "depth_tol_m": 0.01,
-    "window_px": 1,
-    "tangent_plane": True,
-    "min_cos": 0.0,
-    "cos_mode": "view_ray",
-    "margin_px": 20,
-    "use_mask": True,
-    "mask_erode_px": 2,
-    "near_m": 0.01,
-}
+__all__ = ["project_frame", "write_projection", "projection_overlay", "preview_projection"]
 
 COS_MODES = ("view_ray", "optical_axis")
 
 
 def _params(params: dict | None) -> dict:
-    p = dict(DEFAULTS)
-    if params:
-        unknown = set(params) - set(DEFAULTS)
-        if unknown:
-            raise ValueError(f"unknown projection parameters {sorted(unknown)}; known: {sorted(DEFAULTS)}")
-        p.update(params)
+    p = section_params("projection", params)
     if p["cos_mode"] not in COS_MODES:
         raise ValueError(f"projection.cos_mode must be one of {COS_MODES}, got {p['cos_mode']!r}")
     return p
@@ -106,7 +89,7 @@ def project_frame(vertices_depth, faces, calibration: Calibration, params: dict 
         faces: (F, 3) int triangles, counter-clockwise seen from outside.
         calibration: the sensor's :class:`~stex.camera.Calibration` (colour intrinsics and
             ``depth_to_color``).
-        params: the ``projection`` config section (missing keys take :data:`DEFAULTS`):
+        params: the ``projection`` config section (missing keys take the schema defaults):
             ``depth_tol_m`` (m), ``window_px`` (px), ``tangent_plane``, ``min_cos``,
             ``cos_mode`` ('view_ray' | 'optical_axis'), ``margin_px`` (px), ``use_mask``,
             ``mask_erode_px`` (px), ``near_m`` (m). See the module docstring.

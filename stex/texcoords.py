@@ -75,9 +75,11 @@ import cv2
 import numpy as np
 from numba import njit, prange
 
+from stex.config import section_params
+
 log = logging.getLogger("stex.texcoords")
 
-__all__ = ["DEFAULTS", "SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
+__all__ = ["SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
            "interpolate_displacements", "photometric_energy", "optimize_level",
            "optimize_texcoords", "write_texcoords", "texcoords_params"]
 
@@ -87,30 +89,9 @@ SAMPLE_BARY = np.array([
     (.5, .5, 0), (0, .5, .5), (.5, 0, .5), (.2, .2, .6), (.6, .2, .2), (.2, .6, .2),
     (.1, .5, .4), (.5, .4, .1), (.4, .1, .5)], dtype=np.float64)
 
-#: defaults of the ``texcoords`` config section (config/schema.yaml is authoritative)
-DEFAULTS = {
-    "samples_per_face": 15,
-    "levels": 6,
-    "iterations": 300,
-    "refine_iterations": 300,
-    "rel_tol": 1.0e-5,
-    "step_clamp_px": 5.0,
-    "keyframe_step": 4,
-    "background_weight": 0.001,
-    "edge_weight": 12.75,
-    "backtracks": 4,
-    "crop_margin_px": 64,
-}
-
-
 def texcoords_params(params: dict | None) -> dict:
-    """``params`` (the ``texcoords`` config section) completed with :data:`DEFAULTS`, checked."""
-    p = dict(DEFAULTS)
-    if params:
-        unknown = set(params) - set(DEFAULTS)
-        if unknown:
-            raise ValueError(f"unknown texcoords parameters {sorted(unknown)}; known: {sorted(DEFAULTS)}")
-        p.update(params)
+    """``params`` (the ``texcoords`` config section) completed with the schema defaults, checked."""
+    p = section_params("texcoords", params)
     if not 1 <= int(p["samples_per_face"]) <= len(SAMPLE_BARY):
         raise ValueError(f"texcoords.samples_per_face must be in 1..{len(SAMPLE_BARY)}")
     if int(p["levels"]) < 1 or int(p["keyframe_step"]) < 1:
@@ -540,7 +521,7 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
         phi: (T, V, 2) float Φ (colour px). vertex_visible: (T, V) bool.
         face_visible: (T, F) bool. face_weight: (T, F) float proxy weights (face cosines).
         faces: (F, 3) int. image_size: (W, H) colour image size (px).
-        params: the ``texcoords`` config section (missing keys: :data:`DEFAULTS`).
+        params: the ``texcoords`` config section (missing keys: the schema defaults).
 
     Returns:
         dict: ``xi`` (T, V, 2) float32 (Φ where not visible), ``valid`` (T, V) bool,

@@ -142,3 +142,12 @@ def test_real_pairs_fit_better_than_rigid():
             res[mode] = depth_residual(Vb, F, targets[1], union=False)
         before = depth_residual(V, F, targets[1], union=False)
         assert res["ed"] < res["rigid"] <= before + 1e-4, (before, res)
+
+
+def test_track_params_defaults_match_the_schema():
+    from dataclasses import asdict
+
+    from stex.config import section_params
+    schema = section_params("tracking")
+    fields = asdict(TrackParams())
+    assert {k: v for k, v in schema.items() if k != "mode"} == fields
