@@ -632,11 +632,24 @@ def interpolate_attributes(raster: Raster, faces, attributes) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def bilinear_taps(u, v, W, H):
+    """The four taps of a clamp-to-edge bilinear lookup at pixel coordinates (u, v) of a W x H
+    image: (r0, c0, r1, c1, w00, w01, w10, w11). Shared by every bilinear kernel in stex."""
+    u = min(max(u, 0.0), W - 1.0)
+    v = min(max(v, 0.0), H - 1.0)
+    c0 = int(np.floor(u))
+    r0 = int(np.floor(v))
+    c1 = min(c0 + 1, W - 1)
+    r1 = min(r0 + 1, H - 1)
+    a = u - c0
+    b = v - r0
+    return r0, c0, r1, c1, (1.0 - a) * (1.0 - b), a * (1.0 - b), (1.0 - a) * b, a * b
+
+
 @njit(cache=True, nogil=True)
 def _bilinear_kernel(img, uv, out):
     H, W, C = img.shape
-    wmax = W - 1.0
-    hmax = H - 1.0
     for i in range(uv.shape[0]):
         u = uv[i, 0]
         v = uv[i, 1]
@@ -644,18 +657,7 @@ def _bilinear_kernel(img, uv, out):
             for k in range(C):
                 out[i, k] = np.nan
             continue
-        u = min(max(u, 0.0), wmax)
-        v = min(max(v, 0.0), hmax)
-        c0 = int(np.floor(u))
-        r0 = int(np.floor(v))
-        c1 = min(c0 + 1, W - 1)
-        r1 = min(r0 + 1, H - 1)
-        a = u - c0
-        b = v - r0
-        w00 = (1.0 - a) * (1.0 - b)
-        w01 = a * (1.0 - b)
-        w10 = (1.0 - a) * b
-        w11 = a * b
+        r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(u, v, W, H)
         for k in range(C):
             out[i, k] = (w00 * img[r0, c0, k] + w01 * img[r0, c1, k]
                          + w10 * img[r1, c0, k] + w11 * img[r1, c1, k])

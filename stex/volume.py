@@ -40,6 +40,8 @@ import colorsys
 import numpy as np
 from numba import njit
 
+from stex.render import bilinear_taps
+
 __all__ = ["TexelSampler", "volume_slice", "fill_gutter", "label_colors"]
 
 
@@ -80,8 +82,6 @@ def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
     """Sample image ``img`` at the ξ-interpolated positions of the texels ``sel`` (positions in the
     compact covered-texel arrays); writes ``out`` (W*W, 3) uint8 and ``ok`` (W*W,) bool."""
     H, Wd, C = img.shape
-    wmax = Wd - 1.0
-    hmax = H - 1.0
     for j in range(sel.shape[0]):
         i = sel[j]
         f = tex_face[i]
@@ -95,18 +95,7 @@ def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
         v = b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1]
         if not (np.isfinite(u) and np.isfinite(v)):
             continue
-        u = min(max(u, 0.0), wmax)
-        v = min(max(v, 0.0), hmax)
-        c0 = int(np.floor(u))
-        r0 = int(np.floor(v))
-        c1 = min(c0 + 1, Wd - 1)
-        r1 = min(r0 + 1, H - 1)
-        a = u - c0
-        b = v - r0
-        w00 = (1.0 - a) * (1.0 - b)
-        w01 = a * (1.0 - b)
-        w10 = (1.0 - a) * b
-        w11 = a * b
+        r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(u, v, Wd, H)
         t = tex_index[i]
         for k in range(3):
             val = np.float32(w00 * img[r0, c0, k] + w01 * img[r0, c1, k]
