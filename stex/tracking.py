@@ -233,7 +233,7 @@ class TrackParams:
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15
     flow_age_frames: float = 0.0
-    flow_passes: int = 1
+    flow_passes: int = 2
     rigid_only: bool = False
     model_size: int = 1024
     model_min_cos: float = 0.3
@@ -589,6 +589,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                                   "max_distance_m": 2 * params.max_distance_m,
                                   "association": params.rigid_association,
                                   "w_flow": params.rigid_w_flow})
+    refine_params = TrackParams(**{**params.__dict__, "l0_rounds": 1})
     prev = before = V0
     model = None
     prev_gray = None
@@ -600,7 +601,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         use_flow = params.w_flow > 0 and obs.gray is not None
         # Each pass re-measures the flow from the model rendered at the latest estimate: DIS
         # under-estimates motion by a few per cent, and new model texels would inherit that lag.
-        for _ in range(max(1, params.flow_passes) if use_flow and model is not None else 1):
+        for npass in range(max(1, params.flow_passes) if use_flow and model is not None else 1):
             flow = None
             if use_flow and model is not None:
                 fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
@@ -610,19 +611,24 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 age[age < 0] = pos
                 weight = 1.0 / (1.0 + age / params.flow_age_frames) if params.flow_age_frames > 0 else np.ones(len(fid))
                 flow = (fid, u1, obs.calibration.color.K, obs.calibration.depth_to_color, weight)
-            # 1. rigid part, so that unseen regions follow the global motion exactly
-            xr, rstats = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
-                                      identity_params(1), flow)
-            U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
-            R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-            c = pred[centre]
-            rigid = (pred - c) @ R.T + c + xr[0, 9:]
+            # 1. rigid part, so that unseen regions follow the global motion exactly (the first
+            # pass has done the large motion; later passes only refine, with one L0 round)
+            if npass == 0:
+                xr, rstats = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
+                                          identity_params(1), flow)
+                U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
+                R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+                c = pred[centre]
+                rigid = (pred - c) @ R.T + c + xr[0, 9:]
+            else:
+                rigid = pred
             # 2. non-rigid increment on top, with the graph's nodes at the current vertices (the
             # bindings stay those of the template, so they do not drift)
             if params.rigid_only:
                 cur, stats = rigid, rstats
             else:
-                x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target, params,
+                x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target,
+                                        params if npass == 0 else refine_params,
                                         identity_params(len(graph.nodes)), flow)
                 cur = deform(rigid, rigid[graph.nodes], graph, x)
             pred = cur
