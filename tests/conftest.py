@@ -34,3 +34,32 @@ def tiny_config() -> dict:
     """A tiny synthetic scene (fast to render) with schema defaults."""
     return load_config(overrides={"scene": "tiny", "frame_block": 4,
                                   "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}})
+
+
+def run_stages(cfg: dict, d) -> dict:
+    """Run ingest, masks, template, 'given' tracking and projection of ``cfg`` into folder ``d``
+    through the real stage writers (what the workflow runs, without Snakemake). Returns the
+    store paths: scene, frames, truth, masks (lists per block), template, tracking, projection."""
+    from stex.ingest import write_frames_block, write_scene
+    from stex.io import open_store
+    from stex.masks import write_masks_block
+    from stex.projection import write_projection
+    from stex.template import write_template
+    from stex.tracking import write_tracking
+
+    write_scene(cfg["source"], cfg["frame_block"], d / "scene.zarr")
+    scene = open_store(d / "scene.zarr", "scene")
+    frames, truth, masks = [], [], []
+    for b, (start, stop) in enumerate(scene.attrs["frame_blocks"]):
+        frames.append(d / f"frames_{b}.zarr")
+        truth.append(d / f"truth_{b}.zarr")
+        masks.append(d / f"masks_{b}.zarr")
+        write_frames_block(cfg["source"], start, stop, frames[-1], truth[-1])
+        write_masks_block(d / "scene.zarr", frames[-1], cfg["masks"], masks[-1])
+    write_template(d / "scene.zarr", cfg["template"], d / "template.zarr")
+    write_tracking(d / "scene.zarr", d / "template.zarr", frames, masks,
+                   dict(cfg["tracking"], mode="given"), d / "tracking.zarr")
+    write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr", masks,
+                     cfg["projection"], d / "projection.zarr")
+    return {"scene": d / "scene.zarr", "frames": frames, "truth": truth, "masks": masks,
+            "template": d / "template.zarr", "tracking": d / "tracking.zarr", "projection": d / "projection.zarr"}

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import TINY_SYNTHETIC
+from conftest import TINY_SYNTHETIC, run_stages
 from stex.camera import Calibration, transform_points
 from stex.config import load_config
 from stex.io import FrameSequence, open_store
@@ -15,28 +15,12 @@ from stex.render import face_normals
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """Scene, frames, truth, masks (GrabCut), template and 'given' tracking of the tiny scene."""
-    from stex.ingest import write_frames_block, write_scene
-    from stex.masks import write_masks_block
-    from stex.template import write_template
-    from stex.tracking import write_tracking
-
     cfg = load_config(overrides={"scene": "tiny", "frame_block": 4,
                                  "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}})
     d = tmp_path_factory.mktemp("proj")
-    write_scene(cfg["source"], cfg["frame_block"], d / "scene.zarr")
-    scene = open_store(d / "scene.zarr", "scene")
-    frames, truth, masks = [], [], []
-    for b, (start, stop) in enumerate(scene.attrs["frame_blocks"]):
-        frames.append(d / f"frames_{b}.zarr")
-        truth.append(d / f"truth_{b}.zarr")
-        masks.append(d / f"masks_{b}.zarr")
-        write_frames_block(cfg["source"], start, stop, frames[-1], truth[-1])
-        write_masks_block(d / "scene.zarr", frames[-1], cfg["masks"], masks[-1])
-    write_template(d / "scene.zarr", cfg["template"], d / "template.zarr")
-    write_tracking(d / "scene.zarr", d / "template.zarr", frames, masks,
-                   dict(cfg["tracking"], mode="given"), d / "tracking.zarr")
-    write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr", masks,
-                     cfg["projection"], d / "projection.zarr")
+    paths = run_stages(cfg, d)
+    frames, truth, masks = paths["frames"], paths["truth"], paths["masks"]
+    scene = open_store(paths["scene"], "scene")
     tracking = open_store(d / "tracking.zarr", "tracking")
     return {
         "dir": d, "cfg": cfg, "params": cfg["projection"], "masks_paths": masks,

@@ -4,7 +4,7 @@ import copy
 import numpy as np
 import pytest
 
-from conftest import TINY_SYNTHETIC
+from conftest import TINY_SYNTHETIC, run_stages
 from stex.camera import Calibration, transform_points
 from stex.config import load_config
 from stex.io import open_store
@@ -30,29 +30,13 @@ def drifted(tmp_path_factory):
     8 frames at 4 fps (2 s, so the drift, which changes slowly in time, differs between frames;
     at 30 fps the 6 tiny frames would see the same drift, which photometric consistency cannot
     detect), drift amplitude 3 cm (≈ 5 px at fx 175)."""
-    from stex.ingest import write_frames_block, write_scene
-    from stex.masks import write_masks_block
-    from stex.projection import write_projection
-    from stex.template import write_template
-    from stex.tracking import write_tracking
-
     syn = copy.deepcopy(TINY_SYNTHETIC)
     syn.update(n_frames=8, fps=4.0, degradations={"tracking_drift": {"enabled": True, "amplitude_m": 0.03}})
     cfg = load_config(overrides={"scene": "tiny", "frame_block": 4, "source": {"kind": "synthetic", "synthetic": syn}})
     d = tmp_path_factory.mktemp("texcoords")
-    write_scene(cfg["source"], cfg["frame_block"], d / "scene.zarr")
-    scene = open_store(d / "scene.zarr", "scene")
-    frames, masks = [], []
-    for b, (start, stop) in enumerate(scene.attrs["frame_blocks"]):
-        frames.append(d / f"frames_{b}.zarr")
-        masks.append(d / f"masks_{b}.zarr")
-        write_frames_block(cfg["source"], start, stop, frames[-1], d / f"truth_{b}.zarr")
-        write_masks_block(d / "scene.zarr", frames[-1], cfg["masks"], masks[-1])
-    write_template(d / "scene.zarr", cfg["template"], d / "template.zarr")
-    write_tracking(d / "scene.zarr", d / "template.zarr", frames, masks,
-                   dict(cfg["tracking"], mode="given"), d / "tracking.zarr")
-    write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr", masks,
-                     cfg["projection"], d / "projection.zarr")
+    paths = run_stages(cfg, d)
+    frames, masks = paths["frames"], paths["masks"]
+    scene = open_store(paths["scene"], "scene")
     write_texcoords(d / "scene.zarr", d / "template.zarr", d / "projection.zarr", frames, masks,
                     FAST, d / "texcoords.zarr")
     # the truth carried to the template topology, and the consensus bound (truth slid by the
