@@ -287,35 +287,29 @@ def _downsample(k, c_cov_r, c_cov_c, c_chart, f_chart, f_lab, img, prev, has_pre
                 bestn = cnt
                 best = labs[a]
         lab[i] = best
-        cnt = 0
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        q0 = 0.0
-        q1 = 0.0
-        q2 = 0.0
-        for r in range(R * k, min(R * k + k, W)):
-            for c in range(C * k, min(C * k + k, W)):
-                if f_chart[r, c] == ch and f_lab[r, c] == best:
-                    s0 += img[r, c, 0]
-                    s1 += img[r, c, 1]
-                    s2 += img[r, c, 2]
-                    if has_prev:
-                        q0 += prev[r, c, 0]
-                        q1 += prev[r, c, 1]
-                        q2 += prev[r, c, 2]
-                    cnt += 1
-        if cnt == 0:  # no fine texel of this chart with that label: the whole block
+        # Mean over the block's fine texels of this chart with that label; if there are none,
+        # over the whole block.
+        for whole in range(2):
+            cnt = 0
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            q0 = 0.0
+            q1 = 0.0
+            q2 = 0.0
             for r in range(R * k, min(R * k + k, W)):
                 for c in range(C * k, min(C * k + k, W)):
-                    s0 += img[r, c, 0]
-                    s1 += img[r, c, 1]
-                    s2 += img[r, c, 2]
-                    if has_prev:
-                        q0 += prev[r, c, 0]
-                        q1 += prev[r, c, 1]
-                        q2 += prev[r, c, 2]
-                    cnt += 1
+                    if whole == 1 or (f_chart[r, c] == ch and f_lab[r, c] == best):
+                        s0 += img[r, c, 0]
+                        s1 += img[r, c, 1]
+                        s2 += img[r, c, 2]
+                        if has_prev:
+                            q0 += prev[r, c, 0]
+                            q1 += prev[r, c, 1]
+                            q2 += prev[r, c, 2]
+                        cnt += 1
+            if cnt > 0:
+                break
         f0[i, 0] = s0 / cnt
         f0[i, 1] = s1 / cnt
         f0[i, 2] = s2 / cnt

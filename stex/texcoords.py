@@ -205,6 +205,17 @@ def _bilerp(buf, off, h, w, x, y):
             + (1.0 - a) * b * buf[off + r1 * w + c0] + a * b * buf[off + r1 * w + c1])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _sample_pos(bary, s, xi, k, faces, f, x0, y0):
+    """Crop-pixel position (u, v) of sample ``s`` of face ``f`` in frame ``k`` (through ξ)."""
+    a = faces[f, 0]
+    b = faces[f, 1]
+    c = faces[f, 2]
+    u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
+    v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
+    return u, v
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _proxy_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, fvis, fw, bary, bg_weight, proxy):
     """proxy[f, s] = Σ_k w·C_k(p) / Σ_k w over the frames where f is visible (0 if none)."""
@@ -212,9 +223,6 @@ def _proxy_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, fvis, fw, bary, bg_
     nF = faces.shape[0]
     S = bary.shape[0]
     for f in prange(nF):
-        a = faces[f, 0]
-        b = faces[f, 1]
-        c = faces[f, 2]
         num = np.zeros(S)
         den = np.zeros(S)
         for k in range(K):
@@ -225,8 +233,7 @@ def _proxy_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, fvis, fw, bary, bg_
             h = hh[k]
             w = ww[k]
             for s in range(S):
-                u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
-                v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
+                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                 m = _bilerp(mbuf, o, h, w, u, v)
                 wt = wf if m >= 0.999 else wf * bg_weight
                 num[s] += wt * _bilerp(buf, o, h, w, u, v)
@@ -249,12 +256,8 @@ def _energy_kernel(buf, off, hh, ww, x0, y0, xi, faces, fvis, bary, proxy, out):
         for f in range(nF):
             if not fvis[k, f]:
                 continue
-            a = faces[f, 0]
-            b = faces[f, 1]
-            c = faces[f, 2]
             for s in range(S):
-                u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
-                v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
+                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                 r = (_bilerp(buf, o, h, w, u, v) - proxy[f, s]) / 255.0
                 e += r * r
         out[k] = e
@@ -276,13 +279,7 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge
             if not fvis[k, f]:
                 continue
             for s in range(S):
-                u = 0.0
-                v = 0.0
-                for j in range(3):
-                    u += bary[s, j] * xi[k, faces[f, j], 0]
-                    v += bary[s, j] * xi[k, faces[f, j], 1]
-                u -= x0[k]
-                v -= y0[k]
+                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                 r = _bilerp(buf, o, h, w, u, v) - proxy[f, s]
                 gx = 0.5 * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
                 gy = 0.5 * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import colorsys
 
+import cv2
 import numpy as np
 from numba import njit
 
@@ -106,40 +107,17 @@ def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
 
 
 @njit(cache=True, nogil=True)
-def _fill_rings(img, valid, allowed, max_rings):
-    """Grow ``valid`` into ``allowed`` texels ring by ring (8-neighbourhood); each new texel gets
-    the mean of its neighbours valid before its ring. ``max_rings`` < 0: no limit.
+def _fill_rings(img, valid, allowed, frontier, max_rings):
+    """Grow ``valid`` into ``allowed`` texels ring by ring (8-neighbourhood), starting from
+    ``frontier`` (flat indices of the allowed, invalid texels next to a valid one); each new
+    texel gets the mean of its neighbours valid before its ring. ``max_rings`` < 0: no limit.
     img (H, W, C) uint8 and valid (H, W) bool are modified in place. Returns texels filled."""
     H, W, C = img.shape
     mark = np.zeros((H, W), np.uint8)  # 1 = queued in the current frontier
-    n = 0
-    # initial frontier: allowed, invalid, with a valid neighbour
-    cap = 1024
-    fr = np.empty(cap, np.int64)
-    for r in range(H):
-        for c in range(W):
-            if valid[r, c] or not allowed[r, c]:
-                continue
-            hit = False
-            for dr in range(-1, 2):
-                rr = r + dr
-                if rr < 0 or rr >= H:
-                    continue
-                for dc in range(-1, 2):
-                    cc = c + dc
-                    if cc < 0 or cc >= W:
-                        continue
-                    if valid[rr, cc]:
-                        hit = True
-            if hit:
-                if n == cap:
-                    cap *= 2
-                    tmp = np.empty(cap, np.int64)
-                    tmp[:n] = fr[:n]
-                    fr = tmp
-                fr[n] = r * W + c
-                mark[r, c] = 1
-                n += 1
+    fr = frontier.copy()
+    n = fr.shape[0]
+    for j in range(n):
+        mark[fr[j] // W, fr[j] % W] = 1
     total = 0
     ring = 0
     acc = np.zeros((max(n, 1), C), np.float32)
@@ -230,10 +208,16 @@ def fill_gutter(image, valid, covered, gutter_px: int):
         raise ValueError("image must be C-contiguous (it is filled in place)")
     v = np.array(valid, dtype=np.bool_, copy=True)
     cov = np.ascontiguousarray(covered, dtype=np.bool_)
+    def frontier(allowed):
+        near = cv2.dilate(v.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        return np.flatnonzero((allowed & ~v & near).ravel()).astype(np.int64)
+
     inside = 0
     if (cov & ~v).any() and v.any():
-        inside = _fill_rings(image, v, cov, -1)
-    gutter = _fill_rings(image, v, ~cov, int(gutter_px)) if gutter_px > 0 and v.any() else 0
+        inside = _fill_rings(image, v, cov, frontier(cov), -1)
+    gutter = 0
+    if gutter_px > 0 and v.any():
+        gutter = _fill_rings(image, v, ~cov, frontier(~cov), int(gutter_px))
     return int(inside), int(gutter)
 
 
