@@ -235,6 +235,35 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "seconds": "float: wall time of the optimisation (s)",
         },
     ),
+    "volume": ArtifactSpec(
+        description="Texture volume of one frame block (stex.volume): for every frame t one W×W "
+        "slice of the fixed template atlas, each covered texel sampled bilinearly from the colour "
+        "image of its face's label l_{f,t} at the optimised texture coordinates ξ_l; gutter texels "
+        "dilated (attr gutter_px) so bilinear lookups and mip-maps do not bleed black. Slices are "
+        "stored in compressed tiles. label_map holds the source frame of every texel.",
+        path="volume/block_{block}.zarr",
+        arrays={
+            "texture": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "texture slice of each frame in the template atlas (template.zarr texcoords), RGB, row 0 = v 0", (1, 1024, 1024, 3)),
+            "label_map": ArraySpec(("T", "W", "W"), "int16", "index", "source frame (position in the sequence) each texel was sampled from; -1 = gutter, empty or filled", (1, 1024, 1024)),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each slice",
+            "gutter_px": "int: rings of gutter texels filled around every chart",
+        },
+    ),
+    "corrected": ArtifactSpec(
+        description="Colour-corrected texture volume of one frame block (stex.correction): each "
+        "volume slice after the gradient-domain correction (screened Poisson, gradients kept "
+        "inside a source label, zeroed across label boundaries, chart seams coupled).",
+        path="corrected/block_{block}.zarr",
+        arrays={
+            "texture": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "corrected texture slice of each frame in the template atlas, RGB", (1, 1024, 1024, 3)),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each slice",
+            "gutter_px": "int: as in volume",
+        },
+    ),
 }
 
 
@@ -245,7 +274,7 @@ class StoreError(ValueError):
 def _resolve_chunks(spec: ArraySpec, shape: tuple[int, ...]) -> tuple[int, ...]:
     if spec.chunks is None:
         return tuple(max(1, s) for s in shape)
-    return tuple(max(1, c if isinstance(c, int) else s) for c, s in zip(spec.chunks, shape))
+    return tuple(max(1, min(c, s) if isinstance(c, int) else s) for c, s in zip(spec.chunks, shape))
 
 
 class StoreWriter:
