@@ -235,6 +235,67 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "seconds": "float: wall time of the optimisation (s)",
         },
     ),
+    "observations": ArtifactSpec(
+        description="What every frame shows of every face (stex.observations), gathered in one "
+        "pass over the colour frames at the texture coordinates (ξ, or Φ without the texcoords "
+        "stage: attr coordinates): grey samples per face (E_temp) and along every shared edge "
+        "(E_spa), the quality flags of E_qual, the SSIM dynamism S(f, t) and the SHOT "
+        "descriptors of the tracked mesh (E_loc). E = adjacent face pairs (template "
+        "adjacency/pairs, edge from adjacency/edges[e, 0] to [e, 1]).",
+        path="observations.zarr",
+        arrays={
+            "face_samples": ArraySpec(("T", "F", 15), "uint8", "grey", "grey value (ITU-R 601 luma) at the authors' 15 barycentric samples of each face; 0 where the face is not visible", (1, "F", 15)),
+            "edge_samples": ArraySpec(("T", "E", 9), "uint8", "grey", "grey value at 9 evenly spaced points along each shared edge (both ends included); 0 unless both edge vertices are visible", (1, "E", 9)),
+            "face_visible": ArraySpec(("T", "F"), "bool", "1", "face visible in the frame (projection face_visible): the frame is a label candidate for the face", (1, "F")),
+            "blurred": ArraySpec(("T", "F"), "bool", "1", "E_qual blur step: the face's texture coordinates move more than theta_b_px per frame, or a neighbouring frame does not see it", (1, "F")),
+            "slanted": ArraySpec(("T", "F"), "bool", "1", "E_qual view-angle step (attr params.angle_rule)", (1, "F")),
+            "dynamism": ArraySpec(("T", "F"), "float32", "1", "S(f, t): mean SSIM of face f between the partial textures of frames t-1 and t (row 0 = row 1); NaN where not seen in both", (1, "F"), required=False),
+            "descriptors": ArraySpec(("T", "V", 352), "float16", "1", "SHOT descriptor of every vertex of the tracked mesh (unit L2 norm, geodesic neighbourhoods)", (1, "V", 352), required=False),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each row",
+            "coordinates": "'texcoords' (ξ) or 'projection' (Φ): the texture coordinates sampled",
+            "fractions": "dict: blurred and slanted fractions of the visible (frame, face) pairs",
+        },
+    ),
+    "tables": ArtifactSpec(
+        description="Label candidates of one block of target frames (stex.tables): for every "
+        "target t and face f the K best source frames l by the data term, with the terms of "
+        "each candidate, and the global similarity rows. Candidates are positions in the "
+        "sequence (0..T-1), sorted ascending, -1 = padding (a face visible in fewer than K "
+        "frames, or never).",
+        path="tables/block_{block}.zarr",
+        arrays={
+            "glo": ArraySpec(("Tb", "T"), "float32", "1", "E_glo[t, l]: clipped depth difference of K_{t->l}(M_t) and M_l rendered in the depth camera over the union of their silhouettes, divided by the clip (0..1)"),
+            "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
+            "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
+            "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
+            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: blurred + slanted (0, 1 or 2)", (1, "F", "K")),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each target row",
+            "sequence_frame_ids": "list[int]: global frame index of each sequence position (columns of glo, candidate values)",
+        },
+    ),
+    "labels": ArtifactSpec(
+        description="The frame labeling (stex.labeling): for every frame t and face f the "
+        "source frame l_{f,t} whose image textures f at t (Eq. 2: data term + spatial and "
+        "temporal smoothness with selective weighting), by α-expansion per frame and block "
+        "coordinate descent over even and odd frames. Faces never seen get -1 (the volume "
+        "stage fills them in texture space).",
+        path="labels.zarr",
+        arrays={
+            "labels": ArraySpec(("T", "F"), "int16", "index", "source frame (sequence position) of each face at each frame; -1 = never seen", (1, "F")),
+            "energy": ArraySpec(("R",), "float64", "1", "total energy of Eq. 2 after the initial per-frame solves (row 0) and after every BCD round"),
+            "frame_energy": ArraySpec(("R", "T"), "float64", "1", "energy terms of each frame's MRF (its unary, spatial and its temporal links to the previous frame) per round"),
+            "never_seen": ArraySpec(("F",), "bool", "1", "faces visible in no frame"),
+        },
+        attrs={
+            "frame_ids": "list[int]: global frame index of each row",
+            "rounds": "list[dict]: per round: energy, seconds, frames changed",
+            "n_never_seen": "int: faces visible in no frame",
+        },
+    ),
     "volume": ArtifactSpec(
         description="Texture volume of one frame block (stex.volume): for every frame t one W×W "
         "slice of the fixed template atlas, each covered texel sampled bilinearly from the colour "
@@ -249,6 +310,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each slice",
             "gutter_px": "int: rings of gutter texels filled around every chart",
+            "first_position": "int: sequence position of the first slice (labels are sequence positions)",
+            "never_seen_texels": "int: texels of never-seen faces, filled from the nearest seen surface point",
         },
     ),
     "corrected": ArtifactSpec(
@@ -262,6 +325,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each slice",
             "gutter_px": "int: as in volume",
+            "label_boundary_step": "list[[before, after]]: mean colour step across label boundaries per slice (grey levels)",
         },
     ),
 }
@@ -459,7 +523,7 @@ def artifacts_markdown() -> str:
         f"Conventions: {CONVENTIONS}",
         "",
         "Shape symbols: T frames (in that store), V vertices, F faces, Vt texture coordinates, "
-        "Hc×Wc colour image, Hd×Wd depth image, W texture side. Per-frame arrays are chunked one "
+        "Hc×Wc colour image, Hd×Wd depth image, W texture side, E adjacent face pairs, Tb target frames of a block, K candidates, R rounds. Per-frame arrays are chunked one "
         "frame per chunk.",
         "",
     ]

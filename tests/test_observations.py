@@ -1,0 +1,70 @@
+"""Observations stage: grey samples per face and edge, and the E_qual flags."""
+import numpy as np
+import pytest
+
+from stex.observations import (blurred_faces, edge_samples, face_centroids, face_samples, grey,
+                               slanted_faces)
+from stex.texcoords import SAMPLE_BARY
+
+
+def _ramp(h=40, w=60):
+    """Grey image whose value is the column index (a linear ramp, exact under bilinear lookup)."""
+    return np.tile(np.arange(w, dtype=np.float32), (h, 1))
+
+
+def test_face_samples_follow_the_coordinates():
+    img = _ramp()
+    coords = np.array([[10.0, 5.0], [30.0, 8.0], [20.0, 30.0], [50.0, 20.0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    out = face_samples(img, coords, faces, np.array([True, False]))
+    want = SAMPLE_BARY @ coords[faces[0], 0]
+    assert out.dtype == np.uint8 and out.shape == (2, 15)
+    assert np.abs(out[0].astype(float) - want).max() <= 0.5
+    assert not out[1].any()                       # invisible face: zeros
+
+
+def test_edge_samples_run_from_first_to_second_vertex():
+    img = _ramp()
+    coords = np.array([[8.0, 5.0], [40.0, 9.0], [0.0, 0.0]])
+    out = edge_samples(img, coords, np.array([[0, 1], [1, 2]]), np.array([True, True, False]))
+    assert np.allclose(out[0], np.linspace(8, 40, 9), atol=0.5)
+    assert not out[1].any()                       # vertex 2 invalid
+
+
+def test_grey_is_luma():
+    img = np.zeros((2, 2, 3), np.uint8)
+    img[0, 0] = (255, 0, 0)
+    img[1, 1] = (255, 255, 255)
+    g = grey(img)
+    assert g[0, 0] == pytest.approx(0.299 * 255, abs=1e-3) and g[1, 1] == pytest.approx(255, abs=1e-3)
+
+
+def test_blur_step_and_missing_neighbours():
+    T, F = 5, 2
+    c = np.zeros((T, F, 2))
+    c[:, 0, 0] = [0, 5, 10, 40, 70]               # face 0: slow, then fast (30 px/frame)
+    vis = np.ones((T, F), bool)
+    vis[3, 1] = False                             # face 1 unseen at frame 3
+    b = blurred_faces(c, vis, theta_b_px=20)
+    assert b[0].all() and b[-1][vis[-1]].all()    # sequence ends count as blurred
+    assert not b[1, 0] and b[3, 0]                # mean move 5 px vs 30 px
+    assert b[2, 1] and b[4, 1] and not b[1, 1]    # neighbours of the unseen frame
+    assert not b[3, 1]                            # not visible: not a candidate, not flagged
+
+
+def test_angle_rules():
+    cos = np.array([[0.2, 0.5, 0.8]])
+    assert slanted_faces(cos, 0.3, "paper").tolist() == [[True, True, False]]
+    assert slanted_faces(cos, 0.3, "authors").tolist() == [[True, False, False]]
+    with pytest.raises(ValueError, match="angle_rule"):
+        slanted_faces(cos, 0.3, "other")
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match="face_visible"):
+        face_samples(_ramp(), np.zeros((3, 2)), np.array([[0, 1, 2]]), np.ones(2, bool))
+    with pytest.raises(ValueError, match="coords"):
+        face_samples(_ramp(), np.zeros((2, 2)), np.array([[0, 1, 2]]), np.ones(1, bool))
+    with pytest.raises(ValueError, match="centroids"):
+        blurred_faces(np.zeros((3, 2, 2)), np.ones((3, 3), bool), 20)
+    assert face_centroids(np.array([[0, 0], [3, 0], [0, 3.0]]), np.array([[0, 1, 2]])).tolist() == [[1, 1]]

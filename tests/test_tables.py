@@ -1,0 +1,65 @@
+"""Tables stage: candidate selection and the data term."""
+import numpy as np
+import pytest
+
+from stex.tables import (face_local_similarity, select_candidates, target_candidates, unary_terms)
+
+
+def test_select_candidates_lowest_ascending_padded():
+    s = np.array([[5.0, 1.0, np.inf, 0.5, 3.0],
+                  [np.inf, np.inf, 2.0, np.inf, np.inf]])
+    c = select_candidates(s, 3)
+    assert c.tolist() == [[1, 3, 4], [2, -1, -1]]
+    assert select_candidates(s, 9)[0].tolist() == [0, 1, 3, 4, -1, -1, -1, -1, -1]
+
+
+def _random_case(rng, T=12, F=30, V=25, D=8):
+    faces = rng.integers(0, V, (F, 3))
+    vis = rng.random((T, F)) < 0.7
+    qual = rng.integers(0, 3, (T, F)).astype(np.float32)
+    desc = rng.random((T, V, D)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=2, keepdims=True)
+    glo = rng.random(T).astype(np.float32)
+    return faces, vis, qual, desc, glo
+
+
+def test_local_similarity_matches_numpy():
+    rng = np.random.default_rng(0)
+    faces, vis, qual, desc, glo = _random_case(rng)
+    cand = rng.integers(-1, 12, (30, 4))
+    got = face_local_similarity(desc, 3, cand, faces)
+    for f in range(30):
+        for k in range(4):
+            l = cand[f, k]
+            want = 0.0 if l < 0 else -np.mean([desc[3, v] @ desc[l, v] for v in faces[f]])
+            assert got[f, k] == pytest.approx(want, abs=1e-5)
+
+
+@pytest.mark.parametrize("similarity", ["both", "global", "local"])
+def test_pruned_candidates_equal_full_ranking_where_exact(similarity):
+    """Where the stage claims its prefilter is exact, the K best by the full data term (computed
+    over every visible frame) are exactly the candidates it kept."""
+    rng = np.random.default_rng(1)
+    faces, vis, qual, desc, glo = _random_case(rng)
+    K, t = 3, 5
+    res = target_candidates(t, glo, vis, qual, desc, faces, 0.9, similarity, K, prefilter=5)
+    full_c = np.where(vis.T, np.arange(12)[None, :], -1)
+    loc = face_local_similarity(desc, t, full_c, faces)
+    u = unary_terms(qual.T, glo[None, :], loc, 0.9, similarity)
+    best = select_candidates(np.where(vis.T, u, np.inf), K)
+    ex = res["exact"]
+    assert ex.any()
+    assert (res["candidates"][ex] == best[ex]).all()
+    # the stored terms are those of the kept frames
+    f = int(np.flatnonzero(ex & (res["candidates"][:, 0] >= 0))[0])
+    l = int(res["candidates"][f, 0])
+    assert res["e_qual"][f, 0] == qual[l, f] and res["e_glo"][f, 0] == pytest.approx(glo[l])
+
+
+def test_unary_modes():
+    q, g, l = np.float32(1), np.float32(0.5), np.float32(-0.8)
+    assert unary_terms(q, g, l, 0.9, "both") == pytest.approx(1 + 0.45 - 0.08)
+    assert unary_terms(q, g, l, 0.9, "global") == pytest.approx(1.5)
+    assert unary_terms(q, g, l, 0.9, "local") == pytest.approx(1.2)
+    with pytest.raises(ValueError):
+        unary_terms(q, g, l, 0.9, "neither")
