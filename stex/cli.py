@@ -1,6 +1,11 @@
 """The ``stex`` command line: tasks a user runs outside Snakemake.
 
     stex inspect results/demo/scene.zarr      # what a store holds: kind, frames, arrays, params
+    stex export results/demo --what mp4 --out out/   # texture volume as PNG/MP4/OBJ/glTF
+    stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
+
+Errors (missing or incomplete stores, a frame range outside the sequence) print one line on
+stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
 """
 
 from __future__ import annotations
@@ -44,12 +49,41 @@ def inspect_store(path: str) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="stex", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("inspect", help="summarise artifact stores")
-    p.add_argument("stores", nargs="+")
-    args = parser.parse_args(argv)
+class _Counter:
+    """Frame counter on stderr: rewrites one line while running, ends it when done."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self.live = sys.stderr.isatty()
+
+    def __call__(self, done: int, total: int | None) -> None:
+        text = f"{self.what}: frame {done}/{total if total is not None else '?'}"
+        if self.live:
+            print("\r" + text, end="\n" if done == total else "", file=sys.stderr, flush=True)
+        elif done == total or done % 10 == 0:
+            print(text, file=sys.stderr, flush=True)
+
+
+def _run_export(args) -> int:
+    from stex.export import export_results
+
+    paths = export_results(args.results, args.what, args.out, frames=args.frames,
+                           source=args.source, fps=args.fps, crf=args.crf, pix_fmt=args.pix_fmt,
+                           progress=_Counter(f"export {args.what}"))
+    print(f"wrote {len(paths)} {args.what} file(s) to {args.out}")
+    return 0
+
+
+def _run_preview(args) -> int:
+    from stex.export import preview_results
+
+    n, w, h = preview_results(args.results, args.out, frames=args.frames, source=args.source,
+                              fps=args.fps, size=args.size, progress=_Counter("preview"))
+    print(f"wrote {args.out}: {n} frames, {w}x{h}")
+    return 0
+
+
+def _run_inspect(args) -> int:
     status = 0
     for store in args.stores:
         try:
@@ -58,6 +92,46 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {exc}", file=sys.stderr)
             status = 1
     return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    from stex.export import EXPORT_KINDS, PIX_FMTS, SOURCES
+
+    parser = argparse.ArgumentParser(prog="stex", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("inspect", help="summarise artifact stores")
+    p.add_argument("stores", nargs="+")
+    p.set_defaults(run=_run_inspect)
+
+    frames_help = "frame ids START:STOP (STOP excluded), START:, :STOP or one id; default all"
+    p = sub.add_parser("export", help="export the texture volume (PNG slices, MP4, OBJ or glTF per frame)")
+    p.add_argument("results", help="results/<scene> folder holding the stores")
+    p.add_argument("--what", choices=EXPORT_KINDS, required=True)
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--frames", default=None, help=frames_help)
+    p.add_argument("--source", choices=SOURCES, default="corrected",
+                   help="texture volume to export (default: corrected)")
+    p.add_argument("--fps", type=float, default=None, help="mp4 frame rate (default: from the frames' timestamps)")
+    p.add_argument("--crf", type=int, default=18, help="mp4 x264 quality, 0..51, lower is better (default 18)")
+    p.add_argument("--pix-fmt", choices=PIX_FMTS, default="yuv420p",
+                   help="mp4 chroma layout: yuv420p plays everywhere, yuv444p keeps full colour detail")
+    p.set_defaults(run=_run_export)
+
+    p = sub.add_parser("preview", help="video: input image | textured mesh from the input camera | from behind")
+    p.add_argument("results", help="results/<scene> folder holding the stores")
+    p.add_argument("--out", required=True, help="output .mp4")
+    p.add_argument("--frames", default=None, help=frames_help)
+    p.add_argument("--source", choices=SOURCES, default="corrected")
+    p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the frames' timestamps)")
+    p.add_argument("--size", type=int, default=360, help="panel height in pixels (default 360)")
+    p.set_defaults(run=_run_preview)
+
+    args = parser.parse_args(argv)
+    try:
+        return args.run(args)
+    except (StoreError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

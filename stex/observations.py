@@ -222,12 +222,13 @@ def open_coordinates(path):
     raise ValueError(f"{path}: expected a 'texcoords' or 'projection' store, found {kind!r}")
 
 
-def write_observations(template_path, projection_path, coords_path, frames_paths, params: dict,
-                       out) -> None:
+def write_observations(template_path, tracking_path, projection_path, coords_path, frames_paths,
+                       params: dict, out) -> None:
     """Observations stage: write the ``observations`` store (one pass over the colour frames).
 
     Args:
         template_path: ``template`` store (faces, adjacency, atlas).
+        tracking_path: ``tracking`` store (vertices [T, V, 3], for the SHOT descriptors).
         projection_path: ``projection`` store (face visibility and cosines).
         coords_path: ``texcoords`` store (ξ) or the ``projection`` store itself (Φ).
         frames_paths: ``frames`` block stores (colour images, read one frame at a time).
@@ -235,7 +236,11 @@ def write_observations(template_path, projection_path, coords_path, frames_paths
         out: path of the store to write.
     """
     from stex.config import section_params
+    from stex.dynamism import face_ssim, partial_texture
     from stex.io import FrameSequence, create_store, open_store
+    from stex.similarity import geodesic_neighbourhoods, mesh_resolution, shot_descriptors
+    from stex.template import texel_map
+    from stex.volume import TexelSampler
 
     p = section_params("observations", params)
     template = open_store(template_path, "template")
@@ -254,18 +259,42 @@ def write_observations(template_path, projection_path, coords_path, frames_paths
     face_visible = np.asarray(projection["face_visible"][...], bool)
     face_cos = np.asarray(projection["face_cos"][...], np.float32)
     centroids = np.empty((T, nF, 2))
+    verts = open_store(tracking_path, "tracking")["vertices"]
+    if verts.shape[0] != T:
+        raise ValueError(f"{tracking_path}: {verts.shape[0]} frames, {projection_path}: {T}")
     t0 = time.perf_counter()
+    rest = np.asarray(template["vertices"][...], np.float64)
+    radius = float(p["shot_radius"]) * mesh_resolution(rest, faces)
+    nbh = geodesic_neighbourhoods(rest, faces, radius)      # fixed topology: once per sequence
+    small = texel_map(template["texcoords"][...], template["texcoord_faces"][...], int(p["ssim_size"]))
+    ssim_sampler = TexelSampler(small[0], small[1], faces)
+    log.info("observations: SHOT radius %.1f mm (%d neighbours per vertex on average), SSIM at "
+             "%d², set up in %.1f s", 1000 * radius, len(nbh[1]) // max(len(rest), 1),
+             int(p["ssim_size"]), time.perf_counter() - t0)
+    previous = None
     attrs = {"frame_ids": ids, "coordinates": kind}
     with create_store(out, "observations", attrs=attrs, params=p) as store:
         a_face = store.create("face_samples", (T, nF, len(SAMPLE_BARY)))
         a_edge = store.create("edge_samples", (T, nE, EDGE_SAMPLES))
+        a_dyn = store.create("dynamism", (T, nF))
+        a_desc = store.create("descriptors", (T, verts.shape[1], 352))
         for k, fid in enumerate(ids):
             xy = np.asarray(coords[k], np.float64)
             ok = np.asarray(valid[k], bool)
-            g = grey(frames.read("color", fid))
+            color = frames.read("color", fid)
+            g = grey(color)
             a_face[k] = face_samples(g, xy, faces, face_visible[k])
             a_edge[k] = edge_samples(g, xy, edges, ok)
             centroids[k] = face_centroids(xy, faces)
+            current = partial_texture(ssim_sampler, xy, face_visible[k], color)
+            if previous is not None:
+                a_dyn[k] = face_ssim(*previous, *current, small[0], nF)
+                if k == 1:          # frame 0 has no predecessor: its row copies row 1
+                    a_dyn[0] = a_dyn[1]
+            elif T == 1:
+                a_dyn[0] = np.full(nF, np.nan, np.float32)
+            previous = current
+            a_desc[k] = shot_descriptors(np.asarray(verts[k], np.float64), faces, nbh, radius).astype(np.float16)
             if (k + 1) % 20 == 0 or k + 1 == T:
                 log.info("observations: frame %d (%d/%d, %.1f frames/s)", fid, k + 1, T,
                          (k + 1) / (time.perf_counter() - t0))

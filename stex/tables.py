@@ -33,12 +33,11 @@ import logging
 import time
 
 import numpy as np
-from numba import njit
 
 log = logging.getLogger("stex.tables")
 
-__all__ = ["prefilter_candidates", "select_candidates", "face_local_similarity", "unary_terms",
-           "write_tables"]
+__all__ = ["prefilter_candidates", "select_candidates", "finish_candidates", "block_candidates",
+           "unary_terms", "write_tables"]
 
 SIMILARITY_MODES = ("both", "global", "local")
 
@@ -97,44 +96,6 @@ def prefilter_candidates(glo_row, face_visible, e_qual, omega_g: float, similari
     return select_candidates(pre, prefilter), pre
 
 
-@njit(cache=True, nogil=True)
-def _face_sim_kernel(desc, t, cand, faces, out):
-    F, K = cand.shape
-    D = desc.shape[2]
-    for f in range(F):
-        for k in range(K):
-            l = cand[f, k]
-            if l < 0:
-                continue
-            s = 0.0
-            for j in range(3):
-                v = faces[f, j]
-                acc = 0.0
-                for d in range(D):
-                    acc += np.float32(desc[t, v, d]) * np.float32(desc[l, v, d])
-                s += acc
-            out[f, k] = -s / 3.0
-
-
-def face_local_similarity(descriptors, t: int, cand, faces) -> np.ndarray:
-    """E_loc(t, f, l) for the candidate frames of every face.
-
-    Args:
-        descriptors: (T, V, D) float16/float32 unit SHOT descriptors of every frame.
-        t: target frame (sequence position).
-        cand: (F, K) int candidate frames (-1 padding).
-        faces: (F, 3) int.
-
-    Returns:
-        (F, K) float32 −(1/3) Σ_j τ_j(t)·τ_j(l), 0 at padding.
-    """
-    desc = np.asarray(descriptors)
-    c = np.ascontiguousarray(cand, dtype=np.int64)
-    out = np.zeros(c.shape, np.float32)
-    _face_sim_kernel(desc, int(t), c, np.ascontiguousarray(faces, dtype=np.int64), out)
-    return out
-
-
 def unary_terms(e_qual, e_glo, e_loc, omega_g: float, similarity: str) -> np.ndarray:
     """U = E_qual + ω_g E_glo + (1 − ω_g) E_loc (or one geometric term: module docstring)."""
     if similarity == "both":
@@ -146,38 +107,30 @@ def unary_terms(e_qual, e_glo, e_loc, omega_g: float, similarity: str) -> np.nda
     raise ValueError(f"similarity must be one of {SIMILARITY_MODES}, got {similarity!r}")
 
 
-def target_candidates(t: int, glo_row, face_visible, e_qual, descriptors, faces, omega_g: float,
-                      similarity: str, n_candidates: int, prefilter: int):
-    """Candidates of one target frame t and their data terms.
+def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: float,
+                      similarity: str, n_candidates: int):
+    """The final candidates of one target frame from its prefilter and the E_loc of those frames.
 
     Args:
-        t: target frame (sequence position).
-        glo_row: (T,) E_glo(t, ·).
-        face_visible: (T, F) bool.
-        e_qual: (T, F) float32.
-        descriptors: (T, V, D) SHOT descriptors (unused when ``similarity == 'global'``).
-        faces: (F, 3) int.
+        pre_c, pre: :func:`prefilter_candidates` of the target ((F, P) frames, (F, T) pre-score).
+        glo_row: (T,) E_glo(t, ·). face_visible: (T, F) bool. e_qual: (T, F) float32.
+        loc: (F, P) float32 E_loc(t, f, pre_c[f, k]) (ignored for ``similarity='global'``).
 
     Returns:
         dict of (F, K) arrays ``candidates`` int16 (ascending, -1 padding), ``e_glo``,
         ``e_loc``, ``e_qual`` float32, and ``exact`` (F,) bool (the pruning bound holds).
     """
-    pre_c, pre = prefilter_candidates(glo_row, face_visible, e_qual, omega_g, similarity,
-                                      max(prefilter, n_candidates))
     ok = pre_c >= 0
     safe = np.where(ok, pre_c, 0)
-    q = np.asarray(e_qual, np.float32).T[np.arange(pre_c.shape[0])[:, None], safe]
+    rows = np.arange(pre_c.shape[0])[:, None]
+    q = np.asarray(e_qual, np.float32).T[rows, safe]
     g = np.asarray(glo_row, np.float32)[safe]
-    if similarity == "global":
-        loc = np.zeros(pre_c.shape, np.float32)
-    else:
-        loc = face_local_similarity(descriptors, t, pre_c, faces)
+    loc = np.zeros(pre_c.shape, np.float32) if similarity == "global" else np.asarray(loc, np.float32)
     u = np.where(ok, unary_terms(q, g, loc, omega_g, similarity), np.inf)
-    pick = select_candidates(u, n_candidates)                    # columns into pre_c
+    pick = select_candidates(u, n_candidates)                    # columns into pre_c, ascending
     okp = pick >= 0
     sp = np.where(okp, pick, 0)
-    rows = np.arange(pre_c.shape[0])[:, None]
-    cand = np.where(okp, pre_c[rows, sp], -1)
+    cand = np.where(okp, pre_c[rows, sp], -1)                    # ascending: pre_c is
     # the K-th best full score against the best a left-out frame could reach
     kth = np.where(okp, u[rows, sp], -np.inf).max(axis=1)
     worst_pre = np.where(ok, pre[rows, safe], -np.inf).max(axis=1)
@@ -185,11 +138,53 @@ def target_candidates(t: int, glo_row, face_visible, e_qual, descriptors, faces,
     # how far E_loc can lower a left-out frame's score below its pre-score ('local' adds 1 + E_loc >= 0)
     loc_gain = 1.0 - omega_g if similarity == "both" else 0.0
     exact = (n_vis <= pre_c.shape[1]) | (kth <= worst_pre - loc_gain)
-    order = np.argsort(np.where(cand >= 0, cand, np.iinfo(np.int32).max), axis=1)
-    take = lambda a: np.take_along_axis(np.where(okp, a, 0), order, axis=1).astype(np.float32)
-    return {"candidates": np.take_along_axis(cand, order, axis=1).astype(np.int16),
-            "e_glo": take(g[rows, sp]), "e_loc": take(loc[rows, sp]), "e_qual": take(q[rows, sp]),
-            "exact": exact}
+
+    def take(a):
+        return np.where(okp, a[rows, sp], 0).astype(np.float32)
+
+    return {"candidates": cand.astype(np.int16), "e_glo": take(g), "e_loc": take(loc),
+            "e_qual": take(q), "exact": exact}
+
+
+def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, omega_g: float,
+                     similarity: str, n_candidates: int, prefilter: int, median_hops: int = 2):
+    """Candidates of a block of target frames (E_loc for all their prefiltered frames at once,
+    so the descriptors stream through memory once per block).
+
+    Args:
+        targets: (n,) target frames (sequence positions); glo: (n, T) their E_glo rows.
+        face_visible: (T, F) bool; e_qual: (T, F) float32.
+        descriptors: (T, V, D) SHOT descriptors (numpy or zarr; unused for 'global').
+        faces: (F, 3) int. median_hops: median filter of the vertex similarities.
+
+    Returns:
+        list of :func:`finish_candidates` dicts, one per target.
+    """
+    from stex.similarity import local_similarity_triples, vertex_rings
+
+    pres = [prefilter_candidates(glo[k], face_visible, e_qual, omega_g, similarity,
+                                 max(prefilter, n_candidates)) for k in range(len(targets))]
+    locs = [None] * len(targets)
+    if similarity != "global":
+        tt, ff, ll, where = [], [], [], []
+        for k, t in enumerate(targets):
+            f, j = np.nonzero(pres[k][0] >= 0)
+            tt.append(np.full(f.size, t, np.int64))
+            ff.append(f)
+            ll.append(pres[k][0][f, j].astype(np.int64))
+            where.append((f, j))
+        rings = vertex_rings(faces, descriptors.shape[1], median_hops)
+        vals = local_similarity_triples(descriptors, faces, np.concatenate(tt), np.concatenate(ff),
+                                        np.concatenate(ll), rings=rings)
+        n0 = 0
+        for k in range(len(targets)):
+            f, j = where[k]
+            loc = np.zeros(pres[k][0].shape, np.float32)
+            loc[f, j] = vals[n0:n0 + f.size]
+            n0 += f.size
+            locs[k] = loc
+    return [finish_candidates(pres[k][0], pres[k][1], glo[k], face_visible, e_qual, locs[k],
+                              omega_g, similarity, n_candidates) for k in range(len(targets))]
 
 
 def write_tables(scene_path, template_path, tracking_path, poses_path, observations_path,
@@ -230,12 +225,10 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     face_visible = np.asarray(obs["face_visible"][...], bool)
     e_qual = (np.asarray(obs["blurred"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))
-    descriptors = None
-    if p["similarity"] != "global":
-        if "descriptors" not in obs:
-            raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
-                             f"tables.similarity={p['similarity']!r}")
-        descriptors = np.asarray(obs["descriptors"][...])
+    descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
+    if p["similarity"] != "global" and descriptors is None:
+        raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
+                         f"tables.similarity={p['similarity']!r}")
     t0 = time.perf_counter()
     targets = list(range(start, stop))
     glo = global_similarity(vertices, faces, poses, cal.depth.K, cal.depth.width,
@@ -250,9 +243,10 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
         store.write("glo", glo.astype(np.float32))
         arrays = {name: store.create(name, (nT, nF, K))
                   for name in ("candidates", "e_glo", "e_loc", "e_qual")}
-        for k, t in enumerate(targets):
-            res = target_candidates(t, glo[k], face_visible, e_qual, descriptors, faces,
-                                    p["omega_g"], p["similarity"], K, int(p["prefilter"]))
+        results = block_candidates(targets, glo, face_visible, e_qual, descriptors, faces,
+                                   p["omega_g"], p["similarity"], K, int(p["prefilter"]),
+                                   int(p["median_hops"]))
+        for k, res in enumerate(results):
             for name, arr in arrays.items():
                 arr[k] = res[name]
             exact.append(float(res["exact"].mean()))

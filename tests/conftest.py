@@ -23,6 +23,22 @@ TINY_SYNTHETIC = {
 }
 
 
+def grid_atlas(n: int = 9):
+    """A flat n x n vertex grid covering [0.05, 0.95]^2 of an atlas whose texcoords are the
+    vertices: (texcoords (n², 2) float64, faces (2 (n-1)², 3) int32)."""
+    import numpy as np
+
+    g = np.linspace(0.05, 0.95, n)
+    u, v = np.meshgrid(g, g)
+    tc = np.stack([u.ravel(), v.ravel()], 1)
+    faces = []
+    for r in range(n - 1):
+        for c in range(n - 1):
+            a = r * n + c
+            faces += [[a, a + 1, a + n + 1], [a, a + n + 1, a + n]]
+    return tc, np.array(faces, np.int32)
+
+
 @pytest.fixture(scope="session")
 def demo_config() -> dict:
     """The embedded default scene's validated config."""

@@ -14,3 +14,76 @@ def test_inspect_prints_arrays_and_fails_on_bad_store(tmp_path, capsys):
     assert "artifact 'masks'" in out and "frames: 2 (4..5)" in out and "(2, 3, 4)" in out
     assert main(["inspect", str(tmp_path / "missing.zarr")]) == 1
     assert "missing.zarr" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# stex export / stex preview, end to end on the tiny cube scene of test_export
+# --------------------------------------------------------------------------------------------
+
+import shutil  # noqa: E402
+
+import av  # noqa: E402
+import trimesh  # noqa: E402
+from PIL import Image  # noqa: E402
+from test_export import FRAME_IDS, gradient_texture, make_results  # noqa: E402
+
+
+def _video_frames(path):
+    with av.open(str(path)) as c:
+        return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+
+
+def test_export_every_kind_end_to_end(tmp_path, capsys):
+    res = make_results(tmp_path / "results" / "cube")
+    out = tmp_path / "out"
+    assert main(["export", str(res), "--what", "png", "--frames", "12:14", "--source", "volume",
+                 "--out", str(out / "png")]) == 0
+    assert sorted(p.name for p in (out / "png").iterdir()) == ["texture_00012.png", "texture_00013.png"]
+    np.testing.assert_array_equal(np.asarray(Image.open(out / "png" / "texture_00013.png")), gradient_texture(3))
+    captured = capsys.readouterr()
+    assert "frame 2/2" in captured.err and "wrote 2 png" in captured.out
+
+    assert main(["export", str(res), "--what", "obj", "--frames", "10", "--out", str(out / "obj")]) == 0
+    assert sorted(p.name for p in (out / "obj").iterdir()) == ["frame_00010.mtl", "frame_00010.obj", "frame_00010.png"]
+    np.testing.assert_array_equal(np.asarray(Image.open(out / "obj" / "frame_00010.png")), gradient_texture(100))
+    assert len(trimesh.load(out / "obj" / "frame_00010.obj", process=False).faces) == 12
+
+    assert main(["export", str(res), "--what", "gltf", "--frames", "13:", "--out", str(out / "glb")]) == 0
+    assert sorted(p.name for p in (out / "glb").iterdir()) == ["frame_00013.glb", "frame_00014.glb"]
+
+    assert main(["export", str(res), "--what", "mp4", "--fps", "10", "--out", str(out / "mp4")]) == 0
+    frames = _video_frames(out / "mp4" / "texture.mp4")
+    assert len(frames) == len(FRAME_IDS) and frames[0].shape == (64, 64, 3)
+
+
+def test_preview_end_to_end(tmp_path, capsys):
+    res = make_results(tmp_path / "cube")
+    out = tmp_path / "preview.mp4"
+    assert main(["preview", str(res), "--frames", "11:14", "--size", "48", "--out", str(out)]) == 0
+    frames = _video_frames(out)
+    assert len(frames) == 3 and frames[0].shape == (48, 3 * 64, 3)  # 80x60 colour scaled to 64x48
+    assert "3 frames" in capsys.readouterr().out
+
+
+def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
+    res = make_results(tmp_path / "cube", corrected=False)
+    out = str(tmp_path / "out")
+    assert main(["export", str(res), "--what", "png", "--frames", "12:99", "--source", "volume", "--out", out]) == 1
+    err = capsys.readouterr().err
+    assert "error: frame range 12:99 is outside the sequence (frames 10..14)" in err
+    assert main(["export", str(res), "--what", "png", "--frames", "x", "--source", "volume", "--out", out]) == 1
+    assert "START:STOP" in capsys.readouterr().err
+    # corrected (the default source) was not written
+    assert main(["export", str(res), "--what", "png", "--out", out]) == 1
+    err = capsys.readouterr().err
+    assert "corrected/block_0000.zarr: no such store (has the 'corrected' stage run?)" in err
+    shutil.rmtree(res / "volume" / "block_0001.zarr")
+    assert main(["export", str(res), "--what", "png", "--source", "volume", "--out", out]) == 1
+    assert "volume/block_0001.zarr: no such store" in capsys.readouterr().err
+    make_results(res, corrected=False)
+    shutil.rmtree(res / "tracking.zarr")
+    assert main(["export", str(res), "--what", "gltf", "--source", "volume", "--out", out]) == 1
+    assert "tracking.zarr: no such store" in capsys.readouterr().err
+    assert main(["preview", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.mp4")]) == 1
+    assert "nowhere: no such results folder" in capsys.readouterr().err
+    assert not (tmp_path / "p.mp4").exists()

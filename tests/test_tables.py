@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from stex.tables import (face_local_similarity, select_candidates, target_candidates, unary_terms)
+from stex.similarity import local_similarity_faces
+from stex.tables import block_candidates, select_candidates, unary_terms
 
 
 def test_select_candidates_lowest_ascending_padded():
@@ -14,7 +15,7 @@ def test_select_candidates_lowest_ascending_padded():
 
 
 def _random_case(rng, T=12, F=30, V=25, D=8):
-    faces = rng.integers(0, V, (F, 3))
+    faces = np.array([rng.choice(V, 3, replace=False) for _ in range(F)])
     vis = rng.random((T, F)) < 0.7
     qual = rng.integers(0, 3, (T, F)).astype(np.float32)
     desc = rng.random((T, V, D)).astype(np.float32)
@@ -23,28 +24,18 @@ def _random_case(rng, T=12, F=30, V=25, D=8):
     return faces, vis, qual, desc, glo
 
 
-def test_local_similarity_matches_numpy():
-    rng = np.random.default_rng(0)
-    faces, vis, qual, desc, glo = _random_case(rng)
-    cand = rng.integers(-1, 12, (30, 4))
-    got = face_local_similarity(desc, 3, cand, faces)
-    for f in range(30):
-        for k in range(4):
-            l = cand[f, k]
-            want = 0.0 if l < 0 else -np.mean([desc[3, v] @ desc[l, v] for v in faces[f]])
-            assert got[f, k] == pytest.approx(want, abs=1e-5)
-
-
 @pytest.mark.parametrize("similarity", ["both", "global", "local"])
 def test_pruned_candidates_equal_full_ranking_where_exact(similarity):
     """Where the stage claims its prefilter is exact, the K best by the full data term (computed
     over every visible frame) are exactly the candidates it kept."""
     rng = np.random.default_rng(1)
-    faces, vis, qual, desc, glo = _random_case(rng)
+    faces, vis, qual, desc, _ = _random_case(rng)
     K, t = 3, 5
-    res = target_candidates(t, glo, vis, qual, desc, faces, 0.9, similarity, K, prefilter=5)
-    full_c = np.where(vis.T, np.arange(12)[None, :], -1)
-    loc = face_local_similarity(desc, t, full_c, faces)
+    glo_rows = rng.random((2, 12)).astype(np.float32)
+    res = block_candidates([t, 7], glo_rows, vis, qual, desc, faces, 0.9, similarity, K,
+                           prefilter=5, median_hops=1)[0]
+    glo = glo_rows[0]
+    loc = local_similarity_faces(desc, faces, [(t, l) for l in range(12)], median_hops=1).T
     u = unary_terms(qual.T, glo[None, :], loc, 0.9, similarity)
     best = select_candidates(np.where(vis.T, u, np.inf), K)
     ex = res["exact"]

@@ -1,0 +1,390 @@
+"""Labeling stage: the spatiotemporal MRF of the paper (Eq. 2), one source frame per (face, frame).
+
+For every frame t and face f the stage chooses l_{f,t}, the frame whose colour image textures f
+at time t, minimising
+
+    E = Σ_t Σ_f U(t, f, l_{f,t})                                   data term (stex.tables)
+      + ω_s Σ_t Σ_{(f,f')} w_{ff'} E_spa(l_{f,t}, l_{f',t})         spatial smoothness
+      + ω_t Σ_t Σ_f g_f(l_{f,t}, l_{f,t+1}) E_temp(l_{f,t}, l_{f,t+1})   temporal smoothness
+
+- U = E_qual + ω_g E_glo + (1 − ω_g) E_loc over the face's candidate frames (``tables`` store;
+  ``similarity: global | local`` keep one of the two geometric terms, as ablations).
+- E_spa(a, b) = 0.5·mean|I_a − I_b| + 0.5·mean|ΔI_a − ΔI_b| over the 9 grey samples along the
+  shared edge (``observations`` edge_samples, /255; ΔI = differences of consecutive samples, the
+  authors' gradient along the edge). The paper sums both terms; the authors weight each 0.5
+  (``calEdgeImdiff``), which stex follows. It is an L1 distance between per-(edge, frame)
+  feature vectors, so it is a metric on every edge and every α-expansion move is submodular.
+- E_temp(a, b) = mean|I_a − I_b| over the 15 grey samples of the face (/255), the authors'
+  ``calFaceImdiff``.
+- Selective weighting (θ_Ω = 0.95, S = ``observations`` dynamism): ``temporal: selective`` gates
+  E_temp with χ(min(S(f, a), S(f, b)) ≥ θ_Ω) — source frames a and b, as the paper's Eq.
+  revised_temp and the authors' code; ``constant`` uses weight 1; ``off`` drops the term.
+  ``spatial_selective`` multiplies E_spa on an edge by 2 − (χ(S_m(f)) + χ(S_m(f')))/2 with
+  S_m(f) = min over the face's visible frames of S(f, ·) — the paper's rule, which the authors'
+  code intends but never applies (a by-value loop, ``official_code_notes.md`` §2.4). NaN
+  dynamism (face not seen in two consecutive frames) gives no evidence of change and counts as
+  static (χ = 1).
+
+Optimisation (the authors' schedule, made a descent method): every frame's spatial MRF is first
+solved on its own (temporal term absent), then block coordinate descent: all even frames with
+their odd neighbours' labels fixed, then all odd frames, repeated until a round lowers the total
+energy by less than ``rel_tol`` or ``max_rounds``. With the neighbours fixed, the temporal terms
+of frame t are unary terms of its MRF (the authors fold them the same way), so each frame is one
+α-expansion (:func:`stex.mrf.alpha_expansion`: per-node label subsets, moves accepted only when
+the frame's energy falls) warm-started from its current labels: the total energy never rises.
+Frames of one parity do not interact, so they are solved in parallel threads (numba releases the
+GIL).
+
+Faces never visible have no candidate and stay -1 (``never_seen``); the volume stage fills their
+texels in texture space from the nearest labelled surface.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from stex import mrf
+
+log = logging.getLogger("stex.labeling")
+
+__all__ = ["spatial_features", "EdgeFeatures", "FrameProblem",
+           "frame_problem", "temporal_cost", "label_sequence", "total_energy", "write_labels"]
+
+TEMPORAL_MODES = ("selective", "constant", "off")
+SIMILARITY_MODES = ("both", "global", "local")
+
+
+def spatial_features(edge_samples) -> np.ndarray:
+    """Per-(edge, frame) features whose L1 distance is E_spa.
+
+    Args:
+        edge_samples: (..., n) uint8 grey samples along the edges (n >= 2).
+
+    Returns:
+        (..., 2n − 1) float32: 0.5/n · I/255 then 0.5/(n−1) · ΔI/255, so that
+        ‖F_a − F_b‖₁ = 0.5·mean|I_a − I_b| + 0.5·mean|ΔI_a − ΔI_b| (grey / 255).
+    """
+    s = np.asarray(edge_samples, dtype=np.float32) / 255.0
+    n = s.shape[-1]
+    if n < 2:
+        raise ValueError("edge_samples need at least 2 samples per edge")
+    return np.concatenate([s * (0.5 / n), np.diff(s, axis=-1) * (0.5 / (n - 1))], axis=-1)
+
+
+def temporal_cost(face_samples, cand, faces_idx, other_labels, gates=None) -> np.ndarray:
+    """E_temp between every candidate label of some faces and a fixed label of each face.
+
+    Args:
+        face_samples: (T, F, S) uint8 grey samples per (frame, face).
+        cand: (n, K) int candidate labels of faces ``faces_idx`` (-1 = padding).
+        faces_idx: (n,) int face ids.
+        other_labels: (n,) int the neighbouring frame's label of each face (-1 = none: cost 0).
+        gates: optional (T, F) float32 selective gates; the cost is multiplied by
+            min(gate[a, f], gate[b, f]).
+
+    Returns:
+        (n, K) float32 mean |I_a − I_b| / 255 over the face's samples (0 at padding).
+    """
+    cand = np.asarray(cand)
+    f = np.asarray(faces_idx, np.int64)
+    b = np.asarray(other_labels, np.int64)
+    ok = (cand >= 0) & (b >= 0)[:, None]
+    a = np.where(ok, cand, 0).astype(np.int64)
+    bb = np.where(b >= 0, b, 0)
+    sa = face_samples[a, f[:, None]].astype(np.int16)             # (n, K, S)
+    sb = face_samples[bb, f].astype(np.int16)[:, None, :]         # (n, 1, S)
+    cost = np.abs(sa - sb).mean(axis=-1).astype(np.float32) / 255.0
+    if gates is not None:
+        cost *= np.minimum(gates[a, f[:, None]], gates[bb, f][:, None])
+    return np.where(ok, cost, 0.0).astype(np.float32)
+
+
+class EdgeFeatures:
+    """:func:`spatial_features` computed on demand: ``EdgeFeatures(samples)[labels, edges]``.
+
+    A frame's MRF needs the features of a few (label, edge) pairs; the full (T, E, 17) float32
+    table would be 0.5 GB on the paper scene, the uint8 samples are 72 MB."""
+
+    def __init__(self, edge_samples):
+        self.samples = np.asarray(edge_samples)
+
+    def __getitem__(self, idx):
+        return spatial_features(self.samples[idx])
+
+
+class FrameProblem:
+    """One frame's spatial MRF in the form :mod:`stex.mrf` takes (nodes = faces with candidates).
+
+    Attributes: ``faces`` (N,) face id of each node; ``cand`` (N, K) candidate labels (-1 pad);
+    ``unary`` (N, K) float64 data term; CSR arrays of :func:`stex.mrf.alpha_expansion`
+    (``cand_ptr``, ``cand_label``), ``edges`` (M, 2) node pairs, ``edge_weight`` (M,),
+    ``feat_ptr``, ``feat_label``, ``feat``.
+    """
+
+    def __init__(self, faces, cand, unary, cand_ptr, cand_label, slot, edges, edge_weight,
+                 feat_ptr, feat_label, feat):
+        self.faces, self.cand, self.unary = faces, cand, unary
+        self.cand_ptr, self.cand_label, self.slot = cand_ptr, cand_label, slot
+        self.edges, self.edge_weight = edges, edge_weight
+        self.feat_ptr, self.feat_label, self.feat = feat_ptr, feat_label, feat
+
+    def costs(self, extra=None) -> np.ndarray:
+        """(M,) float64 unary cost per CSR entry, plus ``extra`` (N, K) if given."""
+        u = self.unary if extra is None else self.unary + extra
+        return np.ascontiguousarray(u[self.slot[:, 0], self.slot[:, 1]], dtype=np.float64)
+
+    def solve(self, extra=None, labels0=None, seed=0, max_cycles=10, tol=1e-4):
+        args = (self.cand_ptr, self.cand_label, self.costs(extra), self.edges, self.edge_weight,
+                self.feat_ptr, self.feat_label, self.feat)
+        return mrf.alpha_expansion(*args, labels0=labels0, max_cycles=max_cycles, tol=tol, seed=seed)
+
+    def energy(self, labels, extra=None) -> float:
+        return mrf.energy(labels, self.cand_ptr, self.cand_label, self.costs(extra), self.edges,
+                          self.edge_weight, self.feat_ptr, self.feat_label, self.feat)
+
+    def icm(self, extra=None, labels0=None):
+        return mrf.icm(self.cand_ptr, self.cand_label, self.costs(extra), self.edges,
+                       self.edge_weight, self.feat_ptr, self.feat_label, self.feat, labels0=labels0)
+
+
+def frame_problem(cand, unary, pairs, pair_weight, edge_features) -> FrameProblem:
+    """Build frame t's MRF.
+
+    Args:
+        cand: (F, K) int candidate labels of every face at t (ascending, -1 = padding).
+        unary: (F, K) float data term of each candidate.
+        pairs: (E, 2) adjacent face pairs; pair_weight: (E,) ω_s times the selective weight.
+        edge_features: (T, E, D) float32 :func:`spatial_features` of every frame, or an
+            :class:`EdgeFeatures` indexed the same way.
+
+    Only faces with at least one candidate are nodes; only pairs of two nodes are edges.
+    """
+    cand = np.asarray(cand)
+    has = cand[:, 0] >= 0
+    faces = np.flatnonzero(has)
+    node_of = np.full(cand.shape[0], -1, np.int64)
+    node_of[faces] = np.arange(faces.size)
+    c = cand[faces].astype(np.int32)
+    valid = c >= 0
+    counts = valid.sum(axis=1)
+    cand_ptr = np.zeros(faces.size + 1, np.int64)
+    np.cumsum(counts, out=cand_ptr[1:])
+    rows, cols = np.nonzero(valid)                   # row-major: ascending labels per node
+    cand_label = np.ascontiguousarray(c[rows, cols], dtype=np.int32)
+    slot = np.stack([rows, cols], axis=1)
+    P = np.asarray(pairs, np.int64)
+    keep = has[P[:, 0]] & has[P[:, 1]]
+    ek = np.flatnonzero(keep)
+    edges = np.stack([node_of[P[ek, 0]], node_of[P[ek, 1]]], axis=1).astype(np.int32)
+    weight = np.ascontiguousarray(np.asarray(pair_weight, np.float64)[ek])
+    # features over the union of the two faces' candidate labels, ascending, no repeats
+    both = np.concatenate([cand[P[ek, 0]], cand[P[ek, 1]]], axis=1).astype(np.int64)
+    both.sort(axis=1)
+    keepl = both >= 0
+    keepl[:, 1:] &= both[:, 1:] != both[:, :-1]
+    fcounts = keepl.sum(axis=1)
+    feat_ptr = np.zeros(ek.size + 1, np.int64)
+    np.cumsum(fcounts, out=feat_ptr[1:])
+    er, ec = np.nonzero(keepl)
+    feat_label = np.ascontiguousarray(both[er, ec], dtype=np.int32)
+    feat = np.ascontiguousarray(edge_features[feat_label, ek[er]], dtype=np.float32)
+    return FrameProblem(faces, cand[faces], np.asarray(unary, np.float64)[faces], cand_ptr,
+                        cand_label, slot, edges, weight, feat_ptr, feat_label, feat)
+
+
+def _links(face_samples, L_prev, L_cur, gates) -> float:
+    """Σ_f gate·E_temp(L_prev[f], L_cur[f]) over faces labelled in both frames."""
+    ok = (L_prev >= 0) & (L_cur >= 0)
+    f = np.flatnonzero(ok)
+    if f.size == 0:
+        return 0.0
+    c = temporal_cost(face_samples, L_cur[f][:, None], f, L_prev[f], gates)
+    return float(c.sum())
+
+
+def label_sequence(cand, unary, pairs, pair_weight, edge_samples, face_samples, omega_t: float,
+                   gates=None, max_rounds: int = 4, rel_tol: float = 1e-3, seed: int = 0,
+                   max_cycles: int = 10, threads: int = 2, progress=None) -> dict:
+    """Solve the spatiotemporal labeling by per-frame α-expansion and even/odd BCD.
+
+    Args:
+        cand: (T, F, K) int16 candidate labels per (target frame, face), -1 = padding.
+        unary: (T, F, K) float32 data term of each candidate.
+        pairs: (E, 2) adjacent face pairs; pair_weight: (E,) ω_s·selective weight.
+        edge_samples: (T, E, n) uint8 grey samples along every shared edge per frame.
+        face_samples: (T, F, S) uint8 grey samples per (frame, face).
+        omega_t: temporal weight ω_t (0 or ``gates`` all 0 drops the term).
+        gates: optional (T, F) float32 selective gates (None: constant weight 1).
+        max_rounds: BCD rounds (each: one even sweep, one odd sweep) after the initial solves.
+        rel_tol: stop when a round lowers the total energy by less than this fraction.
+        seed: α-expansion label order seed (frame t uses seed + t): fixed seed, same result.
+        threads: frames of one parity solved in parallel.
+        progress: optional callable(str) for progress messages.
+
+    Returns:
+        dict with ``labels`` (T, F) int16 (-1 where a face has no candidate), ``energy`` (R,)
+        total energy after the initial solves and after every round, ``frame_energy`` (R, T),
+        ``rounds`` list of dicts (energy, seconds, changed faces).
+    """
+    cand = np.asarray(cand)
+    T, nF, _ = cand.shape
+    features = EdgeFeatures(edge_samples)
+
+    def problem(t):
+        return frame_problem(cand[t], unary[t], pairs, pair_weight, features)
+
+    L = np.full((T, nF), -1, np.int32)
+    spa = np.zeros(T)
+    link = np.zeros(T)           # link[t]: temporal energy between t-1 and t (link[0] = 0)
+
+    def extra_for(t, pr):
+        if omega_t == 0:
+            return None
+        ex = np.zeros(pr.cand.shape, np.float32)
+        for nb in (t - 1, t + 1):
+            if 0 <= nb < T:
+                ex += temporal_cost(face_samples, pr.cand, pr.faces, L[nb, pr.faces], gates)
+        return omega_t * ex
+
+    def solve(t, temporal):
+        pr = problem(t)
+        ex = extra_for(t, pr) if temporal else None
+        cur = L[t, pr.faces] if temporal else None
+        lab, _ = pr.solve(ex, labels0=cur, seed=seed + t, max_cycles=max_cycles)
+        return t, pr, lab
+
+    def store(t, pr, lab):
+        changed = int(np.count_nonzero(L[t, pr.faces] != lab))
+        L[t, pr.faces] = lab
+        spa[t] = pr.energy(lab)
+        return changed
+
+    def relink():
+        for t in range(1, T):
+            link[t] = omega_t * _links(face_samples, L[t - 1], L[t], gates) if omega_t else 0.0
+
+    def total():
+        return float(spa.sum() + link.sum())
+
+    say = progress or (lambda msg: None)
+    history, frame_hist, rounds = [], [], []
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max(1, threads)) as pool:
+        for t, pr, lab in pool.map(lambda t: solve(t, False), range(T)):
+            store(t, pr, lab)
+        relink()
+        history.append(total())
+        frame_hist.append(spa + link)
+        rounds.append({"round": 0, "energy": history[-1], "seconds": time.perf_counter() - t0,
+                       "changed": int((L >= 0).sum())})
+        say(f"labeling: initial per-frame solves, energy {history[-1]:.4f} "
+            f"({rounds[-1]['seconds']:.1f} s)")
+        if omega_t > 0:
+            for r in range(1, max_rounds + 1):
+                t1 = time.perf_counter()
+                changed = 0
+                for parity in (0, 1):
+                    for t, pr, lab in pool.map(lambda t: solve(t, True), range(parity, T, 2)):
+                        changed += store(t, pr, lab)
+                relink()
+                e = total()
+                if e > history[-1] + 1e-6 * max(1.0, abs(history[-1])):
+                    raise RuntimeError(f"labeling energy rose in round {r}: {history[-1]} -> {e}")
+                history.append(e)
+                frame_hist.append(spa + link)
+                rounds.append({"round": r, "energy": e, "seconds": time.perf_counter() - t1,
+                               "changed": changed})
+                say(f"labeling: round {r}, energy {e:.4f}, {changed} labels changed "
+                    f"({rounds[-1]['seconds']:.1f} s, {rounds[-1]['seconds'] / T:.2f} s per frame)")
+                if history[-2] - e <= rel_tol * abs(history[-2]):
+                    break
+    return {"labels": L.astype(np.int16), "energy": np.array(history),
+            "frame_energy": np.array(frame_hist), "rounds": rounds}
+
+
+def total_energy(labels, cand, unary, pairs, pair_weight, edge_samples, face_samples, omega_t,
+                 gates=None) -> float:
+    """Eq. 2 for a given labeling (T, F), computed from scratch (for tests and comparisons)."""
+    L = np.asarray(labels, np.int32)
+    T = L.shape[0]
+    e = 0.0
+    features = EdgeFeatures(edge_samples)
+    for t in range(T):
+        pr = frame_problem(cand[t], unary[t], pairs, pair_weight, features)
+        e += pr.energy(L[t, pr.faces])
+    if omega_t:
+        for t in range(1, T):
+            e += omega_t * _links(face_samples, L[t - 1], L[t], gates)
+    return float(e)
+
+
+def labeling_inputs(observations_path, tables_paths, template_path, params: dict) -> dict:
+    """Read what :func:`label_sequence` needs from the stores and apply the config switches.
+
+    Returns a dict of keyword arguments for :func:`label_sequence` plus ``frame_ids`` and
+    ``never_seen`` (F,) bool.
+    """
+    from stex.config import section_params
+    from stex.dynamism import spatial_edge_weight, spatial_face_weight, temporal_gate
+    from stex.io import open_store
+    from stex.tables import unary_terms
+
+    p = section_params("labeling", params)
+    obs = open_store(observations_path, "observations")
+    template = open_store(template_path, "template")
+    pairs = np.asarray(template["adjacency/pairs"][...], np.int64)
+    ids = list(obs.attrs["frame_ids"])
+    blocks = [open_store(path, "tables") for path in tables_paths]
+    got = [fid for b in blocks for fid in b.attrs["frame_ids"]]
+    if got != ids:
+        raise ValueError(f"tables blocks cover frames {got[:3]}..{got[-3:]} but the observations "
+                         f"hold {ids[:3]}..{ids[-3:]} (every frame exactly once, in order)")
+    tp = blocks[0].attrs["params"]            # the data term is weighted as it was ranked
+    cand = np.concatenate([b["candidates"][...] for b in blocks])
+    unary = np.concatenate([unary_terms(b["e_qual"][...], b["e_glo"][...], b["e_loc"][...],
+                                        tp["omega_g"], tp["similarity"]) for b in blocks])
+    unary = unary.astype(np.float32)
+    face_visible = np.asarray(obs["face_visible"][...], bool)
+    has_dyn = "dynamism" in obs
+    S = np.asarray(obs["dynamism"][...], np.float32) if has_dyn else None
+    if (p["temporal"] == "selective" or p["spatial_selective"]) and S is None:
+        raise ValueError(f"{observations_path}: no dynamism table, needed by labeling.temporal="
+                         f"selective / spatial_selective")
+    gates = temporal_gate(S, p["theta_omega"]) if p["temporal"] == "selective" else None
+    omega_t = 0.0 if p["temporal"] == "off" else float(p["omega_t"])
+    w = (spatial_edge_weight(spatial_face_weight(S, face_visible, p["theta_omega"]), pairs)
+         if p["spatial_selective"] else np.ones(len(pairs), np.float32))
+    return {"cand": cand, "unary": unary, "pairs": pairs,
+            "pair_weight": (p["omega_s"] * w).astype(np.float64),
+            "edge_samples": obs["edge_samples"][...], "face_samples": obs["face_samples"][...],
+            "omega_t": omega_t, "gates": gates, "max_rounds": p["max_rounds"],
+            "rel_tol": p["rel_tol"], "seed": p["seed"], "frame_ids": ids,
+            "never_seen": ~face_visible.any(axis=0)}
+
+
+def write_labels(observations_path, tables_paths, template_path, params: dict, out,
+                 threads: int = 2) -> None:
+    """Labeling stage: write the ``labels`` store."""
+    from stex.config import section_params
+    from stex.io import create_store
+
+    p = section_params("labeling", params)
+    args = labeling_inputs(observations_path, tables_paths, template_path, p)
+    ids, never = args.pop("frame_ids"), args.pop("never_seen")
+    log.info("labeling: %d frames, %d faces (%d never seen), %d candidates per face",
+             len(ids), never.size, int(never.sum()), args["cand"].shape[2])
+    res = label_sequence(**args, threads=threads, progress=log.info)
+    labels = res["labels"]
+    seen = ~never
+    coverage = [float((labels[t, seen] >= 0).mean()) if seen.any() else 1.0 for t in range(len(ids))]
+    attrs = {"frame_ids": ids, "rounds": res["rounds"], "n_never_seen": int(never.sum()),
+             "coverage_of_seen_faces": [round(c, 6) for c in coverage]}
+    with create_store(out, "labels", attrs=attrs, params=p) as store:
+        store.write("labels", labels)
+        store.write("energy", res["energy"])
+        store.write("frame_energy", res["frame_energy"])
+        store.write("never_seen", never)

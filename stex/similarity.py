@@ -1,0 +1,1052 @@
+"""Geometric similarity between frames: E_glo (depth renders) and E_loc (SHOT descriptors).
+
+The data term of the labeling (paper §"Data Term") prefers source frames l whose shape is close
+to the target frame t's: E_geo = ω_g E_glo + (1 − ω_g) E_loc, ω_g = 0.9.
+
+E_glo — global similarity (:func:`global_similarity`)
+-----------------------------------------------------
+For target t and source l, render K_{t→l}(M_t) (frame t's mesh moved rigidly onto frame l) and
+M_l in the depth camera (all frames share it; the object moves) and average, over the **union**
+of the two silhouettes, the clipped depth difference min(clip, |D_a − D_b|). A pixel covered by
+only one silhouette counts as the clip (the authors' code renders background as depth 0, so
+|Δ| = the depth, ≫ clip). The mean is divided by the clip, so E_glo lies in [0, 1] and the step
+function / weighting applied later is scale-free; the diagonal is 0.
+
+Choices, deliberately:
+
+- ``clip_m = 0.1`` by default, the authors' ``simcheck.py``. The paper's Eq. geo_global writes
+  min(1, ·), which in metres never bites (a silhouette mismatch would then weigh ~1.5, the
+  object's distance, not a fixed penalty). 0.1 m is larger than the depth differences a
+  deformation causes (centimetres), so those stay graded, while a silhouette mismatch is the
+  maximum penalty.
+- The denominator is the union of the silhouettes, as the paper says. The authors' code divides
+  by the number of pixels where the two depths *differ* (``mask = d > 0``), which drops pixels
+  where both meshes agree exactly and so inflates the mean; stex follows the paper.
+- An empty union (both meshes outside the image) gives 0, as in the authors' code.
+- ``scale`` renders at a fraction of the depth resolution (``Intrinsics.scaled``): T² renders
+  dominate the stage (265² = 70k at paper scale). Renders of M_l in its own camera are made
+  once per call and shared by all target rows.
+
+E_loc — local similarity (:func:`geodesic_neighbourhoods`, :func:`shot_descriptors`,
+:func:`local_similarity_faces`, :func:`local_similarity_triples`)
+----------------------------------------------------------------------------------------------
+E_loc(t, f, l) = −(1/3) Σ_j med_j(t, l) over the face's three vertices, where med_j is the
+median over the vertex's ``median_hops``-ring of the per-vertex similarity τ_u(t)·τ_u(l) of
+SHOT descriptors (Tombari et al. 2010). Values lie in [−1, 0] (SHOT histograms are
+non-negative and unit length); −1 means identical local shape.
+
+- **Neighbourhoods are geodesic** (the paper: "we exploit the geodesic distance"): a bounded
+  Dijkstra on the template's edge graph, computed once and reused for every frame (the topology
+  is fixed); positions and normals come from each frame. A neighbour counts for a frame's
+  descriptor only while it lies within the support radius R in that frame (SHOT's spherical
+  support), so a stretched region loses neighbours and a bent one keeps them. Edge-graph
+  distances overestimate the true geodesic (+6.7 % median at R = 5 cm, building_blocks §3).
+- **SHOT as in the reference implementation** (Tombari's code, as in PCL
+  ``SHOTEstimation::interpolateSingleChannel``): local reference frame from the covariance of
+  the neighbours around the vertex weighted by (R − d); x = largest eigenvector, signed by the
+  majority of neighbours (tie broken by the (R − d)-weighted sum); 32 volumes (8 azimuth × 2
+  elevation × 2 radial) × 11 bins of cos(neighbour normal, z); the reference code's linear
+  interpolation into the neighbouring cosine bin, radial shell, elevation and azimuth volume;
+  unit L2 norm. **Difference**: z (the smallest eigenvector) is signed by the mesh's own vertex
+  normal instead of a majority vote: the template is consistently oriented, and on a nearly
+  flat patch SHOT's z vote is an almost-tie that flips at random. A vertex with fewer than 3
+  neighbours in its support gets an all-zero descriptor (similarity 0 with everything).
+- **Median filtering of the similarities, not of the descriptors.** The paper says it filters
+  "SHOT descriptor values"; the authors' binary filters the similarity table over 2 hops (usage
+  string ``m``). stex filters similarities: a per-bin median of sparse histograms is mostly
+  zeros and no longer a unit descriptor, filtering 352 values per vertex and frame costs ~352×
+  more than one value per vertex and frame pair, and the filter is applied only to the pairs
+  actually needed. ``median_hops = 0`` switches it off.
+- **Similarity = dot product** of unit descriptors (the cosine similarity); the authors'
+  measure is not recoverable from their binary (``official_code_notes.md`` §2.3). It is
+  symmetric, 1 for identical descriptors and what the paper's "τ_j · τ_j'" writes.
+- **Memory / streaming**: descriptors are (T, V, 352) — 3.7 GB in float32 at 10k vertices and
+  265 frames, 1.9 GB in float16, which changes E_loc by < 1e-3 (measured:
+  ``benchmarks/bench_similarity.py``). The E_loc functions accept any array-like indexed by
+  frame (numpy, zarr; float16, float32 or float64). They hold the targets of a call in chunks
+  of ``target_chunk`` frames and load each source frame once per chunk, as float32 (numba has
+  no float16; float16 is widened by a bit-exact numba kernel, ~3x faster than numpy's), so
+  memory is (target_chunk + 1) × V × D × 4 bytes (+ the caller's table) whatever T is. The
+  workflow calls them per block of target frames.
+
+Conventions: vertices in metres in depth-camera coordinates; poses 4x4 float64 with
+poses[t, l] mapping frame t's vertices onto frame l (x' = R x + t, :mod:`stex.poses`).
+"""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+
+from stex.camera import Intrinsics
+from stex.render import _project_vertices, _raster_kernel, vertex_normals
+
+__all__ = [
+    "SHOT_DIM",
+    "Neighbourhoods",
+    "global_similarity",
+    "mesh_resolution",
+    "geodesic_neighbourhoods",
+    "vertex_rings",
+    "shot_descriptors",
+    "vertex_similarity",
+    "median_filter_vertices",
+    "local_similarity_faces",
+    "local_similarity_triples",
+]
+
+#: SHOT length: 32 volumes (8 azimuth × 2 elevation × 2 radial) × 11 cosine bins
+SHOT_DIM = 352
+_SHOT_BINS = 10  # cosine bins per volume, + 1 (the reference code's nr_shape_bins + 1 entries)
+_SHOT_MIN_NEIGHBOURS = 3
+
+
+# --------------------------------------------------------------------------------------------
+# input checks
+# --------------------------------------------------------------------------------------------
+
+def _check_frames_vertices(vertices) -> np.ndarray:
+    X = np.asarray(vertices)
+    if X.ndim != 3 or X.shape[2] != 3 or X.shape[0] == 0 or X.shape[1] == 0:
+        raise ValueError(f"vertices must have shape (T, V, 3) with T, V > 0, got {X.shape}")
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    bad = ~np.isfinite(X).all(axis=2)
+    if bad.any():
+        t, v = np.argwhere(bad)[0]
+        raise ValueError(f"vertices contain non-finite coordinates: frame {t}, vertex {v}"
+                         f" ({int(bad.sum())} bad vertices in total)")
+    return X
+
+
+def _check_vertices(vertices, name="vertices") -> np.ndarray:
+    V = np.asarray(vertices)
+    if V.ndim != 2 or V.shape[1] != 3 or V.shape[0] == 0:
+        raise ValueError(f"{name} must have shape (V, 3) with V > 0, got {V.shape}")
+    V = np.ascontiguousarray(V, dtype=np.float64)
+    bad = ~np.isfinite(V).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{name} contain non-finite coordinates: vertex {int(np.flatnonzero(bad)[0])}")
+    return V
+
+
+def _check_faces(faces, n_vertices: int) -> np.ndarray:
+    F = np.asarray(faces)
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] == 0:
+        raise ValueError(f"faces must have shape (F, 3) with F > 0, got {F.shape}")
+    if not np.issubdtype(F.dtype, np.integer):
+        raise ValueError(f"faces must be an integer array, got dtype {F.dtype}")
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    bad = ((F < 0) | (F >= n_vertices)).any(axis=1)
+    if bad.any():
+        f = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"faces index out of range: face {f} is {F[f].tolist()} but there are "
+                         f"{n_vertices} vertices")
+    return F
+
+
+def _check_poses(poses, n_frames: int) -> np.ndarray:
+    P = np.asarray(poses, dtype=np.float64)
+    if P.shape != (n_frames, n_frames, 4, 4):
+        raise ValueError(f"poses must have shape (T, T, 4, 4) = ({n_frames}, {n_frames}, 4, 4), "
+                         f"got {P.shape}")
+    bad = ~np.isfinite(P).all(axis=(2, 3)) | (np.abs(P[:, :, 3] - [0, 0, 0, 1]) > 1e-9).any(axis=2)
+    if bad.any():
+        t, l = np.argwhere(bad)[0]
+        raise ValueError(f"poses[{t}, {l}] is not a finite rigid 4x4 transform (last row must be "
+                         f"0 0 0 1): {P[t, l].tolist()}")
+    return np.ascontiguousarray(P)
+
+
+def _check_frame_ids(ids, n_frames: int, name: str) -> np.ndarray:
+    a = np.asarray(ids)
+    if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
+        raise ValueError(f"{name} must be a 1-D integer array of frame indices, got "
+                         f"shape {a.shape} dtype {a.dtype}")
+    a = a.astype(np.int64)
+    bad = (a < 0) | (a >= n_frames)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name}[{i}] = {a[i]} is not a frame index in [0, {n_frames})")
+    return a
+
+
+def _positive(value, name: str) -> float:
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return v
+
+
+def _threads(threads) -> int:
+    n = int(threads) if threads is not None else 1
+    if n < 1:
+        raise ValueError(f"threads must be >= 1, got {threads!r}")
+    return n
+
+
+# --------------------------------------------------------------------------------------------
+# E_glo
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _image_box(px, py, iz, W, H, box):
+    """Pixel box [r0, r1) x [c0, c1) holding every pixel the rasteriser can write for vertices
+    projected to (px, py) (iz = 0: behind the near plane, never drawn); empty -> r0 = r1 = 0."""
+    xmin, xmax, ymin, ymax = np.inf, -np.inf, np.inf, -np.inf
+    for i in range(px.shape[0]):
+        if iz[i] != 0.0:
+            xmin = min(xmin, px[i])
+            xmax = max(xmax, px[i])
+            ymin = min(ymin, py[i])
+            ymax = max(ymax, py[i])
+    c0 = int(max(np.ceil(xmin), 0.0)) if xmin <= W - 1.0 else W
+    c1 = int(min(np.floor(xmax), W - 1.0)) + 1 if xmax >= 0.0 else 0
+    r0 = int(max(np.ceil(ymin), 0.0)) if ymin <= H - 1.0 else H
+    r1 = int(min(np.floor(ymax), H - 1.0)) + 1 if ymax >= 0.0 else 0
+    if c0 >= c1 or r0 >= r1:
+        box[0] = box[1] = box[2] = box[3] = 0
+    else:
+        box[0], box[1], box[2], box[3] = r0, r1, c0, c1
+
+
+@njit(cache=True, nogil=True)
+def _render_own(X, F, K, near, own, boxes):
+    """own[l] = depth of frame l's mesh; boxes[l] = its pixel box (r0, r1, c0, c1)."""
+    T, H, W = own.shape
+    nv = X.shape[1]
+    fid = np.empty((H, W), np.int32)
+    bary = np.empty((H, W, 3), np.float32)
+    px = np.empty(nv)
+    py = np.empty(nv)
+    iz = np.empty(nv)
+    for l in range(T):
+        _raster_kernel(X[l], F, K, near, own[l], fid, bary)  # only depth is read; own[l] starts at 0
+        _project_vertices(X[l], K, near, px, py, iz)
+        _image_box(px, py, iz, W, H, boxes[l])
+
+
+@njit(cache=True, nogil=True)
+def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, out):
+    """out[l] = E_glo(t, l) for every source l; depth must be all 0 on entry (left all 0)."""
+    T, H, W = own.shape
+    nv = Xt.shape[0]
+    Y = np.empty((nv, 3))
+    px = np.empty(nv)
+    py = np.empty(nv)
+    iz = np.empty(nv)
+    box = np.zeros(4, np.int64)
+    for l in range(T):
+        if l == t:
+            out[l] = 0.0
+            continue
+        P = poses_t[l]
+        for i in range(nv):
+            x, y, z = Xt[i, 0], Xt[i, 1], Xt[i, 2]
+            for k in range(3):
+                Y[i, k] = P[k, 0] * x + P[k, 1] * y + P[k, 2] * z + P[k, 3]
+        _raster_kernel(Y, F, K, near, depth, fid, bary)
+        _project_vertices(Y, K, near, px, py, iz)
+        _image_box(px, py, iz, W, H, box)
+        ob = boxes[l]
+        # union of the two boxes (an empty box has r0 = r1)
+        if box[0] == box[1]:
+            r0, r1, c0, c1 = ob[0], ob[1], ob[2], ob[3]
+        elif ob[0] == ob[1]:
+            r0, r1, c0, c1 = box[0], box[1], box[2], box[3]
+        else:
+            r0, r1 = min(box[0], ob[0]), max(box[1], ob[1])
+            c0, c1 = min(box[2], ob[2]), max(box[3], ob[3])
+        D = own[l]
+        s = 0.0
+        n = 0
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                a = depth[r, c]
+                b = D[r, c]
+                if a > 0.0 and b > 0.0:
+                    s += min(clip, abs(np.float64(a) - np.float64(b)))
+                    n += 1
+                elif a > 0.0 or b > 0.0:
+                    s += clip
+                    n += 1
+        out[l] = s / (n * clip) if n > 0 else 0.0
+        for r in range(box[0], box[1]):  # reset what this render wrote
+            for c in range(box[2], box[3]):
+                depth[r, c] = 0.0
+
+
+def global_similarity(vertices, faces, poses, K, width, height, targets=None, clip_m: float = 0.1,
+                      scale: float = 1.0, threads: int = 1, near: float = 1e-3) -> np.ndarray:
+    """E_glo: clipped depth difference of the rigidly aligned meshes, for target rows × all sources.
+
+    Args:
+        vertices: (T, V, 3) float tracked vertices of every frame, metres, depth-camera coordinates
+            (a zarr array is read whole: T·V·3 values).
+        faces: (F, 3) int vertex indices.
+        poses: (T, T, 4, 4) float64; poses[t, l] maps frame t's mesh onto frame l (x' = R x + t).
+        K: (3, 3) depth camera matrix (pixels) for a ``width`` x ``height`` image.
+        targets: (n,) int target frames (rows); None = all T frames.
+        clip_m: the clip of the per-pixel depth difference, metres (module docstring).
+        scale: render at this fraction of the depth resolution (0.5 = half width and height),
+            with :meth:`stex.camera.Intrinsics.scaled`.
+        threads: worker threads over target rows (numba kernels release the GIL).
+        near: near plane of the renders, metres.
+
+    Returns:
+        (n, T) float32 in [0, 1]: row i, column l = mean over the union of the silhouettes of
+        K_{targets[i]→l}(M_{targets[i]}) and M_l in the depth camera of min(clip, |ΔD|) / clip
+        (a pixel in only one silhouette counts 1); 0 at l = targets[i] and where the union is
+        empty.
+    """
+    X = _check_frames_vertices(vertices)
+    T, nv = X.shape[:2]
+    F = _check_faces(faces, nv)
+    P = _check_poses(poses, T)
+    clip = _positive(clip_m, "clip_m")
+    scale = _positive(scale, "scale")
+    near = _positive(near, "near")
+    n_threads = _threads(threads)
+    tg = np.arange(T, dtype=np.int64) if targets is None else _check_frame_ids(targets, T, "targets")
+    intr = Intrinsics(np.asarray(K, dtype=np.float64), width, height)
+    if not np.allclose(intr.K[2], [0.0, 0.0, 1.0]):
+        raise ValueError(f"camera matrix K must have last row (0, 0, 1), got {intr.K.tolist()}")
+    if scale != 1.0:
+        intr = intr.scaled(scale)
+    H, W = intr.height, intr.width
+    Kc = np.ascontiguousarray(intr.K)
+
+    own = np.zeros((T, H, W), np.float32)
+    boxes = np.zeros((T, 4), np.int64)
+    _render_own(X, F, Kc, near, own, boxes)
+
+    out = np.zeros((tg.size, T), np.float32)
+
+    def work(rows):
+        depth = np.zeros((H, W), np.float32)
+        fid = np.empty((H, W), np.int32)
+        bary = np.empty((H, W, 3), np.float32)
+        row = np.empty(T, np.float64)
+        for i in rows:
+            t = int(tg[i])
+            _global_row(X[t], P[t], t, F, Kc, near, own, boxes, clip, depth, fid, bary, row)
+            out[i] = row
+
+    chunks = [c for c in np.array_split(np.arange(tg.size), n_threads) if c.size]
+    if len(chunks) <= 1:
+        for c in chunks:
+            work(c)
+    else:
+        with ThreadPoolExecutor(max_workers=len(chunks)) as ex:
+            list(ex.map(work, chunks))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# neighbourhoods
+# --------------------------------------------------------------------------------------------
+
+class Neighbourhoods(NamedTuple):
+    """Per-vertex neighbour lists in CSR form (unpacks as ``ptr, idx, dist``).
+
+    Attributes:
+        ptr: (V + 1,) int64; the neighbours of vertex i are ``idx[ptr[i]:ptr[i + 1]]``.
+        idx: (N,) int32 neighbour vertex indices, the vertex itself first, then by increasing
+            distance.
+        dist: (N,) float32 edge-graph (Dijkstra) distances from vertex i, metres.
+    """
+
+    ptr: np.ndarray
+    idx: np.ndarray
+    dist: np.ndarray
+
+
+def _edges(faces) -> np.ndarray:
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def mesh_resolution(vertices, faces) -> float:
+    """Mean edge length (metres) of a triangle mesh ((V, 3) float, (F, 3) int): SHOT's "mesh
+    resolution" unit (the authors' SHOT radius is 5 of them)."""
+    V = _check_vertices(vertices)
+    e = _edges(_check_faces(faces, V.shape[0]))
+    return float(np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean())
+
+
+def _edge_csr(V, F):
+    e = _edges(F)
+    w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1)
+    n = V.shape[0]
+    A = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                 np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n))
+    A = A.tocsr()  # duplicate (i, j) pairs cannot occur: edges are unique
+    return (A.indptr.astype(np.int64), A.indices.astype(np.int64), A.data.astype(np.float64))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _heap_push(hd, hv, n, d, v):
+    """Push (d, v) on the binary min-heap hd[:n], hv[:n]; returns the new size."""
+    i = n
+    while i > 0:
+        p = (i - 1) >> 1
+        if hd[p] <= d:
+            break
+        hd[i] = hd[p]
+        hv[i] = hv[p]
+        i = p
+    hd[i] = d
+    hv[i] = v
+    return n + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _heap_pop(hd, hv, n):
+    """Remove the root of the heap of size n (its (d, v) must be read before); returns n - 1."""
+    n -= 1
+    d, v = hd[n], hv[n]
+    i = 0
+    while True:
+        c = 2 * i + 1
+        if c >= n:
+            break
+        if c + 1 < n and hd[c + 1] < hd[c]:
+            c += 1
+        if hd[c] >= d:
+            break
+        hd[i] = hd[c]
+        hv[i] = hv[c]
+        i = c
+    hd[i] = d
+    hv[i] = v
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _bounded_dijkstra(indptr, indices, weights, radius):
+    n = indptr.shape[0] - 1
+    dist = np.full(n, np.inf)
+    touched = np.empty(n, np.int64)
+    # every push strictly lowers some dist[v], so the heap never holds more than the edge count
+    hd = np.empty(indices.shape[0] + 1)
+    hv = np.empty(indices.shape[0] + 1, np.int64)
+    cap = max(16, 8 * n)
+    out_idx = np.empty(cap, np.int32)
+    out_d = np.empty(cap, np.float32)
+    ptr = np.zeros(n + 1, np.int64)
+    pos = 0
+    for s in range(n):
+        hs = _heap_push(hd, hv, 0, 0.0, s)
+        dist[s] = 0.0
+        touched[0] = s
+        nt = 1
+        while hs > 0:
+            d, u = hd[0], hv[0]
+            hs = _heap_pop(hd, hv, hs)
+            if d > dist[u]:
+                continue  # stale entry
+            if pos == cap:
+                cap *= 2
+                a = np.empty(cap, np.int32)
+                a[:pos] = out_idx[:pos]
+                out_idx = a
+                b = np.empty(cap, np.float32)
+                b[:pos] = out_d[:pos]
+                out_d = b
+            out_idx[pos] = u
+            out_d[pos] = d
+            pos += 1
+            for k in range(indptr[u], indptr[u + 1]):
+                v = indices[k]
+                nd = d + weights[k]
+                if nd <= radius and nd < dist[v]:
+                    if dist[v] == np.inf:
+                        touched[nt] = v
+                        nt += 1
+                    dist[v] = nd
+                    hs = _heap_push(hd, hv, hs, nd, v)
+        ptr[s + 1] = pos
+        for i in range(nt):
+            dist[touched[i]] = np.inf
+    return ptr, out_idx[:pos].copy(), out_d[:pos].copy()
+
+
+def geodesic_neighbourhoods(vertices, faces, radius_m: float) -> Neighbourhoods:
+    """Every vertex's neighbours within ``radius_m`` along the mesh's edge graph (bounded Dijkstra).
+
+    Args:
+        vertices: (V, 3) float positions, metres (normally the template's).
+        faces: (F, 3) int.
+        radius_m: geodesic radius, metres. Edge-path distances overestimate the true geodesic
+            distance (by ~7 % median on a 1.4 cm-edge mesh, building_blocks_measured §3).
+
+    Returns:
+        :class:`Neighbourhoods` ``(ptr (V+1,) int64, idx int32, dist float32)``; each list starts
+        with the vertex itself (distance 0) and is sorted by distance.
+    """
+    V = _check_vertices(vertices)
+    F = _check_faces(faces, V.shape[0])
+    radius = _positive(radius_m, "radius_m")
+    ptr, idx, dist = _bounded_dijkstra(*_edge_csr(V, F), radius)
+    return Neighbourhoods(ptr, idx, dist)
+
+
+def vertex_rings(faces, n_vertices: int, hops: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k-ring of every vertex (vertices at most ``hops`` edges away, itself included).
+
+    Args:
+        faces: (F, 3) int. n_vertices: V. hops: k >= 0 (0 -> each vertex alone).
+
+    Returns:
+        ptr (V + 1,) int64 and idx (N,) int64 in CSR form, each ring sorted by vertex index.
+    """
+    n = int(n_vertices)
+    if n <= 0:
+        raise ValueError(f"n_vertices must be positive, got {n_vertices!r}")
+    F = _check_faces(faces, n)
+    if int(hops) != hops or hops < 0:
+        raise ValueError(f"hops must be a non-negative integer, got {hops!r}")
+    e = _edges(F)
+    A = sp.coo_matrix((np.ones(2 * len(e), np.int8), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                     np.concatenate([e[:, 1], e[:, 0]]))),
+                      shape=(n, n)).tocsr() + sp.identity(n, dtype=np.int8, format="csr")
+    A.data[:] = 1
+    R = sp.identity(n, dtype=np.int8, format="csr")
+    for _ in range(int(hops)):
+        R = R @ A
+        R.data[:] = 1  # keep the pattern only (counts would overflow int8)
+    R.sort_indices()
+    return R.indptr.astype(np.int64), R.indices.astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# SHOT
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _shot_kernel(P, N, ptr, idx, radius, out):
+    nb = _SHOT_BINS
+    stride = nb + 1
+    r12 = 0.5 * radius
+    r14 = 0.25 * radius
+    r34 = 0.75 * radius
+    pi = np.pi
+    hist = np.zeros(out.shape[1])
+    C = np.zeros((3, 3))
+    for i in range(P.shape[0]):
+        px, py, pz = P[i, 0], P[i, 1], P[i, 2]
+        for a in range(3):
+            for b in range(3):
+                C[a, b] = 0.0
+        wsum = 0.0
+        cnt = 0
+        for k in range(ptr[i], ptr[i + 1]):
+            j = idx[k]
+            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d >= radius or d == 0.0:
+                continue  # outside the spherical support in this frame, or the vertex itself
+            w = radius - d
+            C[0, 0] += w * dx * dx
+            C[0, 1] += w * dx * dy
+            C[0, 2] += w * dx * dz
+            C[1, 1] += w * dy * dy
+            C[1, 2] += w * dy * dz
+            C[2, 2] += w * dz * dz
+            wsum += w
+            cnt += 1
+        for q in range(out.shape[1]):
+            out[i, q] = 0.0
+        if cnt < _SHOT_MIN_NEIGHBOURS:
+            continue
+        C[1, 0] = C[0, 1]
+        C[2, 0] = C[0, 2]
+        C[2, 1] = C[1, 2]
+        for a in range(3):
+            for b in range(3):
+                C[a, b] /= wsum
+        _, evec = np.linalg.eigh(C)  # ascending eigenvalues
+        xx, xy, xz = evec[0, 2], evec[1, 2], evec[2, 2]
+        zx, zy, zz = evec[0, 0], evec[1, 0], evec[2, 0]
+        # x: majority of neighbours on the positive side, ties by the weighted sum
+        npos = 0
+        sw = 0.0
+        for k in range(ptr[i], ptr[i + 1]):
+            j = idx[k]
+            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d >= radius or d == 0.0:
+                continue
+            p = dx * xx + dy * xy + dz * xz
+            if p >= 0.0:
+                npos += 1
+            sw += (radius - d) * p
+        if 2 * npos < cnt or (2 * npos == cnt and sw < 0.0):
+            xx, xy, xz = -xx, -xy, -xz
+        # z: along the mesh's vertex normal
+        if zx * N[i, 0] + zy * N[i, 1] + zz * N[i, 2] < 0.0:
+            zx, zy, zz = -zx, -zy, -zz
+        yx = zy * xz - zz * xy
+        yy = zz * xx - zx * xz
+        yz = zx * xy - zy * xx
+        for q in range(hist.shape[0]):
+            hist[q] = 0.0
+        for k in range(ptr[i], ptr[i + 1]):
+            j = idx[k]
+            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d >= radius or d == 0.0:
+                continue
+            cs = N[j, 0] * zx + N[j, 1] * zy + N[j, 2] * zz
+            cs = min(1.0, max(-1.0, cs))
+            bd = (1.0 + cs) * nb / 2.0
+            lx = dx * xx + dy * xy + dz * xz
+            ly = dx * yx + dy * yy + dz * yz
+            lz = dx * zx + dy * zy + dz * zz
+            if abs(lx) < 1e-30:
+                lx = 0.0
+            if abs(ly) < 1e-30:
+                ly = 0.0
+            if abs(lz) < 1e-30:
+                lz = 0.0
+            # volume: azimuth sector s (centred at -7pi/8 + s pi/4), elevation, radial shell
+            az = math.atan2(ly, lx)
+            sector = min(int((az + pi) / (pi / 4.0)), 7)
+            up = 1 if lz > 0.0 else 0
+            outer = 1 if d > r12 else 0
+            vol = sector * 4 + outer * 2 + up
+            step = int(math.floor(bd + 0.5))
+            base = vol * stride
+            # cosine: the adjacent bin
+            rem = bd - step
+            wgt = 1.0 - abs(rem)
+            if rem > 0.0:
+                hist[base + min(step + 1, nb)] += rem
+            elif rem < 0.0:
+                hist[base + max(step - 1, 0)] -= rem
+            # radius: the adjacent shell
+            if outer == 1:
+                rd = (d - r34) / r12
+                if d > r34:
+                    wgt += 1.0 - rd
+                else:
+                    wgt += 1.0 + rd
+                    hist[(vol - 2) * stride + step] -= rd
+            else:
+                rd = (d - r14) / r12
+                if d < r14:
+                    wgt += 1.0 + rd
+                else:
+                    wgt += 1.0 - rd
+                    hist[(vol + 2) * stride + step] += rd
+            # elevation: the adjacent (upper / lower) volume
+            ic = min(1.0, max(-1.0, lz / d))
+            inc = math.acos(ic)
+            if up == 0:
+                idist = (inc - 0.75 * pi) / (0.5 * pi)
+                if inc > 0.75 * pi:
+                    wgt += 1.0 - idist
+                else:
+                    wgt += 1.0 + idist
+                    hist[(vol + 1) * stride + step] -= idist
+            else:
+                idist = (inc - 0.25 * pi) / (0.5 * pi)
+                if inc < 0.25 * pi:
+                    wgt += 1.0 + idist
+                else:
+                    wgt += 1.0 - idist
+                    hist[(vol - 1) * stride + step] += idist
+            # azimuth: the adjacent sector
+            if lx != 0.0 or ly != 0.0:
+                adist = (az - (-0.875 * pi + sector * 0.25 * pi)) / (0.25 * pi)
+                adist = max(-0.5, min(adist, 0.5))
+                if adist > 0.0:
+                    wgt += 1.0 - adist
+                    hist[(((sector + 1) % 8) * 4 + outer * 2 + up) * stride + step] += adist
+                else:
+                    wgt += 1.0 + adist
+                    hist[(((sector + 7) % 8) * 4 + outer * 2 + up) * stride + step] -= adist
+            hist[base + step] += wgt
+        norm = 0.0
+        for q in range(hist.shape[0]):
+            norm += hist[q] * hist[q]
+        if norm > 0.0:
+            inv = 1.0 / math.sqrt(norm)
+            for q in range(hist.shape[0]):
+                out[i, q] = hist[q] * inv
+
+
+def _check_neighbourhoods(nbh, n_vertices: int):
+    try:
+        ptr, idx = nbh[0], nbh[1]
+    except (TypeError, IndexError, KeyError):
+        raise ValueError("neighbourhoods must be (ptr, idx[, dist]) as returned by "
+                         "geodesic_neighbourhoods") from None
+    ptr = np.ascontiguousarray(ptr, dtype=np.int64)
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    if ptr.shape != (n_vertices + 1,) or ptr[0] != 0 or ptr[-1] != idx.shape[0] or (np.diff(ptr) < 0).any():
+        raise ValueError(f"neighbourhoods ptr must be a non-decreasing (V + 1,) = ({n_vertices + 1},) "
+                         f"array from 0 to len(idx) = {idx.shape[0]}, got shape {ptr.shape}")
+    if idx.size and (idx.min() < 0 or idx.max() >= n_vertices):
+        raise ValueError(f"neighbourhoods idx holds vertex ids outside [0, {n_vertices})")
+    return ptr, idx
+
+
+def shot_descriptors(vertices, faces, neighbourhoods, radius_m: float | None = None) -> np.ndarray:
+    """SHOT descriptors (Tombari et al. 2010) of every vertex of one frame's mesh.
+
+    Args:
+        vertices: (V, 3) float positions of this frame, metres.
+        faces: (F, 3) int (for the vertex normals: area-weighted, :func:`stex.render.vertex_normals`).
+        neighbourhoods: a :class:`Neighbourhoods` / ``(ptr, idx[, dist])`` (normally the
+            template's, computed once with :func:`geodesic_neighbourhoods`), or a float radius in
+            metres to compute geodesic neighbourhoods on these vertices.
+        radius_m: the support radius R, metres; required with precomputed neighbourhoods (the
+            radius they were made with), defaults to the radius when one is given.
+
+    Returns:
+        (V, 352) float32 unit descriptors (all zero for a vertex with fewer than 3 neighbours
+        within R in this frame). See the module docstring for the reference frame and bins.
+    """
+    V = _check_vertices(vertices)
+    F = _check_faces(faces, V.shape[0])
+    if isinstance(neighbourhoods, (int, float, np.floating, np.integer)):
+        r = _positive(neighbourhoods, "neighbourhoods radius")
+        nbh = geodesic_neighbourhoods(V, F, r)
+        radius = r if radius_m is None else _positive(radius_m, "radius_m")
+    else:
+        nbh = neighbourhoods
+        if radius_m is None:
+            raise ValueError("radius_m is required with precomputed neighbourhoods (the radius "
+                             "they were made with)")
+        radius = _positive(radius_m, "radius_m")
+    ptr, idx = _check_neighbourhoods(nbh, V.shape[0])
+    N = np.ascontiguousarray(vertex_normals(V, F), dtype=np.float64)
+    out = np.empty((V.shape[0], SHOT_DIM), np.float32)
+    _shot_kernel(V, N, ptr, idx, radius, out)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# E_loc
+# --------------------------------------------------------------------------------------------
+
+def vertex_similarity(desc_a, desc_b) -> np.ndarray:
+    """Per-vertex similarity of two frames' descriptors: the dot product τ_a · τ_b.
+
+    Args:
+        desc_a, desc_b: (V, D) float16/float32/float64 unit descriptors.
+
+    Returns:
+        (V,) float32 in [0, 1] for SHOT (non-negative unit histograms); 0 for a zero descriptor.
+    """
+    a = np.asarray(desc_a)
+    b = np.asarray(desc_b)
+    if a.ndim != 2 or a.shape != b.shape:
+        raise ValueError(f"descriptors must be two (V, D) arrays of one shape, got {a.shape} and {b.shape}")
+    return np.einsum("vd,vd->v", a.astype(np.float32, copy=False),
+                     b.astype(np.float32, copy=False)).astype(np.float32)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _median(buf, n):
+    """Median of buf[:n] (sorted in place; n >= 1); the mean of the middle two for even n."""
+    for i in range(1, n):  # insertion sort: rings hold ~20 values
+        x = buf[i]
+        j = i - 1
+        while j >= 0 and buf[j] > x:
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = x
+    h = n // 2
+    if n % 2 == 1:
+        return buf[h]
+    return 0.5 * (buf[h - 1] + buf[h])
+
+
+@njit(cache=True, nogil=True)
+def _median_kernel(values, rptr, ridx, out):
+    buf = np.empty(max(1, int(np.max(rptr[1:] - rptr[:-1]))), np.float64)
+    for k in range(values.shape[0]):
+        for v in range(values.shape[1]):
+            n = 0
+            for q in range(rptr[v], rptr[v + 1]):
+                buf[n] = values[k, ridx[q]]
+                n += 1
+            out[k, v] = _median(buf, n)
+
+
+def median_filter_vertices(values, rings) -> np.ndarray:
+    """Median of per-vertex values over each vertex's ring.
+
+    Args:
+        values: (V,) or (n, V) float per-vertex values (n independent rows).
+        rings: (ptr, idx) from :func:`vertex_rings` (every ring non-empty).
+
+    Returns:
+        float32 array of the shape of ``values``: out[..., v] = median of values[..., ring(v)]
+        (mean of the middle two for an even count, as ``np.median``).
+    """
+    a = np.asarray(values, dtype=np.float64)
+    squeeze = a.ndim == 1
+    a2 = np.ascontiguousarray(a[None] if squeeze else a)
+    if a2.ndim != 2:
+        raise ValueError(f"values must be (V,) or (n, V), got shape {a.shape}")
+    rptr, ridx = _check_rings(rings, a2.shape[1])
+    out = np.empty(a2.shape, np.float64)
+    _median_kernel(a2, rptr, ridx, out)
+    out = out.astype(np.float32)
+    return out[0] if squeeze else out
+
+
+def _check_rings(rings, n_vertices):
+    ptr, idx = _check_neighbourhoods(rings, n_vertices)
+    if (np.diff(ptr) == 0).any():
+        v = int(np.flatnonzero(np.diff(ptr) == 0)[0])
+        raise ValueError(f"rings must be non-empty: vertex {v} has none")
+    return ptr, idx
+
+
+@njit(cache=True, nogil=True)
+def _half_bits_to_float(h, out):
+    """float16 bit patterns (uint16, any shape, C order) -> float32 values (out: uint32 bits).
+
+    numpy's float16 -> float32 conversion of one 10k x 352 frame takes ~7 ms, which at ~280
+    frame loads per target block would rival the E_loc kernels; this is the classic shift and
+    rescale (exact for normals and subnormals), vectorised by LLVM. Inf / NaN map to NaN."""
+    hf = h.ravel()
+    ob = out.ravel()
+    of = ob.view(np.float32)
+    for i in range(hf.shape[0]):
+        # the magnitude bits << 13 are the float32 with the same mantissa and exponent - 112
+        ob[i] = (np.uint32(hf[i]) & np.uint32(0x7FFF)) << np.uint32(13)
+    for i in range(hf.shape[0]):
+        x = hf[i]
+        if (x & 0x7FFF) >= 0x7C00:
+            of[i] = np.nan  # inf / NaN: caught by the kernels' finiteness test
+        else:
+            v = of[i] * np.float32(5.192296858534828e33)  # 2^112
+            of[i] = -v if (x & 0x8000) else v
+
+
+# reassociation lets LLVM vectorise the 352-term sum; no nnan/ninf, so the finiteness test of
+# the callers stays valid
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _dot(a, b):
+    s = np.float32(0.0)
+    for d in range(a.shape[0]):
+        s += a[d] * b[d]
+    return s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _vertex_median(v, dt, dl, s, rptr, ridx, sim, sim_stamp, buf):
+    """Median over the ring of v of the similarities of dt and dl, memoised per stamp s.
+    Returns NaN when a similarity is not finite (non-finite descriptor values)."""
+    n = 0
+    bad = False
+    for q in range(rptr[v], rptr[v + 1]):
+        u = ridx[q]
+        if sim_stamp[u] != s:
+            sim[u] = _dot(dt[u], dl[u])
+            sim_stamp[u] = s
+        x = sim[u]
+        if not (x == x and abs(x) < np.inf):
+            bad = True
+        buf[n] = x
+        n += 1
+    if bad:
+        return np.nan
+    return _median(buf, n)
+
+
+@njit(cache=True, nogil=True)
+def _loc_faces_kernel(dl, dts, slots, rows, F, rptr, ridx, out):
+    """out[rows[k], :] = E_loc of every face for target dts[slots[k]] and source dl.
+    Returns the index k of the first pair with a non-finite similarity, or -1."""
+    nv = dl.shape[0]
+    sim = np.empty(nv, np.float32)
+    sim_stamp = np.full(nv, -1, np.int64)
+    med = np.empty(nv, np.float64)
+    buf = np.empty(max(1, int(np.max(rptr[1:] - rptr[:-1]))), np.float64)
+    for k in range(slots.shape[0]):
+        dt = dts[slots[k]]
+        for v in range(nv):
+            m = _vertex_median(v, dt, dl, k, rptr, ridx, sim, sim_stamp, buf)
+            if m != m:
+                return k
+            med[v] = m
+        r = rows[k]
+        for f in range(F.shape[0]):
+            out[r, f] = -(med[F[f, 0]] + med[F[f, 1]] + med[F[f, 2]]) / 3.0
+    return -1
+
+
+@njit(cache=True, nogil=True)
+def _loc_triples_kernel(dl, dts, slots, face_ids, rows, F, rptr, ridx, out):
+    """out[rows[k]] = E_loc(target dts[slots[k]], face face_ids[k], source dl); slots sorted.
+    Returns the index k of the first triple with a non-finite similarity, or -1."""
+    nv = dl.shape[0]
+    sim = np.empty(nv, np.float32)
+    sim_stamp = np.full(nv, -1, np.int64)
+    med = np.empty(nv, np.float64)
+    med_stamp = np.full(nv, -1, np.int64)
+    buf = np.empty(max(1, int(np.max(rptr[1:] - rptr[:-1]))), np.float64)
+    for k in range(slots.shape[0]):
+        s = slots[k]
+        dt = dts[s]
+        f = face_ids[k]
+        acc = 0.0
+        for j in range(3):
+            v = F[f, j]
+            if med_stamp[v] != s:
+                m = _vertex_median(v, dt, dl, s, rptr, ridx, sim, sim_stamp, buf)
+                if m != m:
+                    return k
+                med[v] = m
+                med_stamp[v] = s
+            acc += med[v]
+        out[rows[k]] = -acc / 3.0
+    return -1
+
+
+def _check_descriptors(descriptors):
+    """(array-like, T, V) of a (T, V, D) descriptor table without reading it."""
+    shape = getattr(descriptors, "shape", None)
+    if shape is None:
+        descriptors = np.asarray(descriptors)
+        shape = descriptors.shape
+    if len(shape) != 3 or 0 in tuple(shape):
+        raise ValueError(f"descriptors must have shape (T, V, D) with T, V, D > 0, got {tuple(shape)}")
+    return descriptors, int(shape[0]), int(shape[1])
+
+
+def _load_frame(descriptors, t: int, n_vertices: int) -> np.ndarray:
+    """Frame t's descriptors as C-contiguous float32 (no copy for a float32 numpy table)."""
+    d = np.asarray(descriptors[t])
+    if d.ndim != 2 or d.shape[0] != n_vertices:
+        raise ValueError(f"descriptors[{t}] has shape {d.shape}, expected ({n_vertices}, D)")
+    if d.dtype == np.float16:
+        out = np.empty(d.shape, np.uint32)
+        _half_bits_to_float(np.ascontiguousarray(d).view(np.uint16), out)
+        return out.view(np.float32)
+    if not np.issubdtype(d.dtype, np.floating):
+        raise ValueError(f"descriptors must be float16/float32/float64, got {d.dtype} at frame {t}")
+    return np.ascontiguousarray(d, dtype=np.float32)
+
+
+def _rings_for(faces_checked, n_vertices, median_hops, rings):
+    if rings is None:
+        return vertex_rings(faces_checked, n_vertices, median_hops)
+    return _check_rings(rings, n_vertices)
+
+
+def _stream(descriptors, n_vertices, targets, sources, target_chunk, run):
+    """Call run(dl, dts, sel, slots) for every source frame and chunk of target frames, where
+    dts stacks the chunk's target descriptors, sel indexes the entries (targets == chunk member
+    and sources == that source) sorted by target, and slots are their rows in dts. run returns
+    the position in sel of an entry with non-finite descriptors, or -1 (-> ValueError)."""
+    chunk = int(target_chunk)
+    if chunk < 1:
+        raise ValueError(f"target_chunk must be >= 1, got {target_chunk!r}")
+    uniq_t = np.unique(targets)
+    for c0 in range(0, uniq_t.size, chunk):
+        members = uniq_t[c0:c0 + chunk]
+        in_chunk = np.flatnonzero(np.isin(targets, members))
+        frames = [_load_frame(descriptors, int(t), n_vertices) for t in members]
+        if len({(f.dtype, f.shape) for f in frames}) > 1:
+            raise ValueError("descriptors of the target frames differ in dtype or length")
+        dts = np.stack(frames)
+        slot_of = np.searchsorted(members, targets[in_chunk])
+        order = np.lexsort((slot_of, sources[in_chunk]))  # by source, then target slot
+        sel = in_chunk[order]
+        slots = slot_of[order]
+        src = sources[sel]
+        cuts = np.flatnonzero(np.diff(src)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, src.size]):
+            dl = _load_frame(descriptors, int(src[a]), n_vertices)
+            if dl.dtype != dts.dtype or dl.shape[1] != dts.shape[2]:
+                raise ValueError(f"descriptors of frame {int(src[a])} are {dl.shape[1]} x {dl.dtype}, "
+                                 f"those of the targets {dts.shape[2]} x {dts.dtype}")
+            bad = run(dl, dts, sel[a:b], np.ascontiguousarray(slots[a:b]))
+            if bad >= 0:
+                raise ValueError(f"descriptors of frame {int(targets[sel[a + bad]])} or "
+                                 f"{int(src[a])} contain non-finite values")
+
+
+def local_similarity_faces(descriptors, faces, pairs, median_hops: int = 2, rings=None,
+                           target_chunk: int = 16) -> np.ndarray:
+    """E_loc for (target, source) frame pairs over all faces.
+
+    Args:
+        descriptors: (T, V, D) unit descriptors of every frame (numpy or zarr, float16 or
+            float32), indexed one frame at a time (module docstring, "Memory").
+        faces: (F, 3) int.
+        pairs: (n, 2) int frame pairs (t, l) (target, source).
+        median_hops: ring size of the median filter of the per-vertex similarities (authors: 2;
+            0 = none). Ignored when ``rings`` is given.
+        rings: optional precomputed :func:`vertex_rings` ``(ptr, idx)``.
+        target_chunk: target frames held in memory at once (float32, V·D·4 bytes each).
+
+    Returns:
+        (n, F) float32 in [−1, 0]: row k = −(1/3) Σ_j median_{u ∈ ring(v_j)} τ_u(t_k)·τ_u(l_k)
+        over each face's vertices v_j.
+    """
+    descriptors, T, nv = _check_descriptors(descriptors)
+    F = _check_faces(faces, nv)
+    pr = np.asarray(pairs)
+    if pr.ndim != 2 or pr.shape[1] != 2:
+        raise ValueError(f"pairs must have shape (n, 2), got {pr.shape}")
+    t = _check_frame_ids(pr[:, 0], T, "pairs[:, 0] (targets)")
+    l = _check_frame_ids(pr[:, 1], T, "pairs[:, 1] (sources)")
+    rptr, ridx = _rings_for(F, nv, median_hops, rings)
+    out = np.empty((t.size, F.shape[0]), np.float32)
+
+    def run(dl, dts, sel, slots):
+        return _loc_faces_kernel(dl, dts, slots, sel.astype(np.int64), F, rptr, ridx, out)
+
+    _stream(descriptors, nv, t, l, target_chunk, run)
+    return out
+
+
+def local_similarity_triples(descriptors, faces, targets, face_ids, sources, median_hops: int = 2,
+                             rings=None, target_chunk: int = 16) -> np.ndarray:
+    """E_loc for explicit (target t, face f, source l) triples (candidate labels).
+
+    Per-vertex similarities and their medians are computed once per (t, l) pair and vertex that
+    some triple needs, so many faces sharing a pair cost no more than :func:`local_similarity_faces`.
+
+    Args:
+        descriptors, faces, median_hops, rings, target_chunk: as in :func:`local_similarity_faces`.
+        targets, face_ids, sources: (n,) int arrays of the triples.
+
+    Returns:
+        (n,) float32, equal to ``local_similarity_faces(..., pairs=[(t, l)])[0, f]`` per triple.
+    """
+    descriptors, T, nv = _check_descriptors(descriptors)
+    F = _check_faces(faces, nv)
+    t = _check_frame_ids(targets, T, "targets")
+    l = _check_frame_ids(sources, T, "sources")
+    fi = np.asarray(face_ids)
+    if (fi.ndim != 1 or fi.shape != t.shape or l.shape != t.shape
+            or (fi.size and not np.issubdtype(fi.dtype, np.integer))):
+        raise ValueError(f"targets, face_ids and sources must be 1-D integer arrays of one length, "
+                         f"got {t.shape}, {fi.shape} ({fi.dtype}), {l.shape}")
+    fi = fi.astype(np.int64)
+    bad = (fi < 0) | (fi >= F.shape[0])
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"face_ids[{i}] = {fi[i]} is not a face index in [0, {F.shape[0]})")
+    rptr, ridx = _rings_for(F, nv, median_hops, rings)
+    out = np.empty(t.size, np.float32)
+
+    def run(dl, dts, sel, slots):
+        return _loc_triples_kernel(dl, dts, slots, np.ascontiguousarray(fi[sel]),
+                                   sel.astype(np.int64), F, rptr, ridx, out)
+
+    _stream(descriptors, nv, t, l, target_chunk, run)
+    return out

@@ -1,0 +1,108 @@
+"""Labeling: the spatiotemporal MRF (Eq. 2) by per-frame α-expansion and even/odd BCD."""
+import numpy as np
+import pytest
+
+from stex.labeling import (EdgeFeatures, frame_problem, label_sequence, spatial_features,
+                           temporal_cost, total_energy)
+
+
+def _grid_pairs(n):
+    """Faces on an n x n grid, 4-neighbour adjacency."""
+    idx = np.arange(n * n).reshape(n, n)
+    return np.concatenate([np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1),
+                           np.stack([idx[:-1].ravel(), idx[1:].ravel()], 1)])
+
+
+def _problem(seed=0, T=8, n=6, K=4, S=15, n_s=9):
+    rng = np.random.default_rng(seed)
+    F = n * n
+    pairs = _grid_pairs(n)
+    vis = rng.random((T, F)) < 0.6
+    vis[:, 0] = False                                         # one face never seen
+    cand = np.full((T, F, K), -1, np.int16)
+    unary = np.zeros((T, F, K), np.float32)
+    for t in range(T):
+        for f in range(F):
+            frames = np.flatnonzero(vis[:, f])
+            if frames.size:
+                pick = np.sort(rng.choice(frames, min(K, frames.size), replace=False))
+                cand[t, f, :pick.size] = pick
+                unary[t, f, :pick.size] = rng.random(pick.size) + 0.3 * np.abs(pick - t) / T
+    base = rng.integers(0, 255, (1, F, S))
+    face_samples = np.clip(base + rng.normal(0, 20, (T, F, S)), 0, 255).astype(np.uint8)
+    edge_samples = np.clip(rng.integers(0, 255, (1, len(pairs), n_s)) + rng.normal(0, 30, (T, len(pairs), n_s)), 0, 255).astype(np.uint8)
+    return dict(cand=cand, unary=unary, pairs=pairs, pair_weight=np.full(len(pairs), 10.0),
+                edge_samples=edge_samples, face_samples=face_samples)
+
+
+def test_spatial_features_l1_is_the_edge_cost():
+    rng = np.random.default_rng(3)
+    a, b = rng.integers(0, 255, (2, 9)).astype(np.uint8)
+    want = 0.5 * np.abs(a / 255 - b / 255).mean() + 0.5 * np.abs(np.diff(a / 255) - np.diff(b / 255)).mean()
+    got = np.abs(spatial_features(a) - spatial_features(b)).sum()
+    assert got == pytest.approx(want, rel=1e-5)
+
+
+def test_temporal_cost_and_gates():
+    fs = np.zeros((3, 2, 4), np.uint8)
+    fs[1, 0] = 51
+    fs[2, 0] = 255
+    c = temporal_cost(fs, np.array([[1, 2], [0, -1]]), np.array([0, 1]), np.array([0, 0]))
+    assert c[0].tolist() == pytest.approx([0.2, 1.0]) and c[1].tolist() == [0.0, 0.0]
+    gates = np.ones((3, 2), np.float32)
+    gates[2, 0] = 0.0                                      # frame 2 dynamic at face 0
+    c = temporal_cost(fs, np.array([[1, 2]]), np.array([0]), np.array([0]), gates)
+    assert c[0].tolist() == pytest.approx([0.2, 0.0])
+    assert temporal_cost(fs, np.array([[1]]), np.array([0]), np.array([-1]))[0, 0] == 0
+
+
+def test_frame_problem_nodes_edges_and_features():
+    P = _problem()
+    t = 3
+    pr = frame_problem(P["cand"][t], P["unary"][t], P["pairs"], P["pair_weight"], EdgeFeatures(P["edge_samples"]))
+    assert 0 not in pr.faces                               # never-seen face is not a node
+    assert len(pr.cand_ptr) == len(pr.faces) + 1
+    # every candidate of both ends of an edge has a feature row
+    for e, (i, j) in enumerate(pr.edges):
+        labs = set(pr.feat_label[pr.feat_ptr[e]:pr.feat_ptr[e + 1]])
+        for node in (i, j):
+            assert set(pr.cand_label[pr.cand_ptr[node]:pr.cand_ptr[node + 1]]) <= labs
+
+
+def test_bcd_energy_never_rises_and_matches_eq2():
+    P = _problem(seed=1)
+    res = label_sequence(**P, omega_t=2.0, max_rounds=4, rel_tol=0.0, threads=2)
+    e = res["energy"]
+    assert len(e) >= 2 and np.all(np.diff(e) <= 1e-9)
+    assert e[-1] < e[0]                                    # the temporal rounds did something
+    assert total_energy(res["labels"], omega_t=2.0, **P) == pytest.approx(e[-1], rel=1e-9)
+    L = res["labels"]
+    assert (L[:, 0] == -1).all()                           # never seen: no label
+    has = P["cand"][:, :, 0] >= 0
+    assert (L[has] >= 0).all()                             # every face with candidates is labelled
+    for t in range(L.shape[0]):                            # labels come from the candidate sets
+        for f in np.flatnonzero(has[t]):
+            assert L[t, f] in P["cand"][t, f]
+
+
+def test_deterministic_and_threads_do_not_matter():
+    P = _problem(seed=2)
+    a = label_sequence(**P, omega_t=2.0, seed=5, threads=1)
+    b = label_sequence(**P, omega_t=2.0, seed=5, threads=2)
+    assert (a["labels"] == b["labels"]).all() and np.array_equal(a["energy"], b["energy"])
+
+
+def test_alpha_expansion_not_worse_than_icm_per_frame():
+    P = _problem(seed=4, n=8, K=6)
+    for t in range(P["cand"].shape[0]):
+        pr = frame_problem(P["cand"][t], P["unary"][t], P["pairs"], P["pair_weight"], EdgeFeatures(P["edge_samples"]))
+        lab, _ = pr.solve()
+        assert pr.energy(lab) <= pr.energy(pr.icm()) + 1e-9
+
+
+def test_temporal_term_makes_labels_steadier():
+    P = _problem(seed=6)
+    off = label_sequence(**P, omega_t=0.0)
+    on = label_sequence(**P, omega_t=20.0, max_rounds=6)
+    switches = lambda L: int(((L[1:] != L[:-1]) & (L[1:] >= 0)).sum())
+    assert switches(on["labels"]) < switches(off["labels"])
