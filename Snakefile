@@ -11,6 +11,9 @@ configfile: "config/config.yaml"
 validate(config, "config/schema.yaml")
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/masks.smk"
@@ -18,6 +21,13 @@ include: "workflow/rules/template.smk"
 include: "workflow/rules/tracking.smk"
 include: "workflow/rules/poses.smk"
 include: "workflow/rules/projection.smk"
+include: "workflow/rules/texcoords.smk"
+include: "workflow/rules/observations.smk"
+include: "workflow/rules/tables.smk"
+include: "workflow/rules/labeling.smk"
+include: "workflow/rules/volume.smk"
+include: "workflow/rules/correction.smk"
+include: "workflow/rules/evaluate.smk"
 
 
 rule all:

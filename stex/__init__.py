@@ -11,9 +11,23 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
 4. ``stex.tracking`` — template vertices at every frame: embedded deformation with the L0
    motion regulariser through the depth stream (plus an optical-flow term), or given meshes.
 5. ``stex.poses``    — rigid poses K_{t->t'} between all frame pairs (RANSAC + ICP).
+6. ``stex.projection`` — Φ: the tracked mesh in every colour image, visibility and cosines.
+7. ``stex.texcoords`` — ξ: texture coordinates optimised so all frames agree (Kim et al. 2019).
+8. ``stex.observations`` — one pass over the frames: grey samples per face and shared edge,
+   E_qual flags, SSIM dynamism (``stex.dynamism``), SHOT descriptors (``stex.similarity``).
+9. ``stex.tables``   — per target frame and face the candidate source frames and the data term
+   (E_qual + ω_g E_glo + (1 − ω_g) E_loc; E_glo and E_loc from ``stex.similarity``).
+10. ``stex.labeling`` — the spatiotemporal MRF: α-expansion per frame (``stex.mrf``), block
+    coordinate descent over even/odd frames, selective weighting.
+11. ``stex.volume``  — one atlas slice per frame from the labelled source frames; never-seen
+    faces filled; gutter dilated.
+12. ``stex.correction`` — gradient-domain colour correction of every slice (screened Poisson).
+13. ``stex.export``  — PNG slices, MP4, OBJ/glTF per frame, preview videos.
 
-Shared building blocks: ``stex.camera`` (conventions, projection), ``stex.render`` (numba
-rasteriser, visibility, textured rendering), ``stex.io`` (the artifact stores and their layout).
+Baselines: ``stex.baseline`` (Kim et al. 2019's global texture, naive projection). Metrics:
+``stex.evaluate``. Shared building blocks: ``stex.camera`` (conventions, projection),
+``stex.render`` (numba rasteriser, visibility, textured rendering), ``stex.io`` (the artifact
+stores and their layout).
 """
 
 __version__ = "0.1.0"

@@ -275,6 +275,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each target row",
             "sequence_frame_ids": "list[int]: global frame index of each sequence position (columns of glo, candidate values)",
+            "source_frames": "list[int]: global frame indices allowed as sources (tables.source_stride)",
+            "prefilter_exact": "list[float]: per target, fraction of faces whose candidate pruning is provably exact",
+            "seconds": "float: wall time of the block (s)",
         },
     ),
     "labels": ArtifactSpec(

@@ -363,7 +363,7 @@ def labeling_inputs(observations_path, tables_paths, template_path, params: dict
             "edge_samples": obs["edge_samples"][...], "face_samples": obs["face_samples"][...],
             "omega_t": omega_t, "gates": gates, "max_rounds": p["max_rounds"],
             "rel_tol": p["rel_tol"], "seed": p["seed"], "frame_ids": ids,
-            "never_seen": ~face_visible.any(axis=0)}
+            "never_seen": (cand[:, :, 0] < 0).all(axis=0)}   # no source frame sees them
 
 
 def write_labels(observations_path, tables_paths, template_path, params: dict, out,
@@ -388,3 +388,38 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
         store.write("energy", res["energy"])
         store.write("frame_energy", res["frame_energy"])
         store.write("never_seen", never)
+
+
+def preview_labels(volume_paths, corrected_paths, observations_path, template_path, out,
+                   n_show: int = 4, size: int = 384) -> None:
+    """The label maps of a few frames spread over the sequence, as in the paper's figures.
+
+    One row per frame: the colour-corrected slice, its label map (each source frame its own
+    colour, :func:`stex.volume.label_colors`; black = gutter / never seen), and once, the SSIM
+    dynamism S_m(f) = min over the face's frames (dark = dynamic, red below θ_Ω = 0.95).
+    """
+    import cv2
+
+    from stex.dynamism import ssim_map_image
+    from stex.io import FrameSequence, open_store
+    from stex.preview import _label, montage, write_png
+    from stex.volume import label_colors
+
+    vol = FrameSequence(list(volume_paths), "volume")
+    cor = FrameSequence(list(corrected_paths), "corrected")
+    ids = vol.frame_ids
+    pick = [ids[int(round(k))] for k in np.linspace(0, len(ids) - 1, min(n_show, len(ids)))]
+    obs = open_store(observations_path, "observations")
+    tf = open_store(template_path, "template")["texel/face_id"][...]
+    S = np.where(obs["face_visible"][...], obs["dynamism"][...], np.nan)
+    with np.errstate(all="ignore"):
+        s_min = np.nanmin(np.where(np.isnan(S).all(0)[None], 1.0, S), axis=0)
+    rs = lambda im: cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA)
+    dyn = _label(rs(ssim_map_image(s_min, tf, theta=0.95)), "SSIM dynamism (min over frames)")
+    tiles = []
+    for k, fid in enumerate(pick):
+        lm = vol.read("label_map", fid)
+        tiles += [_label(rs(cor.read("texture", fid)), f"frame {fid}: corrected slice"),
+                  _label(rs(label_colors(lm)), f"frame {fid}: labels ({len(np.unique(lm[lm >= 0]))} sources)"),
+                  dyn if k == 0 else np.zeros_like(dyn)]
+    write_png(out, montage(tiles, columns=3, width=3 * size))

@@ -223,6 +223,9 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     poses = np.asarray(poses_store["poses"][...], np.float64)
     cal = Calibration.from_dict(scene.attrs["calibration"])
     face_visible = np.asarray(obs["face_visible"][...], bool)
+    # held-out protocol: only every k-th frame may texture anything, every frame is a target
+    sources = np.arange(len(ids)) % int(p["source_stride"]) == 0
+    face_visible = face_visible & sources[:, None]
     e_qual = (np.asarray(obs["blurred"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))
     descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
@@ -238,7 +241,8 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     K = int(p["candidates"])
     nT, nF = len(targets), len(faces)
     exact = []
-    attrs = {"frame_ids": ids[start:stop], "sequence_frame_ids": ids}
+    attrs = {"frame_ids": ids[start:stop], "sequence_frame_ids": ids,
+             "source_frames": [int(i) for i in np.asarray(ids)[sources]]}
     with create_store(out, "tables", attrs=attrs, params=p) as store:
         store.write("glo", glo.astype(np.float32))
         arrays = {name: store.create(name, (nT, nF, K))

@@ -79,3 +79,37 @@ def run_stages(cfg: dict, d) -> dict:
                      cfg["projection"], d / "projection.zarr")
     return {"scene": d / "scene.zarr", "frames": frames, "truth": truth, "masks": masks,
             "template": d / "template.zarr", "tracking": d / "tracking.zarr", "projection": d / "projection.zarr"}
+
+
+def run_pipeline(cfg: dict, d) -> dict:
+    """:func:`run_stages` then poses, observations (at Φ), tables, labeling, volume and correction
+    through the real stage writers. Returns the store paths of :func:`run_stages` plus poses,
+    observations, tables, labels, volume and corrected (lists per block)."""
+    from stex.correction import write_corrected
+    from stex.io import open_store
+    from stex.labeling import write_labels
+    from stex.observations import write_observations
+    from stex.poses import write_pose_table
+    from stex.tables import write_tables
+    from stex.volume import write_volume
+
+    P = run_stages(cfg, d)
+    P["poses"] = d / "poses.zarr"
+    write_pose_table(P["tracking"], P["poses"], cfg["poses"], array="vertices", faces=P["template"])
+    P["observations"] = d / "observations.zarr"
+    write_observations(P["template"], P["tracking"], P["projection"], P["projection"], P["frames"],
+                       cfg["observations"], P["observations"])
+    blocks = open_store(P["scene"], "scene").attrs["frame_blocks"]
+    P["tables"] = [d / f"tables_{b}.zarr" for b in range(len(blocks))]
+    for path, (start, stop) in zip(P["tables"], blocks):
+        write_tables(P["scene"], P["template"], P["tracking"], P["poses"], P["observations"],
+                     [start, stop], cfg["tables"], path)
+    P["labels"] = d / "labels.zarr"
+    write_labels(P["observations"], P["tables"], P["template"], cfg["labeling"], P["labels"])
+    P["volume"] = [d / f"volume_{b}.zarr" for b in range(len(blocks))]
+    P["corrected"] = [d / f"corrected_{b}.zarr" for b in range(len(blocks))]
+    for b, (start, stop) in enumerate(blocks):
+        write_volume(P["template"], P["labels"], P["projection"], P["frames"], [start, stop],
+                     cfg["volume"], P["volume"][b])
+        write_corrected(P["template"], P["volume"][b], cfg["correction"], P["corrected"][b])
+    return P

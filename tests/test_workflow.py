@@ -21,7 +21,10 @@ def snakemake(workdir, *args, configfiles=("tiny.yaml",)):
 def tiny_run(tmp_path_factory):
     work = tmp_path_factory.mktemp("wf")
     cfg = {"scene": "tiny", "results": str(work / "results"), "frame_block": 4,
-           "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}}
+           "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+           "template": {"atlas_size": 256},
+           "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10},
+           "observations": {"coordinates": "optimised"}}
     (work / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     run = snakemake(work, "--cores", "2")
     assert run.returncode == 0, run.stderr[-3000:]
@@ -60,7 +63,10 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     assert run.returncode == 0, out[-2000:]
     jobs = set(re.findall(r"^rule (\w+):", out, flags=re.M))
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
-    assert jobs == {"all", "masks", "masks_preview", "tracking", "poses", "projection", "projection_preview"}, out
+    downstream = {"tracking", "poses", "projection", "projection_preview", "texcoords", "observations",
+                  "tables", "labeling", "volume", "correction", "labels_preview", "preview_video",
+                  "evaluate"}
+    assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out
 
 
@@ -68,3 +74,35 @@ def test_lint_has_no_findings(tiny_run):
     run = snakemake(tiny_run, "--lint")
     out = run.stdout + run.stderr
     assert run.returncode == 0 and "Congratulations" in out, out[-3000:]
+
+
+def test_texture_outputs(tiny_run):
+    """The texture stages ran: every face seen by some frame has a label at every frame, the
+    volume and corrected slices exist for every frame, the previews and the evaluation are there."""
+    res = tiny_run / "results" / "tiny"
+    labels = open_store(res / "labels.zarr", "labels")
+    L = labels["labels"][...]
+    never = labels["never_seen"][...]
+    assert L.shape == (6, len(never)) and (L[:, ~never] >= 0).all() and (L[:, never] == -1).all()
+    assert np.all(np.diff(labels["energy"][...]) <= 1e-9)
+    corrected = FrameSequence(sorted((res / "corrected").glob("block_*.zarr")), "corrected")
+    assert corrected.frame_ids == list(range(6))
+    assert corrected.read("texture", 3).shape == (256, 256, 3)
+    assert (res / "previews" / "labels.png").stat().st_size > 1000
+    assert (res / "previews" / "preview.mp4").stat().st_size > 1000
+    assert (res / "evaluation" / "evaluation.json").exists()
+    assert (res / "benchmarks" / "labeling.tsv").exists()
+
+
+def test_report_holds_the_tables(tiny_run):
+    """snakemake --report: the evaluation tables are embedded in the self-contained HTML."""
+    import base64
+
+    report = tiny_run / "report.html"
+    run = snakemake(tiny_run, "--report", str(report))
+    assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+    html = report.read_text()
+    embedded = "".join(base64.b64decode(m).decode("utf-8", "replace")
+                       for m in re.findall(r"data:text/html;[^,]*base64,([A-Za-z0-9+/=]+)", html))
+    for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage"):
+        assert row in embedded, (row, embedded[:2000])

@@ -7,6 +7,9 @@ SYNTHETIC = SOURCE["kind"] == "synthetic"
 BLOCKS = frame_blocks(count_frames(SOURCE), config["frame_block"])
 BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
 ENV = "../../envs/stex.yaml"
+OPTIMISED = config["observations"]["coordinates"] == "optimised"
+# texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
+COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"
 
 
 wildcard_constraints:
@@ -23,8 +26,20 @@ def all_outputs():
     out += [f"{RESULTS}/template.zarr", f"{RESULTS}/previews/template_atlas.png"]
     out += [f"{RESULTS}/tracking.zarr", f"{RESULTS}/poses.zarr"]
     out += [f"{RESULTS}/projection.zarr", f"{RESULTS}/previews/projection.png"]
+    out += [COORDS, f"{RESULTS}/observations.zarr", f"{RESULTS}/labels.zarr"]
+    out += expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS)
+    out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
+    out += [f"{RESULTS}/evaluation"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
     out += expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS)
     if SYNTHETIC:
         out += expand(f"{RESULTS}/truth/block_{{block}}.zarr", block=BLOCK_IDS)
     return out
+
+
+def previous_corrected(wildcards):
+    """The previous block's corrected store when the temporal coupling chains the blocks."""
+    b = int(wildcards.block)
+    if not config["correction"]["temporal"] or b == 0:
+        return []
+    return [f"{RESULTS}/corrected/block_{b - 1:04d}.zarr"]

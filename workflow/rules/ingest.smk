@@ -9,6 +9,8 @@ rule ingest_scene:
         frame_block=config["frame_block"],
     log:
         f"{RESULTS}/logs/ingest_scene.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/ingest_scene.tsv",
     conda:
         ENV
     script:
@@ -26,6 +28,8 @@ if SYNTHETIC:
             frames=block_range,
         log:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
+        benchmark:
+            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
         conda:
             ENV
         script:
@@ -41,6 +45,8 @@ else:
             frames=block_range,
         log:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
+        benchmark:
+            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
         conda:
             ENV
         script:

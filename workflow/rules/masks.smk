@@ -11,6 +11,8 @@ rule masks:
         masks=config["masks"],
     log:
         f"{RESULTS}/logs/masks_{{block}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/masks_{{block}}.tsv",
     conda:
         ENV
     script:
@@ -30,6 +32,8 @@ rule masks_preview:
         ),
     log:
         f"{RESULTS}/logs/masks_preview.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/masks_preview.tsv",
     conda:
         ENV
     script:

@@ -12,6 +12,8 @@ rule poses:
     threads: 2
     log:
         f"{RESULTS}/logs/poses.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/poses.tsv",
     conda:
         ENV
     script:

@@ -17,6 +17,8 @@ rule projection:
         projection=config["projection"],
     log:
         f"{RESULTS}/logs/projection.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/projection.tsv",
     conda:
         ENV
     script:
@@ -35,6 +37,8 @@ rule projection_preview:
         ),
     log:
         f"{RESULTS}/logs/projection_preview.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/projection_preview.tsv",
     conda:
         ENV
     script:

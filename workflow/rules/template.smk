@@ -10,6 +10,8 @@ rule template:
         template=config["template"],
     log:
         f"{RESULTS}/logs/template.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/template.tsv",
     conda:
         ENV
     script:
@@ -27,6 +29,8 @@ rule template_preview:
         ),
     log:
         f"{RESULTS}/logs/template_preview.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/template_preview.tsv",
     conda:
         ENV
     script:

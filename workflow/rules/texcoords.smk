@@ -14,7 +14,9 @@ rule texcoords:
         texcoords=config["texcoords"],
     log:
         f"{RESULTS}/logs/texcoords.log",
-    threads: workflow.cores
+    benchmark:
+        f"{RESULTS}/benchmarks/texcoords.tsv",
+    threads: 2
     conda:
         ENV
     script:

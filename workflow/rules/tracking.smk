@@ -13,6 +13,8 @@ rule tracking:
         tracking=config["tracking"],
     log:
         f"{RESULTS}/logs/tracking.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/tracking.tsv",
     conda:
         ENV
     script:

@@ -1,0 +1,989 @@
+"""Evaluation stage: score reconstructions with the paper's metrics and against ground truth.
+
+The metric definitions live in :mod:`stex.evaluate` (``docs/metrics.md``); this module decides
+which images go in, scores every method with the same code, and writes the tables, plots and
+pictures of the report.
+
+What it computes
+----------------
+- :func:`score_frame` — one frame t, one method's texture slice (W, W, 3) on the tracked mesh at
+  t, rendered in the input colour camera (the depth camera moved by ``depth_to_color``):
+  patch-shift PSNR, plain PSNR and SSIM against the input photo, the blur of the render and of
+  the photo, all inside the (GrabCut) mask intersected with the render's silhouette; the
+  coverage of the surface; and, on synthetic scenes, ground-truth scores: the texture on OUR
+  tracked mesh against the TRUE appearance on the TRUE mesh, from a novel view (default: 180°
+  about the vertical axis through the true object's centre) and from the input view, split into
+  the regions seen / unseen by the camera at t.
+- :func:`image_scores`, :func:`coverage_scores`, :func:`truth_views`, :func:`method_views` —
+  the pieces of :func:`score_frame`, for callers that score other images.
+- :func:`write_evaluation` — the stage: builds the baselines (Kim 2019 global texture over the
+  source frames, naive per-frame projection), scores ``ours`` (corrected volume),
+  ``ours_uncorrected`` (volume), ``global`` and ``projection`` on the chosen frames, temporal
+  flicker in borrowed regions, and writes ``evaluation.json``, one CSV per table, ``tables.rst``
+  and PNG figures into a folder.
+- :func:`rst_tables` — reStructuredText tables laid out like the paper's Table 3 (reconstruction
+  error and blur per method), coverage, ground truth and timing, over one or several scenes.
+
+Masks
+-----
+Input-view scores use ``mask & rendered``: the GrabCut mask of the photo intersected with the
+pixels the tracked mesh covers. Every method is rendered on the same geometry, so the
+intersection is the same for all of them; it keeps silhouette errors of the tracking (pixels of
+the object the mesh misses, rendered black) out of a score meant for the texture. The overlap
+is reported (``mask_iou``). For SSIM the render is composited over the photo outside that
+mask, so the windows that cross the silhouette compare the photo's background with itself
+instead of with the render's black. Ground-truth scores use the true render's mask intersected
+with ours (``gt_*_iou``).
+
+Held-out protocol
+-----------------
+With ``tables.source_stride`` = k only every k-th frame may texture anything (attr
+``source_frames`` of the tables stores); every frame is still a target. Frames that are not
+sources are scored as ``held_out``: their own photo was not used by ``ours`` nor by ``global``
+(built from the source frames only). The naive ``projection`` baseline of a held-out frame is
+its own photo, so it is left out of the held-out summaries.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from stex import evaluate as ev
+from stex.camera import Calibration, transform_points
+
+log = logging.getLogger("stex.evaluation")
+
+__all__ = [
+    "Atlas",
+    "METHODS",
+    "METHOD_NAMES",
+    "evaluation_params",
+    "image_scores",
+    "coverage_scores",
+    "truth_views",
+    "method_views",
+    "score_frame",
+    "vertex_motion",
+    "summarise_frames",
+    "SUMMARY_METRICS",
+    "table_rows",
+    "timing_rows",
+    "rst_tables",
+    "dynamism_regions",
+    "write_evaluation",
+]
+
+#: Methods scored by :func:`write_evaluation`, in table order.
+METHODS = ("ours", "ours_uncorrected", "global", "projection")
+#: Their names in tables and plots.
+METHOD_NAMES = {"input": "Input images", "ours": "Ours", "ours_uncorrected": "Ours, uncorrected",
+                "global": "Kim et al. 2019 (global)", "projection": "Per-frame projection"}
+
+#: Default parameters of the evaluation (the ``evaluation`` config section).
+
+
+class Atlas(NamedTuple):
+    """The fixed topology and UV atlas of a mesh sequence.
+
+    faces: (F, 3) int vertex indices; texcoords: (Vt, 2) float in [0, 1]^2 (u right, v down);
+    texcoord_faces: (F, 3) int indices into texcoords.
+    """
+
+    faces: np.ndarray
+    texcoords: np.ndarray
+    texcoord_faces: np.ndarray
+
+
+def evaluation_params(params: dict | None = None) -> dict:
+    """The evaluation settings: the schema's ``evaluation`` section (config/schema.yaml, the one
+    place the defaults live) updated with ``params``; unknown keys and bad values raise
+    ValueError."""
+    from stex.config import section_params
+
+    return section_params("evaluation", params)
+
+
+# --------------------------------------------------------------------------------------------
+# scoring one frame
+# --------------------------------------------------------------------------------------------
+
+def _camera(calibration) -> tuple[np.ndarray, int, int, np.ndarray]:
+    cal = calibration if isinstance(calibration, Calibration) else Calibration.from_dict(calibration)
+    return cal.color.K, cal.color.width, cal.color.height, cal.depth_to_color
+
+
+def _atlas(atlas) -> Atlas:
+    a = Atlas(*atlas)
+    faces = np.asarray(a.faces)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"atlas faces must be (F, 3), got {faces.shape}")
+    if np.asarray(a.texcoord_faces).shape != faces.shape:
+        raise ValueError(f"atlas texcoord_faces must have the faces' shape {faces.shape}, "
+                         f"got {np.asarray(a.texcoord_faces).shape}")
+    return a
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    u = int((a | b).sum())
+    return float((a & b).sum() / u) if u else math.nan
+
+
+def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAULT_RADIUS,
+                 h_size=ev.DEFAULT_H_SIZE) -> dict:
+    """The input-view scores of one render against one photo, inside ``mask``.
+
+    Args:
+        reference: (H, W, 3) uint8/float photo, grey levels 0..255.
+        test: (H, W, 3) render of the same view, grey levels.
+        mask: (H, W) bool, the scored pixels.
+        patch, radius: patch-shift PSNR P and r (px). h_size: blur filter length (px).
+
+    Returns:
+        dict ``psnr`` (patch-shift, dB), ``psnr_unshifted`` (same patches, no shift, dB),
+        ``psnr_plain`` (masked PSNR over all mask pixels, dB), ``ssim`` (1; of ``test`` inside the
+        mask composited over ``reference`` outside it, so windows crossing the mask's edge see
+        the photo's own background on both sides), ``blur`` (of
+        ``test``, 0 sharp .. 1 blurry), ``blur_input`` (of ``reference``, same mask and code),
+        ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
+    """
+    ref = np.asarray(reference)
+    tst = np.asarray(test)
+    m = np.asarray(mask, bool)
+    if ref.shape != tst.shape or ref.shape[:2] != m.shape:
+        raise ValueError(f"reference {ref.shape}, test {tst.shape} and mask {m.shape} differ in size")
+    # SSIM windows straddle the silhouette: outside the mask they compare the photo with itself,
+    # not with the render's black background, so the score is about the texture
+    composite = np.where(m[..., None], tst, ref)
+    ps = ev.patch_shift_psnr(ref, tst, m, patch=patch, radius=radius)
+    return {
+        "psnr": ps["psnr"],
+        "psnr_unshifted": ps["psnr_unshifted"],
+        "psnr_plain": ev.masked_psnr(ref, tst, m)["psnr"],
+        "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
+        "blur": ev.blur(tst, m, h_size=h_size)["blur"],
+        "blur_input": ev.blur(ref, m, h_size=h_size)["blur"],
+        "mean_shift_px": ps["mean_shift_px"],
+        "n_patches": ps["n_patches"],
+        "n_pixels": int(m.sum()),
+    }
+
+
+def coverage_scores(face_has_texture, face_area, seen_faces=None) -> dict:
+    """Surface with texture at one frame.
+
+    Args:
+        face_has_texture: (F,) bool, the faces the method textures at this frame (a label >= 0
+            for ours, visible now for projection, seen in some frame for global).
+        face_area: (F,) float face areas of the frame's mesh (m^2).
+        seen_faces: (F,) bool, faces seen by some source frame (the most any method can
+            texture from observations), or None.
+
+    Returns:
+        dict ``coverage_faces`` (fraction of faces, the paper's measure), ``coverage_area``
+        (fraction of the surface area) and ``coverage_seen`` (fraction of the seen faces that
+        have texture; NaN without ``seen_faces`` or when none is seen).
+    """
+    has = np.asarray(face_has_texture, bool)
+    area = np.asarray(face_area, np.float64)
+    if area.shape != has.shape or has.ndim != 1:
+        raise ValueError(f"face_has_texture {has.shape} and face_area {area.shape} must both be (F,)")
+    out = {"coverage_faces": float(ev.face_coverage(has)),
+           "coverage_area": float(ev.face_coverage(has, area))}
+    seen = None if seen_faces is None else np.asarray(seen_faces, bool)
+    if seen is not None and seen.shape != has.shape:
+        raise ValueError(f"seen_faces must have shape {has.shape}, got {seen.shape}")
+    out["coverage_seen"] = (float(has[seen].mean()) if seen is not None and seen.any() else math.nan)
+    return out
+
+
+def truth_views(true_vertices, true_atlas, appearance, calibration,
+                novel_angle_deg=180.0) -> dict:
+    """Renders of the true appearance on the true mesh at one frame, in the input colour camera
+    and in the novel view.
+
+    Args:
+        true_vertices: (V0, 3) float true vertices, depth-camera coordinates (m).
+        true_atlas: :class:`Atlas` of the true mesh (the scene template's faces and texcoords).
+        appearance: (W0, W0, 3) uint8 true texture at this frame, in ``true_atlas``.
+        calibration: :class:`stex.camera.Calibration` (or its dict).
+        novel_angle_deg: orbit angle of the novel view about the vertical (camera y) axis
+            through the true mesh's centroid (deg).
+
+    Returns:
+        dict ``novel_transform`` (4, 4), colour-camera -> novel-view coordinates (apply it to
+        every mesh compared in this view), ``input`` and ``novel``: (image (H, W, 3) float32,
+        mask (H, W) bool).
+    """
+    K, w, h, d2c = _camera(calibration)
+    a = _atlas(true_atlas)
+    Vc = transform_points(d2c, np.asarray(true_vertices, np.float64))
+    N = ev.novel_view(Vc, novel_angle_deg)
+    return {
+        "novel_transform": N,
+        "input": ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, appearance, K, w, h),
+        "novel": ev.render_texture(transform_points(N, Vc), a.faces, a.texcoords,
+                                   a.texcoord_faces, appearance, K, w, h),
+    }
+
+
+def method_views(texture, vertices, atlas, calibration, novel_transform=None,
+                 face_visible=None) -> dict:
+    """Renders of one method's texture slice on the tracked mesh.
+
+    Args:
+        texture: (W, W, 3) uint8 texture slice in ``atlas``.
+        vertices: (V, 3) tracked vertices at this frame, depth-camera coordinates (m).
+        atlas: :class:`Atlas` of the tracked mesh (template faces, texcoords, texcoord_faces).
+        calibration: :class:`stex.camera.Calibration` (or its dict).
+        novel_transform: (4, 4) from :func:`truth_views`, or None (no novel view).
+        face_visible: (F,) bool faces the camera sees at this frame (projection stage), for the
+            seen mask of the novel view; None -> no seen mask.
+
+    Returns:
+        dict ``input`` (image float32 (H, W, 3), mask (H, W) bool) and, with a novel transform,
+        ``novel`` (image, mask) and ``novel_seen`` ((H, W) bool or None).
+    """
+    K, w, h, d2c = _camera(calibration)
+    a = _atlas(atlas)
+    tex = np.asarray(texture)
+    if tex.ndim != 3 or tex.shape[2] != 3:
+        raise ValueError(f"texture must be (W, W, 3), got {tex.shape}")
+    Vc = transform_points(d2c, np.asarray(vertices, np.float64))
+    out = {"input": ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)}
+    if novel_transform is not None:
+        Vn = transform_points(np.asarray(novel_transform, np.float64), Vc)
+        out["novel"] = ev.render_texture(Vn, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)
+        out["novel_seen"] = (None if face_visible is None else
+                             ev.seen_mask_in_view(Vn, a.faces, face_visible, K, w, h))
+    return out
+
+
+def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen) -> dict:
+    m = truth_mask & rec_mask
+    region = np.zeros_like(m) if seen is None else seen
+    r = ev.region_psnr(truth_img, rec_img, m, region, ssim=True)
+    out = {f"{prefix}_{k}": r[k] for k in ("psnr_all", "psnr_seen", "psnr_unseen",
+                                           "ssim_all", "ssim_seen", "ssim_unseen")}
+    out[f"{prefix}_n_seen"], out[f"{prefix}_n_unseen"] = r["n_seen"], r["n_unseen"]
+    out[f"{prefix}_iou"] = _iou(truth_mask, rec_mask)
+    return out
+
+
+def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_texture=None,
+                seen_faces=None, face_visible=None, truth=None,
+                novel_angle_deg=180.0, patch=ev.DEFAULT_PATCH,
+                radius=ev.DEFAULT_RADIUS, h_size=ev.DEFAULT_H_SIZE, return_views=False) -> dict:
+    """Score one method's texture slice at one frame.
+
+    Args:
+        texture: (W, W, 3) uint8 texture slice in ``atlas``.
+        vertices: (V, 3) float tracked vertices at this frame, depth-camera coordinates (m).
+        atlas: :class:`Atlas` (or a (faces, texcoords, texcoord_faces) tuple) of the tracked mesh.
+        image: (Hc, Wc, 3) uint8 input colour photo of this frame.
+        mask: (Hc, Wc) bool object mask of the photo (GrabCut).
+        calibration: :class:`stex.camera.Calibration` (or its dict): colour camera and
+            depth_to_color.
+        face_has_texture: (F,) bool faces the method textures at this frame -> coverage scores.
+        seen_faces: (F,) bool faces seen by some source frame (``coverage_seen``).
+        face_visible: (F,) bool faces the camera sees at this frame (projection stage): the
+            seen / unseen split of the ground-truth scores.
+        truth: the output of :func:`truth_views` for this frame (synthetic scenes), or None.
+        novel_angle_deg: only used to compute ``truth`` when a tuple (true_vertices, true_atlas,
+            appearance) is passed instead.
+        patch, radius, h_size: metric parameters (px), see :func:`image_scores`.
+        return_views: also return the renders (key ``views``, see :func:`method_views`).
+
+    Returns:
+        flat dict of floats: :func:`image_scores` keys and ``mask_iou`` (render silhouette vs
+        mask); with ``face_has_texture`` the :func:`coverage_scores` keys (area on this frame's
+        mesh); with ``truth`` ``gt_novel_*`` and ``gt_input_*``: ``psnr_all/seen/unseen`` (dB),
+        ``ssim_all/seen/unseen``, ``n_seen``, ``n_unseen`` (px), ``iou`` (true vs our
+        silhouette).
+    """
+    K, w, h, _ = _camera(calibration)
+    img = np.asarray(image)
+    if img.shape != (h, w, 3):
+        raise ValueError(f"image must be the colour camera's ({h}, {w}, 3), got {img.shape}")
+    m = np.asarray(mask, bool)
+    if m.shape != (h, w):
+        raise ValueError(f"mask must be ({h}, {w}), got {m.shape}")
+    a = _atlas(atlas)
+    if truth is not None and not isinstance(truth, dict):
+        truth = truth_views(*truth, calibration, novel_angle_deg)
+    views = method_views(texture, vertices, a, calibration,
+                         None if truth is None else truth["novel_transform"], face_visible)
+    rec, rmask = views["input"]
+    out = image_scores(img, rec, m & rmask, patch=patch, radius=radius, h_size=h_size)
+    out["mask_iou"] = _iou(m, rmask)
+    if face_has_texture is not None:
+        area = ev.face_areas(vertices, a.faces)
+        out.update(coverage_scores(face_has_texture, area, seen_faces))
+    if truth is not None:
+        seen_in = None
+        if face_visible is not None:
+            Vc = transform_points(_camera(calibration)[3], np.asarray(vertices, np.float64))
+            seen_in = ev.seen_mask_in_view(Vc, a.faces, face_visible, K, w, h)
+        out.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, seen_in))
+        out.update(_truth_region_scores("gt_novel", *truth["novel"], *views["novel"],
+                                        views["novel_seen"]))
+    if return_views:
+        out["views"] = views
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# aggregation and tables
+# --------------------------------------------------------------------------------------------
+
+def vertex_motion(prev_vertices, vertices) -> float:
+    """Mean vertex displacement between two frames, (V, 3) each in metres -> millimetres."""
+    a = np.asarray(prev_vertices, np.float64)
+    b = np.asarray(vertices, np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"vertex arrays differ in shape: {a.shape} vs {b.shape}")
+    return float(np.linalg.norm(b - a, axis=1).mean() * 1000.0)
+
+
+#: Per-frame scores summarised (and plotted) by :func:`write_evaluation`.
+SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input",
+                   "mask_iou", "coverage_faces", "coverage_area", "coverage_seen",
+                   "gt_novel_psnr_all", "gt_novel_psnr_seen", "gt_novel_psnr_unseen",
+                   "gt_novel_ssim_all", "gt_novel_ssim_seen", "gt_novel_ssim_unseen",
+                   "gt_input_psnr_all", "gt_input_ssim_all", "gt_novel_iou",
+                   "flicker", "flicker_excess")
+
+
+def summarise_frames(frames: list[dict], methods=METHODS) -> dict:
+    """Summaries of per-frame records (as in ``evaluation.json`` ``frames``).
+
+    Returns ``{subset: {method: {metric: stex.evaluate.summarise(...)}}}`` for the subsets
+    ``all`` (every scored frame), ``source`` (frames that were sources) and ``held_out``
+    (frames that were not; the projection baseline is left out there, it uses the frame's own
+    photo).
+    """
+    subsets = {"all": frames, "source": [f for f in frames if not f["held_out"]],
+               "held_out": [f for f in frames if f["held_out"]]}
+    out = {}
+    for name, sel in subsets.items():
+        out[name] = {}
+        for m in methods:
+            if name == "held_out" and m == "projection":
+                continue
+            rows = [f["methods"][m] for f in sel if m in f["methods"]]
+            out[name][m] = {k: ev.summarise([r.get(k, math.nan) for r in rows])
+                            for k in SUMMARY_METRICS if any(k in r for r in rows)}
+    return out
+
+
+def _fmt(x, digits=2, scale=1.0):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "–"
+    return f"{x * scale:.{digits}f}"
+
+
+def _grid(header: list[str], rows: list[list[str]]) -> str:
+    """A reStructuredText grid table."""
+    cols = list(zip(*([header] + rows)))
+    widths = [max(len(c) for c in col) for col in cols]
+    line = "+" + "+".join("-" * (w + 2) for w in widths) + "+"
+    head = "+" + "+".join("=" * (w + 2) for w in widths) + "+"
+
+    def row(cells):
+        return "| " + " | ".join(c.ljust(w) for c, w in zip(cells, widths)) + " |"
+
+    return "\n".join([line, row(header), head] + [x for r in rows for x in (row(r), line)]) + "\n"
+
+
+def _mean(summary, subset, method, metric):
+    try:
+        return summary[subset][method][metric]["mean"]
+    except KeyError:
+        return math.nan
+
+
+def table_rows(summaries: dict) -> dict:
+    """The paper-style tables as lists of rows (header first) over scenes ``{scene: summary}``,
+    where a summary is ``evaluation.json``'s ``summary`` (plus its ``held_out_label``).
+
+    Returns ``{table name: [header, row, ...]}`` for ``reconstruction``, ``coverage`` and
+    ``ground_truth`` (the last only when some scene has ground truth).
+    """
+    scenes = list(summaries)
+    rec = [["Metric", "Method"] + scenes]
+
+    def add(table, label, method, subset, metric, digits=2, scale=1.0, name=None):
+        vals = [_mean(summaries[s], subset, method, metric) for s in scenes]
+        if all(not math.isfinite(v) for v in vals):
+            return
+        first = "" if any(r[0] == label for r in table[1:]) else label   # group label once
+        table.append([first, name or METHOD_NAMES[method]] + [_fmt(v, digits, scale) for v in vals])
+
+    for m in METHODS:
+        add(rec, "PSNR, dB (every frame)", m, "all", "psnr")
+    for s in scenes:
+        if summaries[s].get("n_held_out", 0):
+            for m in ("global", "ours", "ours_uncorrected"):
+                label = summaries[s].get("held_out_label", "")
+                add(rec, "PSNR, dB (held-out frames)", m, "held_out", "psnr",
+                    name=METHOD_NAMES[m] + (f" {label}" if m.startswith("ours") else ""))
+            break
+    for m in METHODS:
+        add(rec, "Plain PSNR, dB (every frame)", m, "all", "psnr_plain")
+    for m in METHODS:
+        add(rec, "SSIM (every frame)", m, "all", "ssim", digits=4)
+    add(rec, "Blurriness (Crete et al.)", "ours", "all", "blur_input", digits=4, name=METHOD_NAMES["input"])
+    for m in ("global", "ours", "ours_uncorrected", "projection"):
+        add(rec, "Blurriness (Crete et al.)", m, "all", "blur", digits=4)
+
+    cov = [["Coverage (mean over frames)", "Method"] + scenes]
+    for metric, label in (("coverage_faces", "faces, %"), ("coverage_area", "surface area, %"),
+                          ("coverage_seen", "of the faces seen by some frame, %")):
+        for m in METHODS:
+            add(cov, label, m, "all", metric, digits=1, scale=100.0)
+    out = {"reconstruction": rec, "coverage": cov}
+
+    gt = [["Ground truth (novel view unless stated)", "Method"] + scenes]
+    for metric, label, digits in (("gt_novel_psnr_all", "PSNR, dB, whole object", 2),
+                                  ("gt_novel_psnr_seen", "PSNR, dB, seen at t", 2),
+                                  ("gt_novel_psnr_unseen", "PSNR, dB, unseen at t", 2),
+                                  ("gt_novel_ssim_unseen", "SSIM, unseen at t", 4),
+                                  ("gt_input_psnr_all", "PSNR, dB, input view", 2),
+                                  ("flicker", "flicker in borrowed regions, grey levels", 2)):
+        for m in METHODS:
+            add(gt, label, m, "all", metric, digits=digits)
+    if len(gt) > 1:
+        out["ground_truth"] = gt
+    return out
+
+
+def timing_rows(timing: dict) -> list[list[str]]:
+    """Rows (header first) of the timing table from ``{stage: seconds}`` or
+    ``{scene: {stage: seconds}}``."""
+    if timing and all(isinstance(v, dict) for v in timing.values()):
+        scenes = list(timing)
+        stages = list(dict.fromkeys(k for v in timing.values() for k in v))
+    else:
+        scenes, stages, timing = ["time"], list(timing or {}), {"time": dict(timing or {})}
+    rows = [["Stage"] + [f"{s} (min)" for s in scenes]]
+    for st in stages:
+        rows.append([st] + [_fmt(timing[s].get(st, math.nan), 2, 1 / 60) for s in scenes])
+    return rows
+
+
+def rst_tables(summaries: dict, timing: dict | None = None) -> str:
+    """reStructuredText (no HTML) tables like the paper's, over scenes ``{scene: summary}``.
+
+    Sections: reconstruction error and blur per method (the paper's Table 3: PSNR every frame,
+    PSNR on held-out frames, blur), coverage, ground truth (synthetic scenes) and timing per
+    stage (``{stage: seconds}`` or ``{scene: {stage: seconds}}``, shown in minutes as the
+    paper's Table 1).
+    """
+    titles = {"reconstruction": "Texture reconstruction error and blurriness",
+              "coverage": "Coverage",
+              "ground_truth": "Ground truth (synthetic scenes)",
+              "timing": "Computation time"}
+    notes = {
+        "reconstruction": "PSNR inside the object mask between input photos and renders of the "
+                          "texture on the tracked mesh; the patch-shift PSNR translates 32 x 32 "
+                          "patches by up to 4 px (docs/metrics.md). Blur: Crete et al. 2007 "
+                          "(skimage, h_size 11), smaller is sharper.",
+        "coverage": "Faces (or area) with texture per frame, averaged over the scored frames.",
+        "ground_truth": "Renders of the texture on our tracked mesh against the true appearance "
+                        "on the true mesh, from the opposite side (novel view), split into the "
+                        "surface the camera sees at t and the rest.",
+        "timing": "Wall time per stage.",
+    }
+    tabs = table_rows(summaries)
+    if timing:
+        tabs["timing"] = timing_rows(timing)
+    parts = []
+    for name, rows in tabs.items():
+        t = titles[name]
+        parts.append(f"{t}\n{'-' * len(t)}\n\n{notes[name]}\n\n{_grid(rows[0], rows[1:])}")
+    return "\n".join(parts)
+
+
+# --------------------------------------------------------------------------------------------
+# the stage
+# --------------------------------------------------------------------------------------------
+
+def _finite_or_none(x):
+    if isinstance(x, dict):
+        return {str(k): _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _check_frames(name, path, ids, expected):
+    if list(ids) != list(expected):
+        raise ValueError(f"{name} store {path} holds frames {_short(ids)}, the scene has "
+                         f"{_short(expected)}")
+
+
+def _short(ids):
+    ids = list(ids)
+    return f"{len(ids)} frames [{ids[0]}..{ids[-1]}]" if len(ids) > 4 else str(ids)
+
+
+def _crop_box(masks, pad=4):
+    m = np.zeros_like(masks[0])
+    for x in masks:
+        m |= x
+    if not m.any():
+        return 0, m.shape[0], 0, m.shape[1]
+    rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    return (max(0, rows[0] - pad), min(m.shape[0], rows[-1] + 1 + pad),
+            max(0, cols[0] - pad), min(m.shape[1], cols[-1] + 1 + pad))
+
+
+def write_evaluation(scene_path, frames_paths, masks_paths, template_path, tracking_path,
+                     projection_path, labels_path, volume_paths, corrected_paths, out_dir,
+                     params: dict | None = None, *, truth_paths=None, coords_path=None,
+                     observations_path=None, tables_paths=None, frames=None,
+                     timing: dict | None = None) -> dict:
+    """Evaluation stage: score every method on the chosen frames and write the report content.
+
+    Args:
+        scene_path: ``scene`` store (calibration, frame ids; truth/vertices and the scene
+            template's atlas on synthetic scenes).
+        frames_paths, masks_paths: ``frames`` / ``masks`` block stores (photos, GrabCut masks).
+        template_path: ``template`` store (faces, atlas, texel map, face charts).
+        tracking_path: ``tracking`` store (vertices [T, V, 3]).
+        projection_path: ``projection`` store (face_visible, face_cos [T, F]).
+        labels_path: ``labels`` store (labels [T, F], never_seen).
+        volume_paths, corrected_paths: ``volume`` / ``corrected`` block stores
+            (``ours_uncorrected`` / ``ours``).
+        out_dir: folder to write (built as ``<out_dir>.partial`` and moved into place when
+            complete, replacing an older one).
+        params: the evaluation settings (:func:`evaluation_params`).
+        truth_paths: ``truth`` block stores (synthetic scenes) -> ground-truth scores and flicker.
+        coords_path: ``texcoords`` store (ξ) or the projection store (Φ, the default): the
+            texture coordinates of the baselines, as used by the volume.
+        observations_path: ``observations`` store -> the SSIM-dynamism figure.
+        tables_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
+            texture (held-out protocol); without, every frame is a source.
+        frames: global frame ids to score; None -> every ``stride``-th frame.
+        timing: ``{stage: seconds}`` for the timing table, or None.
+
+    Writes into ``out_dir``: ``evaluation.json`` (params, per-frame records
+    ``frames[i] = {frame, position, held_out, motion_mm, methods: {method: {metric: value}}}``,
+    ``summary`` (:func:`summarise_frames`), ``tables`` (:func:`table_rows`)); ``per_frame.csv``
+    (one row per frame x method); ``table_<name>.csv`` per table; ``tables.rst``
+    (:func:`rst_tables`); figures ``psnr_per_frame.png``, ``blur_vs_motion.png``,
+    ``side_by_side.png``, ``label_map.png`` and, with observations, ``dynamism.png``.
+
+    Returns:
+        the ``evaluation.json`` content (NaN as None).
+    """
+    from stex.baseline import global_texture, projection_texture
+    from stex.io import FrameSequence, StoreError, open_store
+    from stex.observations import open_coordinates
+    from stex.volume import TexelSampler
+
+    p = evaluation_params(params)
+    t_start = time.perf_counter()
+    out_dir = Path(out_dir)
+    scene = open_store(scene_path, "scene")
+    ids = [int(i) for i in scene.attrs["frame_ids"]]
+    T = len(ids)
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    template = open_store(template_path, "template")
+    tracking = open_store(tracking_path, "tracking")
+    projection = open_store(projection_path, "projection")
+    labels_store = open_store(labels_path, "labels")
+    for name, path, g in (("tracking", tracking_path, tracking), ("projection", projection_path, projection),
+                          ("labels", labels_path, labels_store)):
+        _check_frames(name, path, g.attrs["frame_ids"], ids)
+    photos = FrameSequence(list(frames_paths), "frames")
+    masks = FrameSequence(list(masks_paths), "masks")
+    volume = FrameSequence(list(volume_paths), "volume")
+    corrected = FrameSequence(list(corrected_paths), "corrected")
+    for name, paths, seq in (("frames", frames_paths, photos), ("masks", masks_paths, masks),
+                             ("volume", volume_paths, volume), ("corrected", corrected_paths, corrected)):
+        _check_frames(name, ", ".join(str(x) for x in paths), seq.frame_ids, ids)
+    atlas = Atlas(np.asarray(template["faces"][...], np.int64), template["texcoords"][...],
+                  np.asarray(template["texcoord_faces"][...], np.int64))
+    F = len(atlas.faces)
+    if tracking["vertices"].shape[1] != template["vertices"].shape[0]:
+        raise ValueError(f"tracking store {tracking_path} has {tracking['vertices'].shape[1]} "
+                         f"vertices, template {template_path} has {len(template['vertices'])}")
+    for name, path, arr in (("projection", projection_path, projection["face_visible"]),
+                            ("labels", labels_path, labels_store["labels"])):
+        if arr.shape[1] != F:
+            raise ValueError(f"{name} store {path} has {arr.shape[1]} faces, template has {F}")
+    W = int(template.attrs["atlas_size"])
+    if volume.groups[0]["texture"].shape[1] != W:
+        raise ValueError(f"volume stores are {volume.groups[0]['texture'].shape[1]} texels wide, "
+                         f"template atlas_size is {W}")
+
+    # held-out protocol: the frames allowed to texture
+    sources = set(ids)
+    stride_label = ""
+    if tables_paths:
+        src = open_store(list(tables_paths)[0], "tables").attrs.get("source_frames")
+        if src is not None:
+            sources = {int(i) for i in src}
+            k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
+            stride_label = f"(1/{k})" if k else f"({len(sources)}/{T} frames)"
+    is_source = np.array([i in sources for i in ids])
+
+    score_ids = list(ids[::int(p["stride"])]) if frames is None else [int(f) for f in frames]
+    bad = [f for f in score_ids if f not in ids]
+    if bad or not score_ids:
+        raise ValueError(f"frames to score {bad or score_ids} are not frames of the scene "
+                         f"{scene_path} ({_short(ids)})")
+    pos_of = {fid: k for k, fid in enumerate(ids)}
+    fig_t = score_ids[len(score_ids) // 2] if p["figure_frame"] is None else int(p["figure_frame"])
+    if fig_t not in pos_of:
+        raise ValueError(f"figure_frame {fig_t} is not a frame of the scene ({_short(ids)})")
+    fig_pos = pos_of[fig_t]
+
+    # ground truth
+    truth = None
+    if truth_paths:
+        if "truth" not in scene:
+            raise StoreError(f"{scene_path}: truth stores given but the scene has no truth/vertices")
+        truth = FrameSequence(list(truth_paths), "truth")
+        _check_frames("truth", ", ".join(str(x) for x in truth_paths), truth.frame_ids, ids)
+        true_atlas = Atlas(np.asarray(scene["template/faces"][...], np.int64),
+                           scene["template/texcoords"][...],
+                           np.asarray(scene["template/texcoord_faces"][...], np.int64))
+        true_vertices = scene["truth/vertices"]
+        if true_vertices.shape[0] != T:
+            raise ValueError(f"{scene_path}: truth/vertices has {true_vertices.shape[0]} frames, "
+                             f"the scene has {T}")
+
+    face_visible = np.asarray(projection["face_visible"][...], bool)
+    face_cos = projection["face_cos"]
+    labels = labels_store["labels"]
+    seen_faces = (face_visible & is_source[:, None]).any(axis=0)
+    coords, _, _ = open_coordinates(coords_path or projection_path)
+    if coords.shape[0] != T:
+        raise ValueError(f"texture coordinates {coords_path or projection_path} hold "
+                         f"{coords.shape[0]} frames, the scene has {T}")
+    sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], atlas.faces)
+
+    # the global baseline over the source frames
+    t0 = time.perf_counter()
+    src_positions = np.flatnonzero(is_source)
+
+    def load(k):
+        t = int(src_positions[k])
+        return photos.read("color", ids[t]), np.asarray(coords[t], np.float64), face_visible[t]
+
+    global_tex, _ = global_texture(load, len(src_positions), sampler,
+                                   face_weight=lambda k: face_cos[int(src_positions[k])],
+                                   min_weight=float(p["global_min_weight"]), progress=True)
+    global_faces = (face_visible[src_positions]
+                    & (np.asarray(face_cos[...])[src_positions] > float(p["global_min_weight"]))).any(0)
+    seconds_global = time.perf_counter() - t0
+    log.info("evaluation: global texture from %d source frames in %.1f s", len(src_positions),
+             seconds_global)
+
+    def textures(t):
+        fid = ids[t]
+        proj_tex, _ = projection_texture(sampler, np.asarray(coords[t], np.float64), face_visible[t],
+                                         photos.read("color", fid))
+        return {"ours": corrected.read("texture", fid), "ours_uncorrected": volume.read("texture", fid),
+                "global": global_tex, "projection": proj_tex}
+
+    def has_texture(t):
+        lab = np.asarray(labels[t]) >= 0
+        return {"ours": lab, "ours_uncorrected": lab, "global": global_faces,
+                "projection": face_visible[t]}
+
+    def truth_at(t):
+        return truth_views(true_vertices[t], true_atlas, truth.read("appearance", ids[t]), cal,
+                           p["novel_angle_deg"])
+
+    # novel-view renders of every method at t, for the flicker of t and t+1
+    def novel_renders(t, tv, texs):
+        out = {}
+        for m, tex in texs.items():
+            v = method_views(tex, tracking["vertices"][t], atlas, cal, tv["novel_transform"],
+                             face_visible[t])
+            out[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+        out["truth"] = tv["novel"]
+        return out
+
+    records, prev_novel = [], {}
+    motion = np.full(T, math.nan)
+    t0 = time.perf_counter()
+    for n, fid in enumerate(score_ids):
+        t = pos_of[fid]
+        V = tracking["vertices"][t]
+        if t > 0:
+            motion[t] = vertex_motion(tracking["vertices"][t - 1], V)
+        image, mask = photos.read("color", fid), masks.read("mask", fid)
+        texs, has = textures(t), has_texture(t)
+        tv = truth_at(t) if truth is not None else None
+        rec = {"frame": fid, "position": t, "held_out": bool(not is_source[t]),
+               "motion_mm": motion[t], "methods": {}}
+        novel_now = {}
+        for m in METHODS:
+            s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
+                            seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
+                            patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
+                            return_views=tv is not None)
+            if tv is not None:
+                v = s.pop("views")
+                novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+            rec["methods"][m] = s
+        if tv is not None and t > 0:
+            novel_now["truth"] = tv["novel"]
+            prev = prev_novel.get(t - 1) or novel_renders(t - 1, truth_at(t - 1), textures(t - 1))
+            tp_img, tp_mask = prev["truth"]
+            for m in METHODS:
+                r_img, r_mask, seen = novel_now[m]
+                p_img, p_mask, p_seen = prev[m]
+                # borrowed in both frames: object in all four renders, unseen at t-1 and at t
+                sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
+                fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
+                rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
+                                         flicker_pixels=fl["n_pixels"])
+        elif tv is not None:
+            novel_now["truth"] = tv["novel"]
+        prev_novel = {t: novel_now} if tv is not None else {}
+        records.append(rec)
+        dt = time.perf_counter() - t0
+        log.info("evaluation: frame %d (%d/%d%s) ours PSNR %.2f dB, global %.2f dB; %.2f s per frame",
+                 fid, n + 1, len(score_ids), ", held out" if rec["held_out"] else "",
+                 rec["methods"]["ours"]["psnr"], rec["methods"]["global"]["psnr"], dt / (n + 1))
+
+    # vertex motion of every frame (the blur figure's x axis), one frame at a time
+    for t in range(1, T):
+        if not math.isfinite(motion[t]):
+            motion[t] = vertex_motion(tracking["vertices"][t - 1], tracking["vertices"][t])
+
+    summary = summarise_frames(records)
+    summary["n_frames"] = len(records)
+    summary["n_held_out"] = int(sum(r["held_out"] for r in records))
+    summary["held_out_label"] = stride_label
+    scene_name = str(Path(scene_path).parent.name or "scene")
+    tabs = table_rows({scene_name: summary})
+    result = {
+        "params": p,
+        "scene": scene_name,
+        "frame_ids": ids,
+        "source_frames": sorted(sources),
+        "scored_frames": score_ids,
+        "methods": list(METHODS),
+        "has_truth": truth is not None,
+        "frames": records,
+        "summary": summary,
+        "tables": tabs,
+        "seconds": {"global_texture": seconds_global},
+    }
+
+    # built in <out_dir>.partial and moved into place: a folder at out_dir is complete
+    final_dir, out_dir = out_dir, out_dir.with_name(out_dir.name + ".partial")
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(parents=True)
+
+    def write_all(out_dir):
+        _write_csvs(out_dir, records, tabs, timing)
+        (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing))
+        _plot_psnr(out_dir / "psnr_per_frame.png", records)
+        _plot_blur_motion(out_dir / "blur_vs_motion.png", records, ids, motion)
+        _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, photos, masks, textures,
+                              tracking["vertices"][fig_pos], atlas, cal,
+                              truth_at(fig_pos) if truth is not None else None, face_visible[fig_pos])
+        _picture_label_map(out_dir / "label_map.png", volume.read("label_map", ids[fig_pos]), ids[fig_pos])
+        if observations_path is not None:
+            obs = open_store(observations_path, "observations")
+            _check_frames("observations", observations_path, obs.attrs["frame_ids"], ids)
+            if "dynamism" in obs:
+                _plot_dynamism(out_dir / "dynamism.png", np.asarray(obs["dynamism"][...], np.float32),
+                               np.asarray(template["face_chart"][...]),
+                               ev.face_areas(template["vertices"][...], atlas.faces), ids,
+                               int(p["dynamism_regions"]))
+        result["seconds"]["total"] = time.perf_counter() - t_start
+        (out_dir / "evaluation.json").write_text(json.dumps(_finite_or_none(result), indent=1))
+
+    try:
+        write_all(out_dir)
+    except BaseException:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        raise
+    if final_dir.exists():
+        shutil.rmtree(final_dir)
+    os.replace(out_dir, final_dir)
+    log.info("evaluation: %d frames scored in %.1f s; written to %s", len(records),
+             time.perf_counter() - t_start, final_dir)
+    return _finite_or_none(result)
+
+
+# --------------------------------------------------------------------------------------------
+# files and figures
+# --------------------------------------------------------------------------------------------
+
+def _write_csvs(out_dir: Path, records, tabs, timing):
+    keys = list(dict.fromkeys(k for r in records for s in r["methods"].values() for k in s))
+    with open(out_dir / "per_frame.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["frame", "position", "held_out", "motion_mm", "method"] + keys)
+        for r in records:
+            for m, s in r["methods"].items():
+                w.writerow([r["frame"], r["position"], int(r["held_out"]), _csv(r["motion_mm"]), m]
+                           + [_csv(s.get(k, math.nan)) for k in keys])
+    all_tabs = dict(tabs)
+    if timing:
+        all_tabs["timing"] = timing_rows(timing)
+    for name, rows in all_tabs.items():
+        with open(out_dir / f"table_{name}.csv", "w", newline="") as f:
+            csv.writer(f).writerows(rows)
+
+
+def _csv(x):
+    return "" if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _plot_psnr(path, records):
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
+    x = [r["frame"] for r in records]
+    for m in METHODS:
+        ax.plot(x, [r["methods"][m]["psnr"] for r in records], marker=".", label=METHOD_NAMES[m])
+    held = [r["frame"] for r in records if r["held_out"]]
+    for i, h in enumerate(held):
+        ax.axvline(h, color="0.85", lw=3, zorder=0, label="held-out frame" if i == 0 else None)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("patch-shift PSNR (dB)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _plot_blur_motion(path, records, ids, motion):
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
+    x = [r["frame"] for r in records]
+    ax.plot(x, [r["methods"]["ours"]["blur_input"] for r in records], "k.-", label="input")
+    for m in ("ours", "global"):
+        ax.plot(x, [r["methods"][m]["blur"] for r in records], ".-", label=METHOD_NAMES[m])
+    ax.set_xlabel("frame")
+    ax.set_ylabel("blur (Crete), smaller is sharper")
+    ax2 = ax.twinx()
+    ax2.bar(ids, np.nan_to_num(motion), color="0.6", alpha=0.35, width=0.8, label="vertex motion")
+    ax2.set_ylabel("mean vertex motion (mm/frame)")
+    ax.set_zorder(ax2.get_zorder() + 1)
+    ax.patch.set_visible(False)
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def dynamism_regions(S, face_chart, face_area, n_regions: int) -> list[tuple[int, np.ndarray]]:
+    """Charts to plot in the SSIM-dynamism figure: the ``n_regions // 2`` most dynamic and the
+    most static (lowest / highest mean S) among the charts with finite S in at least half the
+    frames, each with its per-frame area-weighted mean S.
+
+    Args:
+        S: (T, F) float SSIM dynamism (NaN = not seen in both frames).
+        face_chart: (F,) int chart of each face. face_area: (F,) float.
+        n_regions: charts to return.
+
+    Returns:
+        list of (chart id, (T,) float per-frame mean S, NaN where no face of the chart is seen).
+    """
+    S = np.asarray(S, np.float64)
+    chart = np.asarray(face_chart)
+    area = np.asarray(face_area, np.float64)
+    ok = np.isfinite(S)
+    n_ch = int(chart.max()) + 1 if chart.size else 0
+    num = np.zeros((S.shape[0], n_ch))
+    den = np.zeros((S.shape[0], n_ch))
+    for t in range(S.shape[0]):
+        np.add.at(num[t], chart, np.where(ok[t], S[t], 0.0) * area)
+        np.add.at(den[t], chart, ok[t] * area)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(den > 0, num / den, np.nan)
+    valid = np.isfinite(mean).sum(0) >= max(1, S.shape[0] // 2)
+    cand = np.flatnonzero(valid)
+    if cand.size == 0:
+        return []
+    overall = np.nanmean(mean[:, cand], axis=0)
+    order = cand[np.argsort(overall)]
+    k = max(1, n_regions // 2)
+    pick = list(dict.fromkeys(list(order[:k]) + list(order[::-1][:n_regions - k])))
+    return [(int(c), mean[:, c]) for c in pick]
+
+
+def _plot_dynamism(path, S, face_chart, face_area, ids, n_regions):
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
+    for c, s in dynamism_regions(S, face_chart, face_area, n_regions):
+        ax.plot(ids, s, ".-", label=f"chart {c}")
+    ax.axhline(0.95, color="k", ls="--", lw=0.8, label="θ_Ω = 0.95")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("SSIM dynamism S (area-weighted mean)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _picture_side_by_side(path, t, ids, photos, masks, textures, V, atlas, cal, tv, face_visible):
+    plt = _pyplot()
+    texs = textures(t)
+    image = photos.read("color", ids[t])
+    shown = ["ours", "global", "projection"]
+    views = {m: method_views(texs[m], V, atlas, cal,
+                             None if tv is None else tv["novel_transform"], face_visible)
+             for m in shown}
+    top = [("input", image.astype(np.float32))] + [(m, views[m]["input"][0]) for m in shown]
+    box = _crop_box([masks.read("mask", ids[t])] + [views[m]["input"][1] for m in shown])
+    rows = [[(METHOD_NAMES[n] if n != "input" else "input photo", im, box) for n, im in top]]
+    if tv is not None:
+        nbox = _crop_box([tv["novel"][1]] + [views[m]["novel"][1] for m in shown])
+        rows.append([("truth, novel view", tv["novel"][0], nbox)]
+                    + [(METHOD_NAMES[m] + ", novel view", views[m]["novel"][0], nbox) for m in shown])
+    fig, axes = plt.subplots(len(rows), 4, figsize=(10, 2.8 * len(rows)), dpi=120, squeeze=False)
+    for r, row in enumerate(rows):
+        for c, (title, im, (r0, r1, c0, c1)) in enumerate(row):
+            axes[r, c].imshow(np.clip(im[r0:r1, c0:c1], 0, 255).astype(np.uint8))
+            axes[r, c].set_title(title, fontsize=8)
+            axes[r, c].axis("off")
+    fig.suptitle(f"frame {ids[t]}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _picture_label_map(path, label_map, frame_id):
+    from PIL import Image
+
+    from stex.volume import label_colors
+
+    Image.fromarray(label_colors(np.asarray(label_map))).save(path)

@@ -1,0 +1,195 @@
+"""Evaluation stage (stex.evaluation) on the tiny synthetic pipeline."""
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+import zarr
+
+from conftest import TINY_SYNTHETIC, run_pipeline
+from stex import evaluate as ev
+from stex.camera import Calibration, transform_points
+from stex.config import load_config
+from stex.evaluation import (METHODS, Atlas, coverage_scores, dynamism_regions, image_scores,
+                             rst_tables, score_frame, truth_views, vertex_motion, write_evaluation)
+from stex.io import FrameSequence, StoreError, open_store
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory):
+    cfg = load_config(overrides={"scene": "tiny", "frame_block": 4,
+                                 "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+                                 "template": {"atlas_size": 256}})
+    return run_pipeline(cfg, tmp_path_factory.mktemp("tiny"))
+
+
+def _args(P):
+    return (P["scene"], P["frames"], P["masks"], P["template"], P["tracking"], P["projection"],
+            P["labels"], P["volume"], P["corrected"])
+
+
+@pytest.fixture(scope="module")
+def evaluation(pipe, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    res = write_evaluation(*_args(pipe), out, truth_paths=pipe["truth"],
+                           observations_path=pipe["observations"], tables_paths=pipe["tables"],
+                           timing={"labeling": 90.0, "volume": 30.0})
+    return out, res
+
+
+@pytest.fixture(scope="module")
+def frame(pipe):
+    """Frame 2 of the tiny scene: photo, mask, calibration, our mesh/atlas/texture, the truth."""
+    scene = open_store(pipe["scene"], "scene")
+    template = open_store(pipe["template"], "template")
+    t = 2
+    return {
+        "cal": Calibration.from_dict(scene.attrs["calibration"]),
+        "image": FrameSequence(pipe["frames"], "frames").read("color", t),
+        "mask": FrameSequence(pipe["masks"], "masks").read("mask", t),
+        "V": open_store(pipe["tracking"], "tracking")["vertices"][t],
+        "atlas": Atlas(template["faces"][...], template["texcoords"][...], template["texcoord_faces"][...]),
+        "ours": FrameSequence(pipe["corrected"], "corrected").read("texture", t),
+        "visible": open_store(pipe["projection"], "projection")["face_visible"][t],
+        "true_V": scene["truth/vertices"][t],
+        "true_atlas": Atlas(scene["template/faces"][...], scene["template/texcoords"][...],
+                            scene["template/texcoord_faces"][...]),
+        "appearance": FrameSequence(pipe["truth"], "truth").read("appearance", t),
+    }
+
+
+def test_input_against_itself_is_perfect(frame):
+    s = image_scores(frame["image"], frame["image"], frame["mask"])
+    assert s["psnr"] == ev.PSNR_CAP and s["psnr_plain"] == ev.PSNR_CAP
+    assert s["ssim"] == pytest.approx(1.0, abs=1e-12)
+    assert s["blur"] == s["blur_input"] and 0 < s["blur"] < 1
+    assert s["n_patches"] > 0 and s["mean_shift_px"] == 0
+
+
+def test_truth_scored_by_the_ground_truth_path_is_perfect(frame):
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
+    K, w, h = frame["cal"].color.K, frame["cal"].color.width, frame["cal"].color.height
+    vis = ev.input_view_visibility(transform_points(frame["cal"].depth_to_color, frame["true_V"]),
+                                   frame["true_atlas"].faces, K, w, h)
+    s = score_frame(frame["appearance"], frame["true_V"], frame["true_atlas"], frame["image"],
+                    frame["mask"], frame["cal"], truth=tv, face_visible=vis)
+    for view in ("novel", "input"):
+        assert s[f"gt_{view}_psnr_all"] == ev.PSNR_CAP
+        assert s[f"gt_{view}_ssim_all"] == pytest.approx(1.0, abs=1e-9)
+        assert s[f"gt_{view}_iou"] == 1.0
+    # the far side is unseen, the input view mostly seen
+    assert s["gt_novel_n_seen"] < 0.02 * s["gt_novel_n_unseen"]
+    assert s["gt_input_n_seen"] > 5 * s["gt_input_n_unseen"]
+    # the true texture rendered through depth_to_color matches the photo (sensor noise only) ...
+    assert s["psnr"] > 38 and s["ssim"] > 0.9 and s["mask_iou"] > 0.99
+    # ... and the colour camera is not the depth camera (32 mm baseline)
+    cal0 = Calibration(frame["cal"].color, frame["cal"].depth, np.eye(4))
+    s0 = score_frame(frame["appearance"], frame["true_V"], frame["true_atlas"], frame["image"],
+                     frame["mask"], cal0)
+    assert s0["psnr_plain"] < s["psnr_plain"] - 10 and s0["mask_iou"] < 0.9
+
+
+def test_ours_beats_a_black_texture(frame):
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
+    kw = dict(truth=tv, face_visible=frame["visible"])
+    ours = score_frame(frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"],
+                       frame["cal"], **kw)
+    black = score_frame(np.zeros_like(frame["ours"]), frame["V"], frame["atlas"], frame["image"],
+                        frame["mask"], frame["cal"], **kw)
+    assert ours["psnr"] > black["psnr"] + 15
+    assert ours["ssim"] > black["ssim"] + 0.3
+    assert ours["gt_novel_psnr_unseen"] > black["gt_novel_psnr_unseen"] + 5
+    assert ours["gt_input_psnr_all"] > 28
+
+
+def test_coverage(evaluation):
+    _, res = evaluation
+    for rec in res["frames"]:
+        m = rec["methods"]
+        assert m["projection"]["coverage_faces"] < m["ours"]["coverage_faces"]
+        assert m["ours"]["coverage_seen"] == 1.0 and m["ours_uncorrected"]["coverage_seen"] == 1.0
+        assert m["projection"]["coverage_seen"] < 1.0
+        assert 0 < m["ours"]["coverage_area"] <= 1
+
+
+def test_coverage_scores_checks_shapes():
+    s = coverage_scores([True, False, True, False], [1.0, 1.0, 2.0, 0.0], [True, True, True, False])
+    assert s["coverage_faces"] == 0.5 and s["coverage_area"] == 0.75
+    assert s["coverage_seen"] == pytest.approx(2 / 3)
+    with pytest.raises(ValueError, match="face_area"):
+        coverage_scores([True, False], [1.0])
+
+
+def test_outputs_are_written(evaluation):
+    out, res = evaluation
+    saved = json.loads((out / "evaluation.json").read_text())
+    assert saved["scored_frames"] == list(range(6)) and len(saved["frames"]) == 6
+    assert set(saved["frames"][0]["methods"]) == set(METHODS)
+    assert saved["has_truth"] and saved["summary"]["n_held_out"] == 0
+    assert saved["summary"]["all"]["ours"]["psnr"]["n"] == 6
+    # flicker needs the previous frame: frames 1..5
+    assert saved["summary"]["all"]["ours"]["flicker"]["n"] == 5
+    with open(out / "per_frame.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 6 * len(METHODS) and float(rows[0]["psnr"]) > 20
+    for name in ("psnr_per_frame", "blur_vs_motion", "side_by_side", "label_map", "dynamism"):
+        data = (out / f"{name}.png").read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 2000, name
+    rst = (out / "tables.rst").read_text()
+    assert "Kim et al. 2019 (global)" in rst and "Blurriness" in rst and "+====" in rst
+    assert "<" not in rst                                   # no HTML
+    assert "1.50" in rst                                    # labeling 90 s = 1.50 min
+    with open(out / "table_reconstruction.csv") as f:
+        table = list(csv.reader(f))
+    assert table[0][:2] == ["Metric", "Method"] and len(table) > 8
+
+
+def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
+    tables = []
+    for k, p in enumerate(pipe["tables"]):
+        q = tmp_path / f"tables_{k}.zarr"
+        shutil.copytree(p, q)
+        zarr.open_group(str(q), mode="r+").attrs.update(source_frames=[0, 2, 4])
+        tables.append(q)
+    res = write_evaluation(*_args(pipe), tmp_path / "eval", tables_paths=tables, frames=[1, 2])
+    assert [r["held_out"] for r in res["frames"]] == [True, False]
+    assert res["source_frames"] == [0, 2, 4]
+    s = res["summary"]
+    assert s["n_held_out"] == 1 and "projection" not in s["held_out"]
+    assert s["held_out"]["ours"]["psnr"]["n"] == 1 and s["source"]["global"]["psnr"]["n"] == 1
+    assert not res["has_truth"] and "gt_novel_psnr_all" not in res["frames"][0]["methods"]["ours"]
+    assert any("held-out" in r[0] for r in res["tables"]["reconstruction"])
+
+
+def test_bad_input_names_the_store(pipe, tmp_path):
+    with pytest.raises(ValueError, match="volume"):          # mismatched frame counts
+        write_evaluation(*_args({**pipe, "volume": pipe["volume"][:1]}), tmp_path / "a")
+    with pytest.raises(StoreError, match="nothing.zarr"):   # missing store
+        write_evaluation(*_args({**pipe, "labels": tmp_path / "nothing.zarr"}), tmp_path / "b")
+    with pytest.raises(ValueError, match="frames to score"):
+        write_evaluation(*_args(pipe), tmp_path / "c", frames=[99])
+    with pytest.raises(ValueError, match="strides"):
+        write_evaluation(*_args(pipe), tmp_path / "d", params={"strides": 2})
+    assert not (tmp_path / "a").exists()
+
+
+def test_vertex_motion_and_dynamism_regions():
+    V = np.zeros((3, 3))
+    assert vertex_motion(V, V + [0.003, 0.004, 0]) == pytest.approx(5.0)   # mm
+    S = np.array([[0.5, 0.9, np.nan], [0.6, 0.99, np.nan], [0.4, 0.98, 0.7]])
+    regions = dynamism_regions(S, np.array([0, 1, 2]), np.ones(3), 2)
+    assert [c for c, _ in regions] == [0, 1]                 # most dynamic, then most static
+    np.testing.assert_allclose(regions[0][1], [0.5, 0.6, 0.4])
+
+
+def test_rst_tables_over_two_scenes():
+    def summary(p):
+        return {"all": {"ours": {"psnr": {"mean": p}}, "global": {"psnr": {"mean": p - 1}}},
+                "n_held_out": 0}
+    rst = rst_tables({"demo": summary(30.0), "fox": summary(25.5)}, timing={"demo": {"labels": 120}})
+    lines = rst.splitlines()
+    assert any("demo" in l and "fox" in l for l in lines)
+    row = next(l for l in lines if "| Ours " in l)
+    assert "30.00" in row and "25.50" in row
+    assert "2.00" in rst and "Coverage" in rst and "Ground truth" not in rst

@@ -1,0 +1,22 @@
+# Labeling: the spatiotemporal MRF (Eq. 2), α-expansion per frame, even/odd block coordinate
+# descent; and the label-map pictures.
+
+
+rule labeling:
+    input:
+        template=f"{RESULTS}/template.zarr",
+        observations=f"{RESULTS}/observations.zarr",
+        tables=expand(f"{RESULTS}/tables/block_{{block}}.zarr", block=BLOCK_IDS),
+    output:
+        directory(f"{RESULTS}/labels.zarr"),
+    params:
+        labeling=config["labeling"],
+    threads: 2
+    log:
+        f"{RESULTS}/logs/labeling.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/labeling.tsv",
+    conda:
+        ENV
+    script:
+        "../scripts/labeling.py"

@@ -1,0 +1,14 @@
+"""Thin adapter: rule evaluate -> stex.evaluation.write_evaluation (+ the stage timings)."""
+from stex.evaluation import write_evaluation
+from stex.logs import setup_logging
+from stex.reporting import stage_timings, write_tables_html
+
+setup_logging(snakemake.log[0])
+i = snakemake.input
+out = snakemake.output[0]
+write_evaluation(i.scene, list(i.frames), list(i.masks), i.template, i.tracking, i.projection,
+                 i.labels, list(i.volume), list(i.corrected), out, snakemake.params.evaluation,
+                 truth_paths=list(i.truth) or None, coords_path=i.coords,
+                 observations_path=i.observations, tables_paths=list(i.tables),
+                 timing=stage_timings(snakemake.params.benchmarks))
+write_tables_html(f"{out}/tables.rst", f"{out}/tables.html")

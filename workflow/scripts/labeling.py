@@ -1,0 +1,7 @@
+"""Thin adapter: rule labeling -> stex.labeling.write_labels."""
+from stex.labeling import write_labels
+from stex.logs import setup_logging
+
+setup_logging(snakemake.log[0])
+write_labels(snakemake.input.observations, list(snakemake.input.tables), snakemake.input.template,
+             snakemake.params.labeling, snakemake.output[0], threads=snakemake.threads)

@@ -1,0 +1,7 @@
+"""Thin adapter: rule labels_preview -> stex.labeling.preview_labels."""
+from stex.labeling import preview_labels
+from stex.logs import setup_logging
+
+setup_logging(snakemake.log[0])
+preview_labels(list(snakemake.input.volume), list(snakemake.input.corrected),
+               snakemake.input.observations, snakemake.input.template, snakemake.output[0])

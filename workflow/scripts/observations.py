@@ -1,0 +1,7 @@
+"""Thin adapter: rule observations -> stex.observations.write_observations."""
+from stex.logs import setup_logging
+from stex.observations import write_observations
+
+setup_logging(snakemake.log[0])
+write_observations(snakemake.input.template, snakemake.input.tracking, snakemake.input.projection, snakemake.input.coords,
+                   list(snakemake.input.frames), snakemake.params.observations, snakemake.output[0])
