@@ -32,7 +32,7 @@ def write_tables_html(rst_path, html_path) -> None:
     the Snakemake report (which embeds HTML results)."""
     from docutils.core import publish_string
 
-    html = publish_string(Path(rst_path).read_text(), writer_name="html5",
+    html = publish_string(Path(rst_path).read_text(), writer="html5",
                           settings_overrides={"report_level": 4, "embed_stylesheet": True,
                                                "title": "stex evaluation tables"})
     Path(html_path).write_bytes(html)

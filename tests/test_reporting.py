@@ -1,0 +1,23 @@
+"""Report helpers: stage timings from Snakemake benchmark files, RST tables to HTML."""
+from stex.reporting import stage_timings, write_tables_html
+
+
+def _bench(path, seconds):
+    path.write_text("s\th:m:s\tmax_rss\n" + f"{seconds}\t0:00:01\t10.0\n")
+
+
+def test_stage_timings_sums_blocks(tmp_path):
+    _bench(tmp_path / "tables_0000.tsv", 2.5)
+    _bench(tmp_path / "tables_0001.tsv", 1.5)
+    _bench(tmp_path / "labeling.tsv", 7.0)
+    _bench(tmp_path / "ingest_block_0003.tsv", 1.0)
+    t = stage_timings(tmp_path)
+    assert t == {"tables": 4.0, "labeling": 7.0, "ingest_block": 1.0}
+    assert stage_timings(tmp_path / "missing") == {}
+
+
+def test_tables_html(tmp_path):
+    (tmp_path / "t.rst").write_text("Title\n-----\n\n+---+---+\n| a | b |\n+===+===+\n| 1 | 2 |\n+---+---+\n")
+    write_tables_html(tmp_path / "t.rst", tmp_path / "t.html")
+    html = (tmp_path / "t.html").read_text()
+    assert "<table" in html and "<td>1</td>" in html.replace("<td><p>1</p></td>", "<td>1</td>")
