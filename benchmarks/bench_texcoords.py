@@ -124,8 +124,9 @@ def main() -> int:
     ap.add_argument("--table3", action="store_true", help="also run keyframe_step 1..5")
     ap.add_argument("--cache", default=None, help="render cache directory (default /tmp/stex_bench_texcoords_<scene>_<T>_<drift>)")
     args = ap.parse_args()
+    over = json.loads(args.params)
     cfg = load_config(REPO / "config" / "config.yaml", *[REPO / f for f in SCENES[args.scene]],
-                      overrides={"texcoords": json.loads(args.params),
+                      overrides={"texcoords": over,
                                  "source": {"synthetic": {"degradations": {"tracking_drift": {
                                      "enabled": True, "amplitude_m": args.drift}}}}})
     n = cfg["source"]["synthetic"]["n_frames"]
@@ -135,7 +136,7 @@ def main() -> int:
     d = prepare(cfg, T, cache, cfg["projection"])
     print(f"scene {args.scene}: {T} frames {d['size'][0]}x{d['size'][1]}, {len(d['faces'])} faces, "
           f"{d['phi'].shape[1]} vertices, drift {args.drift} m (prepared in {time.perf_counter() - t0:.0f} s, cache {cache})")
-    p = cfg["texcoords"]
+    p = dict(cfg["texcoords"])
     print(f"params {json.dumps(p)}")
     r, sec = run(d, p)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20

@@ -24,8 +24,11 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   (alternation, as the authors).
 - **Gauss-Newton**, Jacobi style: every (t, v) takes a 2×2 step from its own normal equations with
   its neighbours held fixed. Photometric residuals r = C_t(p) − P over the samples of the faces
-  around v visible at t, and 2 edge-length residuals per such face,
-  ``edge_weight`` · (|ξ_v − ξ_k| − |Φ_v − Φ_k|) (grey levels; keeps ξ's triangles close to Φ's).
+  around v visible at t, and 2 edge residuals per such face: with ``edge_mode`` 'length' (the
+  authors) ``edge_weight`` · (|ξ_v − ξ_k| − |Φ_v − Φ_k|) (grey levels; keeps ξ's triangles close
+  to Φ's lengths), with 'vector' the 2-vector ``edge_weight`` · ((ξ_v − ξ_k) − (Φ_v − Φ_k)), i.e.
+  the displacement ξ − Φ is smooth over the mesh, which carries the displacement of textured
+  vertices to untextured ones (tracking drift is smooth) instead of only keeping lengths.
   Each photometric residual enters v's equations with weight β (v's barycentric) and Jacobian
   ∇C (the sample moves with v): with the plain Jacobian β∇C every corner of a uniformly shifted
   face would step ≈ 2.5× the shift when all three move at once. If det(A) < 1e-4, 1e-4 is added
@@ -37,6 +40,15 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   when no halving helps or when the relative decrease is below ``rel_tol`` (the authors: 1e-5),
   or after ``iterations`` steps (the authors: 300). The recorded energy is therefore
   non-increasing within every level.
+- **Gauge** (``gauge`` 'mean'): Eq. 1 only sees where the frames disagree: moving every frame's
+  ξ of a vertex the same way (sliding the texture over the surface) leaves it unchanged, so the
+  per-vertex mean of ξ − Φ over the stage's frames (where the vertex has a visible face) is
+  unobserved. Without a rule for it (``gauge`` 'none', the authors) it random-walks under the
+  small biases of the data term (noise, appearance changing in time, the silhouette): on the
+  drift-free demo, 300 iterations per level moved ξ 0.39 px (median) off the truth in this mean
+  alone. 'mean' holds it at 0 by subtracting it from every candidate ξ (image px, over the
+  frames where the vertex is a corner of a visible face): ξ keeps tracking's average placement
+  and takes only the frame-to-frame corrections.
 - **Hierarchy**: ``levels`` coarse-to-fine levels over an *image* pyramid: level l (0 = coarsest)
   uses the grey image blurred by ``levels − l`` successive 3×3 Gaussian blurs (the authors'
   ``blur_vec``: 6 blurs on the coarsest, 1 on the finest), always at full resolution. **The
@@ -62,7 +74,10 @@ image, proxy and energy on the unblurred one) so that accepting steps on E is co
 rest lengths come from Φ (the authors: the current ξ at the start of each level); bilinear
 interpolation instead of their non-standard 2×2 blend; steps are accepted only when E does not
 rise (the authors accept every step); the mask test is made on the proxy weights only (the
-``projection`` stage already dropped masked-out vertices and faces).
+``projection`` stage already dropped masked-out vertices and faces); optionally (settings
+``gauge`` 'mean' and ``edge_mode`` 'vector', not the authors') the unobservable mean
+displacement is held at 0 and the edge term keeps the displacement smooth, which is what
+brings ξ to the truth on drifting tracking (see ``benchmarks/bench_texcoords.py``).
 """
 
 from __future__ import annotations
@@ -81,7 +96,7 @@ log = logging.getLogger("stex.texcoords")
 
 __all__ = ["SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
            "interpolate_displacements", "photometric_energy", "optimize_level",
-           "optimize_texcoords", "write_texcoords", "texcoords_params"]
+           "optimize_texcoords", "write_texcoords", "texcoords_params", "displacement_picture"]
 
 #: the authors' 15 barycentric samples per face (Optimizer.cu L5-7), rows (w0, w1, w2)
 SAMPLE_BARY = np.array([
@@ -264,7 +279,8 @@ def _energy_kernel(buf, off, hh, ww, x0, y0, xi, faces, fvis, bary, proxy, out):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge_w, clamp, step):
+def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge_w, edge_vec, clamp,
+               step):
     """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed)."""
     K, V = xi.shape[0], xi.shape[1]
     nF = faces.shape[0]
@@ -300,11 +316,18 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge
                         vk = faces[f, (j + dj) % 3]
                         ex = xi[k, vi, 0] - xi[k, vk, 0]
                         ey = xi[k, vi, 1] - xi[k, vk, 1]
+                        px = phi[k, vi, 0] - phi[k, vk, 0]
+                        py = phi[k, vi, 1] - phi[k, vk, 1]
+                        if edge_vec:
+                            # edge vectors: the displacement ξ − Φ is smooth over the mesh
+                            A[vi, 0] += edge_w * edge_w
+                            A[vi, 2] += edge_w * edge_w
+                            g[vi, 0] += edge_w * edge_w * (ex - px)
+                            g[vi, 1] += edge_w * edge_w * (ey - py)
+                            continue
                         L = np.sqrt(ex * ex + ey * ey)
                         if L < 1e-9:
                             continue
-                        px = phi[k, vi, 0] - phi[k, vk, 0]
-                        py = phi[k, vi, 1] - phi[k, vk, 1]
                         L0 = np.sqrt(px * px + py * py)
                         re = edge_w * (L - L0)
                         jx = edge_w * ex / L
@@ -448,6 +471,15 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
     return _energy(stack, xi, faces, fvis, bary, P), P
 
 
+def _vertex_used(fvis, faces, n_vertices):
+    """(K, V) bool: the vertex is a corner of a face visible at that frame."""
+    used = np.zeros((fvis.shape[0], n_vertices), bool)
+    for j in range(3):
+        for k in range(fvis.shape[0]):
+            used[k, faces[fvis[k], j]] = True
+    return used
+
+
 def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight, params,
                    iterations: int, width: int, height: int):
     """Gauss-Newton iterations of one level on the frames of ``stack``.
@@ -477,6 +509,10 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     lo = np.stack([stack.x0, stack.y0], 1).astype(np.float64)[:, None, :]
     hi = (np.stack([stack.x0 + stack.w, stack.y0 + stack.h], 1) - 1).astype(np.float64)[:, None, :]
     hi = np.minimum(hi, np.array([width - 1.0, height - 1.0]))
+    gauge = p["gauge"] == "mean"
+    edge_vec = p["edge_mode"] == "vector"
+    used = _vertex_used(fvis, faces, xi.shape[1])
+    n_used = np.maximum(used.sum(0), 1)[:, None]
     P = _proxy(stack, xi, faces, fvis, fw, bary, p["background_weight"])
     E = _energy(stack, xi, faces, fvis, bary, P)
     energies = [E]
@@ -486,11 +522,16 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
         if E <= 0 or K == 0:
             break
         _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi, faces,
-                   fvis, bary, P, float(p["edge_weight"]), float(p["step_clamp_px"]), step)
+                   fvis, bary, P, float(p["edge_weight"]), edge_vec, float(p["step_clamp_px"]), step)
         # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
         accepted = False
         for _b in range(int(p["backtracks"]) + 1):
-            cand = np.clip(xi + alpha * step, lo, hi)
+            cand = xi + alpha * step
+            if gauge:
+                # hold every vertex's mean displacement over its frames: Eq. 1 cannot see it
+                dsp = np.where(used[..., None], cand - phi, 0.0)
+                cand = cand - used[..., None] * (dsp.sum(0) / n_used)[None]
+            cand = np.clip(cand, lo, hi)
             Pc = _proxy(stack, cand, faces, fvis, fw, bary, p["background_weight"])
             Ec = _energy(stack, cand, faces, fvis, bary, Pc)
             if Ec <= E:
@@ -638,3 +679,65 @@ def write_texcoords(scene, template, projection, frames_paths, masks_paths, para
         store.write("valid", r["valid"])
         e = store.create("energy", r["energy"].shape)
         e[...] = r["energy"]
+
+
+# --------------------------------------------------------------------------------------------
+# picture
+# --------------------------------------------------------------------------------------------
+
+def displacement_picture(color: np.ndarray, phi, xi, valid, scale: float = 10.0,
+                         spacing_px: float = 12.0, max_px: float | None = None) -> np.ndarray:
+    """The optimised displacements ξ − Φ of one frame as arrows over its colour image.
+
+    Each drawn vertex gets an arrow from Φ to Φ + ``scale`` · (ξ − Φ), coloured by |ξ − Φ|
+    (colormap turbo: dark blue 0 → dark red ``max_px``); the image is dimmed so the arrows
+    read. At most one vertex per ``spacing_px`` × ``spacing_px`` cell is drawn (the first
+    visible one in vertex order), so dense meshes do not turn into a smear.
+
+    Args:
+        color: (Hc, Wc, 3) uint8 RGB colour image of the frame.
+        phi: (V, 2) float Φ, colour px (u = column, v = row; integer = pixel centre).
+        xi: (V, 2) float ξ, colour px.
+        valid: (V,) bool vertices to draw (visible in the frame).
+        scale: arrow magnification (1 = true length).
+        spacing_px: side of the cells that thin the arrows out (colour px; 0 = every vertex).
+        max_px: displacement (px) at the top of the colormap; None = the largest drawn one.
+
+    Returns:
+        (Hc, Wc, 3) uint8 RGB picture with a caption giving ``scale`` and ``max_px``.
+    """
+    from stex.preview import _label
+
+    color = np.asarray(color)
+    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
+        raise ValueError(f"displacement_picture: color must be (H, W, 3) uint8, got {color.shape} {color.dtype}")
+    phi = np.asarray(phi, np.float64)
+    xi = np.asarray(xi, np.float64)
+    valid = np.asarray(valid, bool)
+    if phi.ndim != 2 or phi.shape[1] != 2 or xi.shape != phi.shape or valid.shape != phi.shape[:1]:
+        raise ValueError(f"displacement_picture: phi {phi.shape}, xi {xi.shape}, valid {valid.shape}: "
+                         "expected (V, 2), (V, 2), (V,)")
+    if not scale > 0:
+        raise ValueError(f"displacement_picture: scale must be > 0, got {scale}")
+    H, W = color.shape[:2]
+    ok = valid & np.isfinite(phi).all(1) & np.isfinite(xi).all(1)
+    ok &= (phi[:, 0] >= 0) & (phi[:, 0] <= W - 1) & (phi[:, 1] >= 0) & (phi[:, 1] <= H - 1)
+    idx = np.flatnonzero(ok)
+    if spacing_px > 0 and len(idx):
+        cell = np.floor(phi[idx] / spacing_px).astype(np.int64)
+        _, first = np.unique(cell, axis=0, return_index=True)
+        idx = idx[np.sort(first)]
+    d = xi[idx] - phi[idx]
+    mag = np.linalg.norm(d, axis=1)
+    top = float(max_px) if max_px is not None else float(mag.max()) if len(mag) else 1.0
+    top = top if top > 0 else 1.0
+    img = (color.astype(np.float32) * 0.5).astype(np.uint8)
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    col = lut[np.clip(np.round(mag / top * 255), 0, 255).astype(int)]
+    a = np.round(phi[idx]).astype(int)
+    b = np.round(phi[idx] + scale * d).astype(int)
+    thick = max(1, round(min(H, W) / 600))
+    for p0, p1, c in zip(a, b, col):  # a few thousand arrows at most: preview only
+        cv2.arrowedLine(img, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])),
+                        tuple(int(t) for t in c), thick, cv2.LINE_AA, tipLength=0.3)
+    return _label(img, f"xi - phi x{scale:g}, colour 0..{top:.2f} px, {len(idx)} vertices")

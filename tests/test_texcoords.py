@@ -14,7 +14,8 @@ from stex.texcoords import (build_stack, interpolate_displacements, keyframe_pos
                             optimize_texcoords, photometric_energy, texcoords_params, write_texcoords)
 
 #: few iterations: the test budget (the defaults are the authors' 300 per level)
-FAST = {"levels": 3, "iterations": 25, "refine_iterations": 25, "keyframe_step": 2}
+FAST = {"levels": 3, "iterations": 25, "refine_iterations": 25, "keyframe_step": 2,
+        "gauge": "mean", "edge_mode": "vector", "edge_weight": 3.0}
 
 
 def _project(cal, X):
@@ -134,6 +135,24 @@ def test_recovers_a_known_shift_and_energy_is_monotone():
     assert r["energy"][0, 0] > 20 * np.nanmin(r["energy"][0])
 
 
+def test_gauge_holds_the_mean_displacement():
+    """gauge 'mean': the shift is shared by the frames (the mean of ξ − Φ over a vertex's frames
+    stays 0), with the displacement-smoothness edge term (edge_mode 'vector')."""
+    load, phi, valid, fvis, fcos, F = _toy((2.5, -1.5))
+    r = optimize_texcoords(load, phi, valid, fvis, fcos, F, (160, 120),
+                           dict(FAST, keyframe_step=1, iterations=60, refine_iterations=10,
+                                gauge="mean", edge_mode="vector", edge_weight=3.0), progress=False)
+    d = r["xi"].astype(np.float64) - phi
+    np.testing.assert_allclose(d.mean(0), 0.0, atol=1e-3)
+    np.testing.assert_allclose(d[1].mean(0), [1.25, -0.75], atol=0.1)
+    for row in r["energy"]:
+        e = row[~np.isnan(row)]
+        assert np.all(np.diff(e) <= 0)
+    assert r["energy"][0, 0] > 20 * np.nanmin(r["energy"][0])
+    with pytest.raises(ValueError, match="gauge"):
+        texcoords_params({"gauge": "median"})
+
+
 def test_photometric_energy_zero_when_aligned():
     load, phi, valid, fvis, fcos, F = _toy((0.0, 0.0))
     st = build_stack(load, [0, 1], phi, valid, 8, 160, 120)
@@ -165,7 +184,8 @@ def test_energy_monotone_per_level(drifted):
 def test_closer_to_the_truth(drifted):
     """ξ moves towards the true projection. Photometric consistency cannot see the part of the
     drift common to all frames (the 'consensus' bound); on the tiny scene (8 frames, 200x150)
-    ξ removes most of the rest. Measured: see the assertion messages / the benchmark."""
+    ξ removes most of the rest. Measured (FAST): |Φ−truth| 1.689 px → |ξ−truth| 0.732 px,
+    |Φ−consensus| 1.597 px → |ξ−consensus| 0.340 px."""
     val = drifted["valid"]
     xi = drifted["store"]["xi"][...]
 
@@ -175,7 +195,7 @@ def test_closer_to_the_truth(drifted):
     e_phi, e_xi = med(drifted["phi"], drifted["true"]), med(xi, drifted["true"])
     c_phi, c_xi = med(drifted["phi"], drifted["consensus"]), med(xi, drifted["consensus"])
     print(f"tiny: |Φ−truth| {e_phi:.3f} px |ξ−truth| {e_xi:.3f} px; |Φ−consensus| {c_phi:.3f} |ξ−consensus| {c_xi:.3f}")
-    assert e_xi < e_phi
+    assert e_xi < 0.6 * e_phi      # the gauge keeps the unobservable part where Φ has it
     assert c_xi < 0.6 * c_phi
 
 
@@ -186,3 +206,23 @@ def test_deterministic(drifted, tmp_path):
     again = open_store(tmp_path / "again.zarr", "texcoords")
     np.testing.assert_array_equal(again["xi"][...], drifted["store"]["xi"][...])
     np.testing.assert_array_equal(again["energy"][...], drifted["store"]["energy"][...])
+
+
+def test_displacement_picture():
+    from stex.texcoords import displacement_picture
+    color = np.full((120, 160, 3), 200, np.uint8)
+    phi = np.array([[40.0, 60.0], [120.0, 60.0], [80.0, 100.0]])
+    xi = phi + np.array([[2.0, 0.0], [0.0, -1.0], [0.0, 0.0]])
+    valid = np.array([True, True, False])
+    img = displacement_picture(color, phi, xi, valid, scale=10.0, spacing_px=0)
+    assert img.shape == color.shape and img.dtype == np.uint8
+    changed = np.any(img != img[60, 10], axis=-1)
+    changed[:23] = False                                   # the caption bar
+    # vertex 0: an arrow 20 px long to the right; vertex 1: 10 px up; vertex 2 not drawn
+    assert changed[60, 45:58].all() and not changed[60, 64:75].any()
+    assert changed[52:58, 120].all() and not changed[62:70, 120].any()
+    assert not changed[90:110, 70:90].any()
+    with pytest.raises(ValueError, match="color"):
+        displacement_picture(color[..., 0], phi, xi, valid)
+    with pytest.raises(ValueError, match="xi"):
+        displacement_picture(color, phi, xi[:2], valid)
