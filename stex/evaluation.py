@@ -702,8 +702,12 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         return {"ours": corrected.read("texture", fid), "ours_uncorrected": volume.read("texture", fid),
                 "global": global_tex, "projection": proj_tex}
 
+    # the volume fills never-seen faces from the nearest seen surface: they carry texture too
+    filled = (np.asarray(labels_store["never_seen"][...], bool)
+              if int(volume.attrs.get("never_seen_texels", 0)) > 0 else np.zeros(len(face_visible[0]), bool))
+
     def has_texture(t):
-        lab = np.asarray(labels[t]) >= 0
+        lab = (np.asarray(labels[t]) >= 0) | filled
         return {"ours": lab, "ours_uncorrected": lab, "global": global_faces,
                 "projection": face_visible[t]}
 

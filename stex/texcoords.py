@@ -741,3 +741,28 @@ def displacement_picture(color: np.ndarray, phi, xi, valid, scale: float = 10.0,
         cv2.arrowedLine(img, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])),
                         tuple(int(t) for t in c), thick, cv2.LINE_AA, tipLength=0.3)
     return _label(img, f"xi - phi x{scale:g}, colour 0..{top:.2f} px, {len(idx)} vertices")
+
+
+def preview_texcoords(frames_paths, projection_path, texcoords_path, out, n_show: int = 3) -> None:
+    """:func:`displacement_picture` of a few frames spread over the sequence, cropped to the
+    object, side by side (the paper's figure of displacements)."""
+    from stex.io import FrameSequence, open_store
+    from stex.preview import _label, montage, write_png
+
+    frames = FrameSequence(list(frames_paths), "frames")
+    proj = open_store(projection_path, "projection")
+    tc = open_store(texcoords_path, "texcoords")
+    ids = list(tc.attrs["frame_ids"])
+    tiles = []
+    for k in np.linspace(0, len(ids) - 1, min(n_show, len(ids))).round().astype(int):
+        valid = np.asarray(tc["valid"][k], bool)
+        phi, xi = np.asarray(proj["phi"][k]), np.asarray(tc["xi"][k])
+        img = displacement_picture(frames.read("color", ids[k]), phi, xi, valid)
+        pts = phi[valid]
+        if len(pts):
+            (u0, v0), (u1, v1) = np.floor(pts.min(0)).astype(int) - 40, np.ceil(pts.max(0)).astype(int) + 40
+            img = img[max(v0, 0):v1, max(u0, 0):u1]
+        med = float(np.median(np.linalg.norm(xi[valid] - phi[valid], axis=1))) if valid.any() else 0.0
+        tiles.append(_label(cv2.resize(img, (360, 360), interpolation=cv2.INTER_AREA),
+                            f"frame {ids[k]}: median |xi - phi| {med:.2f} px"))
+    write_png(out, montage(tiles, columns=len(tiles), width=360 * len(tiles)))

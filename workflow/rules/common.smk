@@ -27,6 +27,8 @@ def all_outputs():
     out += [f"{RESULTS}/tracking.zarr", f"{RESULTS}/poses.zarr"]
     out += [f"{RESULTS}/projection.zarr", f"{RESULTS}/previews/projection.png"]
     out += [COORDS, f"{RESULTS}/observations.zarr", f"{RESULTS}/labels.zarr"]
+    if OPTIMISED:
+        out += [f"{RESULTS}/previews/texcoords.png"]
     out += expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS)
     out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
     out += [f"{RESULTS}/evaluation"]

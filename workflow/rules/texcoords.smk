@@ -21,3 +21,22 @@ rule texcoords:
         ENV
     script:
         "../scripts/texcoords.py"
+
+
+rule texcoords_preview:
+    input:
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        projection=f"{RESULTS}/projection.zarr",
+        texcoords=f"{RESULTS}/texcoords.zarr",
+    output:
+        report(
+            f"{RESULTS}/previews/texcoords.png",
+            caption="../report/texcoords.rst",
+            category="Texture coordinates",
+        ),
+    log:
+        f"{RESULTS}/logs/texcoords_preview.log",
+    conda:
+        ENV
+    script:
+        "../scripts/texcoords_preview.py"
