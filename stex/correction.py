@@ -608,12 +608,17 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
     volume = open_store(volume_path, "volume")
     ids = list(volume.attrs["frame_ids"])
     temporal = p["temporal_length"] if p["temporal"] else None
+    W = int(template.attrs["atlas_size"])
+    factor = max(1, W // int(p["solve_size"]))
+    if W % factor:
+        raise ValueError(f"correction.solve_size {p['solve_size']}: atlas side {W} is not divisible "
+                         f"by the factor {factor}")
     t0 = time.perf_counter()
     system = CorrectionSystem(
         template["texel/face_id"][...], template["texcoords"][...],
         template["texcoord_faces"][...], template["faces"][...],
         template["adjacency/pairs"][...], template["adjacency/edges"][...],
-        template["face_chart"][...], factor=int(p["factor"]), screen_length=p["screen_length"],
+        template["face_chart"][...], factor=factor, screen_length=p["screen_length"],
         seam_weight=p["seam_weight"], temporal_length=temporal, tol=p["tol"],
         gutter_px=int(volume.attrs["gutter_px"]))
     log.info("correction: system of %d unknowns built in %.1f s", system.n_unknowns,

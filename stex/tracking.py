@@ -13,9 +13,13 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   hard-thresholded (s = r where |r|^2 > lambda/beta, else 0), with beta increasing.
 - Each (x-step) is Gauss-Newton with the normal equations solved by conjugate gradients with a
   12x12 block-Jacobi preconditioner (measured: 20 ms for 3,600 unknowns).
+- Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
+  appearance model in the template's atlas rendered at the predicted pose to the current image,
+  as a reprojection term; and optionally a silhouette term (:func:`silhouette_field`): rim
+  vertices onto the mask's boundary, and no visible vertex outside the mask.
 
-The frame is initialised from the previous frame's mesh moved by the previous increment
-(constant velocity), which helps with fast turns.
+The frame is initialised from the previous frame's mesh, or with ``constant_velocity`` from it
+moved once more by the previous frame's rigid motion.
 """
 
 from __future__ import annotations
@@ -30,11 +34,12 @@ from scipy.sparse import csgraph
 from scipy.sparse.linalg import LinearOperator, cg
 
 from stex.camera import backproject_depth, project_points, transform_points
-from stex.render import rasterize, vertex_normals, vertex_visibility
+from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
 
 log = logging.getLogger("stex.tracking")
 
 PARAMS_PER_NODE = 12  # A (3x3, row-major) then t (3)
+SILHOUETTE_MAX_PX = 20.0  # farther from the mask's boundary, a vertex is not on the rim it sees
 
 
 # -- deformation graph -------------------------------------------------------------------------
@@ -229,6 +234,8 @@ class TrackParams:
     rigid_iterations: int = 12
     rigid_w_flow: float = 0.25
     w_point: float = 0.0
+    w_silhouette: float = 0.0
+    silhouette_rim_cos: float = 0.2
     w_flow: float = 0.25
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15
@@ -249,12 +256,13 @@ class TrackParams:
 
 def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: TrackParams, max_dist: float):
     """Data association for the camera-visible vertices: (vertex ids, target points, target
-    normals) of usable pairs. ``p.association`` 'closest' pairs each vertex with the nearest
+    normals) of usable pairs, and every vertex's visibility and cos in the depth camera.
+    ``p.association`` 'closest' pairs each vertex with the nearest
     foreground depth point (robust to motion along the surface and across the silhouette);
     'projective' with the depth pixel it projects to (faster, the classic DynamicFusion choice)."""
     H, W = target.valid.shape
     raster = rasterize(Vd, faces, target.K, W, H)
-    vis, _ = vertex_visibility(Vd, faces, target.K, raster.depth)
+    vis, cos = vertex_visibility(Vd, faces, target.K, raster.depth)
     ids = np.flatnonzero(vis)
     if p.association == "closest":
         if target.tree is None:
@@ -263,7 +271,7 @@ def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: 
             target.flat_normals = target.normals[target.valid]
             target.tree = cKDTree(target.flat_points)
         if len(target.flat_points) == 0:
-            return ids[:0], np.zeros((0, 3)), np.zeros((0, 3))
+            return ids[:0], np.zeros((0, 3)), np.zeros((0, 3)), vis, cos
         dist, j = target.tree.query(Vd[ids], distance_upper_bound=max_dist)
         ok = np.isfinite(dist)
         ids, j = ids[ok], j[ok]
@@ -279,7 +287,7 @@ def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: 
     nv = vertex_normals(Vd, faces)[ids]
     # Depth normals point to the camera; so do the outward normals of visible mesh vertices.
     close = (np.linalg.norm(Vd[ids] - q, axis=1) < max_dist) & ((nv * nq).sum(1) > p.min_normal_dot)
-    return ids[close], q[close], nq[close]
+    return ids[close], q[close], nq[close], vis, cos
 
 
 def _rot_terms(x: np.ndarray):
@@ -316,11 +324,56 @@ def _huber_sqrt_weight(r, delta):
     return np.sqrt(np.where(np.abs(r) <= delta, 1.0, delta / np.maximum(np.abs(r), 1e-12)))
 
 
-def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None):
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rigid motion (Kabsch) taking points ``src`` (n, 3) to ``dst`` (n, 3):
+    (R (3, 3), t (3,)) with dst ~ src @ R.T + t."""
+    a, b = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 3 or len(a) < 3:
+        raise ValueError(f"rigid_fit needs two (n >= 3, 3) point sets of one shape, got {a.shape} and {b.shape}")
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Wt = np.linalg.svd((b - cb).T @ (a - ca))
+    U[:, 2] *= np.linalg.det(U @ Wt)
+    R = U @ Wt
+    return R, cb - ca @ R.T
+
+
+def _colour_projection(X, Kc, Tdc):
+    """Pixels of depth-camera points ``X`` (n, 3) in the colour camera, the metres per pixel at
+    each (z / fx), and d(pixel * z / fx)/dX (n, 2, 3) with the scale held fixed."""
+    Xc = X @ Tdc[:3, :3].T + Tdc[:3, 3]
+    z = Xc[:, 2]
+    proj = np.stack([Kc[0, 0] * Xc[:, 0] / z + Kc[0, 2], Kc[1, 1] * Xc[:, 1] / z + Kc[1, 2]], 1)
+    scale = z / Kc[0, 0]
+    Jx = np.stack([np.stack([Kc[0, 0] / z, 0 * z, -Kc[0, 0] * Xc[:, 0] / z**2], 1),
+                   np.stack([0 * z, Kc[1, 1] / z, -Kc[1, 1] * Xc[:, 1] / z**2], 1)], 1) * scale[:, None, None]
+    return proj, scale, Jx @ Tdc[:3, :3]
+
+
+def silhouette_field(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distance to the boundary of ``mask`` (H, W) bool, in pixels, positive outside,
+    as float32 (H, W), and its gradient (H, W, 2) (d/du, d/dv)."""
+    import cv2
+
+    m = np.asarray(mask, bool)
+    if m.ndim != 2:
+        raise ValueError(f"mask must be (H, W), got shape {m.shape}")
+    if not m.any():
+        raise ValueError("silhouette_field: the mask is empty")
+    inside = cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    outside = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    # the boundary sits half a pixel between an inside and an outside pixel centre
+    sdf = np.where(m, 0.5 - inside, outside - 0.5).astype(np.float32)
+    gv, gu = np.gradient(sdf)
+    return sdf, np.stack([gu, gv], -1).astype(np.float32)
+
+
+def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None, silhouette=None):
     """Gauss-Newton + HQS for the incremental warp of one frame. Returns (x, stats).
 
     ``flow`` = (vertex ids (n,), target colour pixels (n, 2), colour K, depth_to_color) adds a
     reprojection term pulling those vertices to where optical flow moved them in the colour image.
+    ``silhouette`` = (signed distance (Hc, Wc), its gradient (Hc, Wc, 2), colour K, depth_to_color)
+    of :func:`silhouette_field` adds the silhouette term (weight ``p.w_silhouette``).
     """
     N = len(node_pos)
     nP = N * PARAMS_PER_NODE
@@ -337,7 +390,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     for rnd in range(p.l0_rounds):
         for it in range(p.gn_iterations):
             Vd = deform(V0, node_pos, graph, x)
-            ids, q, nq = _correspondences(Vd, faces, target, p, max_dist)
+            ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, max_dist)
             rows, cols, vals, res = [], [], [], []
             nres = 0
             # data: r_i = n_q . (x'_i - q), Huber weighted
@@ -367,15 +420,8 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             # flow: (pi(T_dc x'_i) - u_i) * z / fx, about metres at the vertex, Huber weighted
             if flow is not None and len(flow[0]):
                 fid, u_t, Kc, Tdc, fw = flow
-                Xc = Vd[fid] @ Tdc[:3, :3].T + Tdc[:3, 3]
-                z = Xc[:, 2]
-                proj = np.stack([Kc[0, 0] * Xc[:, 0] / z + Kc[0, 2], Kc[1, 1] * Xc[:, 1] / z + Kc[1, 2]], 1)
-                scale = z / Kc[0, 0]
+                proj, scale, Dm = _colour_projection(Vd[fid], Kc, Tdc)
                 rf = (proj - u_t) * scale[:, None]                  # (n, 2)
-                # d(residual)/dX_c = scale * d pi/dX_c, then through the extrinsic rotation
-                Jx = np.stack([np.stack([Kc[0, 0] / z, 0 * z, -Kc[0, 0] * Xc[:, 0] / z**2], 1),
-                               np.stack([0 * z, Kc[1, 1] / z, -Kc[1, 1] * Xc[:, 1] / z**2], 1)], 1) * scale[:, None, None]
-                Dm = Jx @ Tdc[:3, :3]                               # (n, 2, 3)
                 sqw = np.sqrt(p.w_flow * fw)
                 for m in range(2):
                     sw = _huber_sqrt_weight(rf[:, m], p.huber_m) * sqw
@@ -386,6 +432,29 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                     res.append(rf[:, m] * sw)
                     nres += len(fid)
                 stats["n_flow"] = len(fid)
+            # silhouette: sdf(pi(T_dc x'_i)) * z / fx for rim vertices (two-sided: the rim lies on
+            # the mask's boundary) and for any visible vertex outside the mask (one-sided)
+            if silhouette is not None and p.w_silhouette > 0:
+                sdf, sdf_grad, Kc, Tdc = silhouette
+                cand = np.flatnonzero(vis)
+                proj, scale, Dm = _colour_projection(Vd[cand], Kc, Tdc)
+                inside = (scale > 1e-6) & np.isfinite(proj).all(1)   # nothing behind the camera
+                proj = np.where(inside[:, None], proj, 0.0)
+                d_px = sample_bilinear(sdf, proj)
+                rim = (cos[cand] < p.silhouette_rim_cos) | (d_px > 0)
+                rim &= inside & (np.abs(d_px) < SILHOUETTE_MAX_PX)
+                sid, d_px, scale, Dm, proj = cand[rim], d_px[rim], scale[rim], Dm[rim], proj[rim]
+                if len(sid):
+                    grad = sample_bilinear(sdf_grad, proj)          # (n, 2) px per px
+                    rs = d_px * scale
+                    sw = _huber_sqrt_weight(rs, p.huber_m) * np.sqrt(p.w_silhouette)
+                    c, v = _blocks(sid, np.einsum("na,nab->nb", grad, Dm), graph, local, sw)
+                    rows.append(nres + np.repeat(np.arange(len(sid)), len(c) // len(sid)))
+                    cols.append(c)
+                    vals.append(v)
+                    res.append(rs * sw)
+                    nres += len(sid)
+                stats["n_silhouette"] = len(sid)
             # rotation: sqrt(w_rot) * (A^T A - I)
             rr, Jr = _rot_terms(x)
             sr = np.sqrt(p.w_rot)
@@ -520,12 +589,13 @@ class AppearanceModel:
 
 
 def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, calibration,
-                     consistency_px=1.0, min_cos=0.3, erode_px=3, prev_gray=None):
+                     consistency_px=1.0, min_cos=0.3, erode_px=3, prev_gray=None, crop_margin_px=64):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
     appearance model rendered at the predicted pose to the current image.
 
     Only vertices seen at a good angle, away from the silhouette and from unknown model texels
-    (eroded by ``erode_px``), whose flow lands inside the current ``mask``, are used.
+    (eroded by ``erode_px``), whose flow lands inside the current ``mask``, are used. The flow is
+    computed over the box of the model and the mask grown by ``crop_margin_px``.
     Returns (vertex ids (n,), target colour pixels (n, 2)).
     """
     import cv2
@@ -548,15 +618,23 @@ def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, c
     # pose): it moves like the object does, whereas pasting the current image there would pin the
     # flow to zero around it and make the tracker lag behind the motion.
     fill = gray if prev_gray is None else prev_gray
-    pred8 = np.where(valid, pred, fill).clip(0, 255).astype(np.uint8)
+    # Flow only over the object's box (model and mask, with a margin for the motion and DIS's
+    # patches): at colour-camera resolution the whole image costs several times more.
+    box = valid if mask is None else (valid | mask)
+    rows, cols = np.flatnonzero(box.any(1)), np.flatnonzero(box.any(0))
+    y0, y1 = max(rows[0] - crop_margin_px, 0), min(rows[-1] + crop_margin_px + 1, c.height)
+    x0, x1 = max(cols[0] - crop_margin_px, 0), min(cols[-1] + crop_margin_px + 1, c.width)
+    pred8 = np.where(valid, pred, fill)[y0:y1, x0:x1].clip(0, 255).astype(np.uint8)
+    cur8 = np.ascontiguousarray(gray[y0:y1, x0:x1])
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fw = dis.calc(pred8, gray, None)
-    bw = dis.calc(gray, pred8, None)
+    fw = dis.calc(pred8, cur8, None)
+    bw = dis.calc(cur8, pred8, None)
+    offset = np.array([x0, y0], np.float64)
     u0 = uv[ids]
-    u1 = u0 + sample_bilinear(fw, u0)
-    back = sample_bilinear(bw, u1)
+    u1 = u0 + sample_bilinear(fw, u0 - offset)
+    back = sample_bilinear(bw, u1 - offset)
     ok = np.linalg.norm(u1 + back - u0, axis=1) < consistency_px
-    ok &= (u1[:, 0] >= 0) & (u1[:, 0] <= c.width - 1) & (u1[:, 1] >= 0) & (u1[:, 1] <= c.height - 1)
+    ok &= (u1[:, 0] >= x0) & (u1[:, 0] <= x1 - 1) & (u1[:, 1] >= y0) & (u1[:, 1] <= y1 - 1)  # box is inside the image
     if mask is not None:
         m = cv2.erode(mask.astype(np.uint8), kernel) > 0
         q = np.rint(u1).astype(np.int64).clip(0, [c.width - 1, c.height - 1])
@@ -596,9 +674,18 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
-        # Constant-velocity prediction of the vertices (helps with fast turns).
-        pred = 2 * prev - before if (params.constant_velocity and pos > 1) else prev
+        # Constant-velocity prediction: the last frame's rigid motion once more (extrapolating
+        # each vertex instead lets unobserved parts run away along their own last step).
+        if params.constant_velocity and pos > 1:
+            R, tr = rigid_fit(before, prev)
+            pred = prev @ R.T + tr
+        else:
+            pred = prev
         use_flow = params.w_flow > 0 and obs.gray is not None
+        silhouette = None
+        if params.w_silhouette > 0 and obs.mask is not None and obs.mask.any():
+            cal = obs.calibration
+            silhouette = (*silhouette_field(obs.mask), cal.color.K, cal.depth_to_color)
         # Each pass re-measures the flow from the model rendered at the latest estimate: DIS
         # under-estimates motion by a few per cent, and new model texels would inherit that lag.
         for npass in range(max(1, params.flow_passes) if use_flow and model is not None else 1):
@@ -615,7 +702,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             # pass has done the large motion; later passes only refine, with one L0 round)
             if npass == 0:
                 xr, rstats = _solve_frame(pred, F, pred[[centre]], rigid_graph, obs.target, rigid_params,
-                                          identity_params(1), flow)
+                                          identity_params(1), flow, silhouette=silhouette)
                 U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
                 R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
                 c = pred[centre]
@@ -629,9 +716,12 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             else:
                 x, stats = _solve_frame(rigid, F, rigid[graph.nodes], graph, obs.target,
                                         params if npass == 0 else refine_params,
-                                        identity_params(len(graph.nodes)), flow)
+                                        identity_params(len(graph.nodes)), flow, silhouette)
                 cur = deform(rigid, rigid[graph.nodes], graph, x)
             pred = cur
+        if not np.isfinite(cur).all():
+            raise ValueError(f"tracking diverged at frame position {pos}: non-finite vertices "
+                             f"({stats.get('n_corr', 0)} depth correspondences in the last solve)")
         stats["seconds"] = time.perf_counter() - tf
         if progress:
             log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s)",

@@ -151,3 +151,58 @@ def test_track_params_defaults_match_the_schema():
     schema = section_params("tracking")
     fields = asdict(TrackParams())
     assert {k: v for k, v in schema.items() if k != "mode"} == fields
+
+
+def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):
+    """Cropping the flow to the object's box changes the targets by a fraction of a pixel."""
+    import cv2
+
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import AppearanceModel, flow_constraints
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    r0, r1 = s.render_frame(0), s.render_frame(1)
+    g0, g1 = (cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY) for r in (r0, r1))
+    V0 = s.true_vertices(0)
+    model = AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256)
+    assert model.capture(V0, g0, cal, 0.3) > 0
+    ids_a, ua = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=16)
+    ids_b, ub = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=10**6)
+    common, ia, ib = np.intersect1d(ids_a, ids_b, return_indices=True)
+    assert len(common) > 0.8 * max(len(ids_a), len(ids_b)) > 20
+    assert np.abs(ua[ia] - ub[ib]).mean() < 0.15
+
+
+def test_silhouette_field_signs_and_gradient():
+    from stex.tracking import silhouette_field
+    m = np.zeros((40, 60), bool)
+    m[10:30, 20:45] = True
+    sdf, grad = silhouette_field(m)
+    assert (sdf[m] < 0).all() and (sdf[~m] > 0).all()
+    assert sdf[20, 5] == pytest.approx(14.5) and sdf[20, 30] == pytest.approx(-9.5)
+    assert grad[20, 5, 0] == pytest.approx(-1.0) and grad[20, 50, 0] == pytest.approx(1.0)  # points outwards
+    with pytest.raises(ValueError, match="empty"):
+        silhouette_field(np.zeros((5, 5), bool))
+
+
+def test_silhouette_term_pulls_a_shifted_mesh_onto_the_mask():
+    """Without depth data, the silhouette term alone moves a mesh shifted sideways back onto
+    the mask it is given; with w_silhouette 0 nothing moves."""
+    from stex.tracking import silhouette_field
+    V, F = _sphere()
+    F = F.astype(np.int64)
+    mask = rasterize(V, F, K, 240, 180).depth > 0
+    field = silhouette_field(mask)
+    shifted = V + np.array([0.012, -0.006, 0.0])
+    empty = depth_target(np.zeros((180, 240)), K)
+    g = build_graph(shifted, F, 0.08)
+    out = {}
+    for w in (0.0, 1.0):
+        x, st = _solve_frame(shifted, F, shifted[g.nodes], g, empty,
+                             TrackParams(w_silhouette=w, l0_rounds=2, gn_iterations=8), identity_params(len(g.nodes)),
+                             silhouette=(*field, K, np.eye(4)))
+        out[w] = deform(shifted, shifted[g.nodes], g, x)
+    assert np.allclose(out[0.0], shifted)
+    before = np.abs((shifted - V).mean(0)[:2])
+    after = np.abs((out[1.0] - V).mean(0)[:2])
+    assert (after < 0.3 * before).all(), (before, after)
