@@ -21,7 +21,9 @@ at time t, minimising
   revised_temp and the authors' code; ``constant`` uses weight 1; ``off`` drops the term.
   ``spatial_selective`` multiplies E_spa on an edge by 2 − (χ(S_m(f)) + χ(S_m(f')))/2 with
   S_m(f) = min over the face's visible frames of S(f, ·) — the paper's rule, which the authors'
-  code intends but never applies (a by-value loop, ``official_code_notes.md`` §2.4). NaN
+  code intends but never applies (a by-value loop, ``official_code_notes.md`` §2.4); off by
+  default, since on the demo ground truth it made the labeling slightly worse (2.872 vs 2.847
+  grey levels, ``benchmarks/bench_labeling.py --ablations``). NaN
   dynamism (face not seen in two consecutive frames) gives no evidence of change and counts as
   static (χ = 1).
 
