@@ -145,6 +145,24 @@ def _build_arcs(n, pair_i, pair_j, cap_ij, cap_ji, n_pairs):
     return arc_ptr, head, sister, r_cap
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _activate(j, nxt, q_first, q_last):
+    """Append node j to the active FIFO (nxt links; the last node links to itself)."""
+    if q_last >= 0:
+        nxt[q_last] = j
+    else:
+        q_first = j
+    nxt[j] = j
+    return q_first, j
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_orphan(k, orphans, o_head, o_count):
+    """Append node k to the circular orphan FIFO; returns the new count."""
+    orphans[(o_head + o_count) % orphans.shape[0]] = k
+    return o_count + 1
+
+
 @njit(cache=True, nogil=True)
 def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
     """Max-flow of the graph given by CSR arcs and terminal residuals ``tr_cap`` (source minus
@@ -173,12 +191,7 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
         else:
             continue
         dist[i] = 1
-        if q_last >= 0:
-            nxt[q_last] = i
-        else:
-            q_first = i
-        q_last = i
-        nxt[i] = i
+        q_first, q_last = _activate(i, nxt, q_first, q_last)
 
     flow = 0.0
     time = 0
@@ -218,12 +231,7 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
                         ts[j] = ts[i]
                         dist[j] = dist[i] + 1
                         if nxt[j] < 0:
-                            if q_last >= 0:
-                                nxt[q_last] = j
-                            else:
-                                q_first = j
-                            q_last = j
-                            nxt[j] = j
+                            q_first, q_last = _activate(j, nxt, q_first, q_last)
                     elif is_sink[j]:
                         mid = a
                         break
@@ -242,12 +250,7 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
                         ts[j] = ts[i]
                         dist[j] = dist[i] + 1
                         if nxt[j] < 0:
-                            if q_last >= 0:
-                                nxt[q_last] = j
-                            else:
-                                q_first = j
-                            q_last = j
-                            nxt[j] = j
+                            q_first, q_last = _activate(j, nxt, q_first, q_last)
                     elif is_sink[j] == 0:
                         mid = s
                         break
@@ -291,14 +294,12 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
             r_cap[sister[a]] -= b
             if r_cap[sister[a]] <= 0.0:
                 parent[k] = _ORPHAN
-                orphans[(o_head + o_count) % n] = k
-                o_count += 1
+                o_count = _push_orphan(k, orphans, o_head, o_count)
             k = head[a]
         tr_cap[k] -= b
         if tr_cap[k] <= 0.0:
             parent[k] = _ORPHAN
-            orphans[(o_head + o_count) % n] = k
-            o_count += 1
+            o_count = _push_orphan(k, orphans, o_head, o_count)
         k = head[mid]
         while parent[k] != _TERMINAL:
             a = parent[k]
@@ -306,14 +307,12 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
             r_cap[a] -= b
             if r_cap[a] <= 0.0:
                 parent[k] = _ORPHAN
-                orphans[(o_head + o_count) % n] = k
-                o_count += 1
+                o_count = _push_orphan(k, orphans, o_head, o_count)
             k = head[a]
         tr_cap[k] += b
         if tr_cap[k] >= 0.0:
             parent[k] = _ORPHAN
-            orphans[(o_head + o_count) % n] = k
-            o_count += 1
+            o_count = _push_orphan(k, orphans, o_head, o_count)
         flow += b
 
         # adoption
@@ -370,16 +369,10 @@ def _bk_maxflow(arc_ptr, head, sister, r_cap, tr_cap, side):
                     continue
                 cap = r_cap[a0] if sink else r_cap[sister[a0]]
                 if cap > 0.0 and nxt[j] < 0:
-                    if q_last >= 0:
-                        nxt[q_last] = j
-                    else:
-                        q_first = j
-                    q_last = j
-                    nxt[j] = j
+                    q_first, q_last = _activate(j, nxt, q_first, q_last)
                 if a != _TERMINAL and a != _ORPHAN and head[a] == o:
                     parent[j] = _ORPHAN
-                    orphans[(o_head + o_count) % n] = j
-                    o_count += 1
+                    o_count = _push_orphan(j, orphans, o_head, o_count)
 
     for i in range(n):
         side[i] = 0 if (parent[i] != _NONE and is_sink[i] == 0) else 1
