@@ -472,6 +472,14 @@ def _jsonable(obj):
     return obj
 
 
+def position_range(positions, n_frames: int, what: str) -> tuple[int, int]:
+    """``[start, stop)`` sequence positions of a block job, checked against ``n_frames``."""
+    start, stop = int(positions[0]), int(positions[1])
+    if not 0 <= start < stop <= n_frames:
+        raise ValueError(f"{what} range [{start}, {stop}) outside the {n_frames} frames")
+    return start, stop
+
+
 class FrameSequence:
     """Frame-block stores of one artifact read as one sequence of frames.
 

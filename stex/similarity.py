@@ -527,6 +527,13 @@ def vertex_rings(faces, n_vertices: int, hops: int) -> tuple[np.ndarray, np.ndar
 # SHOT
 # --------------------------------------------------------------------------------------------
 
+@njit(cache=True, nogil=True, inline="always")
+def _offset(P, j, px, py, pz):
+    """Offset of vertex j from the point (px, py, pz) and its length."""
+    dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
+    return dx, dy, dz, math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 @njit(cache=True, nogil=True)
 def _shot_kernel(P, N, ptr, idx, radius, out):
     nb = _SHOT_BINS
@@ -546,8 +553,7 @@ def _shot_kernel(P, N, ptr, idx, radius, out):
         cnt = 0
         for k in range(ptr[i], ptr[i + 1]):
             j = idx[k]
-            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx, dy, dz, d = _offset(P, j, px, py, pz)
             if d >= radius or d == 0.0:
                 continue  # outside the spherical support in this frame, or the vertex itself
             w = radius - d
@@ -577,8 +583,7 @@ def _shot_kernel(P, N, ptr, idx, radius, out):
         sw = 0.0
         for k in range(ptr[i], ptr[i + 1]):
             j = idx[k]
-            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx, dy, dz, d = _offset(P, j, px, py, pz)
             if d >= radius or d == 0.0:
                 continue
             p = dx * xx + dy * xy + dz * xz
@@ -597,8 +602,7 @@ def _shot_kernel(P, N, ptr, idx, radius, out):
             hist[q] = 0.0
         for k in range(ptr[i], ptr[i + 1]):
             j = idx[k]
-            dx, dy, dz = P[j, 0] - px, P[j, 1] - py, P[j, 2] - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx, dy, dz, d = _offset(P, j, px, py, pz)
             if d >= radius or d == 0.0:
                 continue
             cs = N[j, 0] * zx + N[j, 1] * zy + N[j, 2] * zz

@@ -201,7 +201,7 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     """
     from stex.camera import Calibration
     from stex.config import section_params
-    from stex.io import create_store, open_store
+    from stex.io import create_store, open_store, position_range
     from stex.similarity import global_similarity
 
     p = section_params("tables", params)
@@ -212,9 +212,7 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     template = open_store(template_path, "template")
     obs = open_store(observations_path, "observations")
     ids = list(obs.attrs["frame_ids"])
-    start, stop = int(positions[0]), int(positions[1])
-    if not 0 <= start < stop <= len(ids):
-        raise ValueError(f"target range [{start}, {stop}) outside the {len(ids)} frames")
+    start, stop = position_range(positions, len(ids), "target")
     faces = np.asarray(template["faces"][...], np.int64)
     vertices = np.asarray(open_store(tracking_path, "tracking")["vertices"][...], np.float32)
     poses_store = open_store(poses_path, "poses")

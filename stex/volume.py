@@ -399,7 +399,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     import time
 
     from stex.config import section_params
-    from stex.io import FrameSequence, create_store, open_store
+    from stex.io import FrameSequence, create_store, open_store, position_range
     from stex.observations import open_coordinates
 
     log = logging.getLogger("stex.volume")
@@ -407,9 +407,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     template = open_store(template_path, "template")
     labels_store = open_store(labels_path, "labels")
     ids = list(labels_store.attrs["frame_ids"])
-    start, stop = int(positions[0]), int(positions[1])
-    if not 0 <= start < stop <= len(ids):
-        raise ValueError(f"slice range [{start}, {stop}) outside the {len(ids)} labelled frames")
+    start, stop = position_range(positions, len(ids), "slice")
     faces = np.asarray(template["faces"][...], np.int64)
     labels = np.asarray(labels_store["labels"][start:stop], np.int32)
     if labels.shape[1] != len(faces):
