@@ -867,6 +867,17 @@ def _pyplot():
     return plt
 
 
+def _finish(plt, fig, ax, path, xlabel, ylabel):
+    """Label, legend and grid a one-axis figure, write it to ``path`` and close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 def _plot_psnr(path, records):
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
@@ -876,13 +887,7 @@ def _plot_psnr(path, records):
     held = [r["frame"] for r in records if r["held_out"]]
     for i, h in enumerate(held):
         ax.axvline(h, color="0.85", lw=3, zorder=0, label="held-out frame" if i == 0 else None)
-    ax.set_xlabel("frame")
-    ax.set_ylabel("patch-shift PSNR (dB)")
-    ax.legend(fontsize=7)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _finish(plt, fig, ax, path, "frame", "patch-shift PSNR (dB)")
 
 
 def _plot_blur_motion(path, records, ids, motion):
@@ -949,13 +954,7 @@ def _plot_dynamism(path, S, face_chart, face_area, ids, n_regions):
     for c, s in dynamism_regions(S, face_chart, face_area, n_regions):
         ax.plot(ids, s, ".-", label=f"chart {c}")
     ax.axhline(0.95, color="k", ls="--", lw=0.8, label="θ_Ω = 0.95")
-    ax.set_xlabel("frame")
-    ax.set_ylabel("SSIM dynamism S (area-weighted mean)")
-    ax.legend(fontsize=7)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    _finish(plt, fig, ax, path, "frame", "SSIM dynamism S (area-weighted mean)")
 
 
 def _picture_side_by_side(path, t, ids, photos, masks, textures, V, atlas, cal, tv, face_visible):
