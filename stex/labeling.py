@@ -402,7 +402,7 @@ def preview_labels(volume_paths, corrected_paths, observations_path, template_pa
     """
     import cv2
 
-    from stex.dynamism import ssim_map_image
+    from stex.dynamism import label_set_min, ssim_map_image
     from stex.io import FrameSequence, open_store
     from stex.preview import _label, montage, write_png
     from stex.volume import label_colors
@@ -413,9 +413,7 @@ def preview_labels(volume_paths, corrected_paths, observations_path, template_pa
     pick = [ids[int(round(k))] for k in np.linspace(0, len(ids) - 1, min(n_show, len(ids)))]
     obs = open_store(observations_path, "observations")
     tf = open_store(template_path, "template")["texel/face_id"][...]
-    S = np.where(obs["face_visible"][...], obs["dynamism"][...], np.nan)
-    with np.errstate(all="ignore"):
-        s_min = np.nanmin(np.where(np.isnan(S).all(0)[None], 1.0, S), axis=0)
+    s_min = label_set_min(obs["dynamism"][...], np.asarray(obs["face_visible"][...], bool))
     rs = lambda im: cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA)
     dyn = _label(rs(ssim_map_image(s_min, tf, theta=0.95)), "SSIM dynamism (min over frames)")
     tiles = []

@@ -1,0 +1,71 @@
+"""Colour-correction quality on a finished run (issue 6 acceptance on the demo scene).
+
+For every slice: the mean colour step across label boundaries (channel-mean |Δ| over 4-neighbour
+texel pairs of two different labels in one chart) before (volume) and after (corrected)
+correction — stored by the stage in each corrected store's attr ``label_boundary_step``; for every
+10th slice the natural step between same-label neighbours (the texture's own detail, which no
+correction removes) and the mean absolute change inside label regions more than 4 / 8 / 16 texels
+from any boundary.
+
+    python benchmarks/bench_correction_quality.py results/demo
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+try:
+    import stex  # noqa: F401
+except ImportError:  # run from a source checkout without installing the package
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stex.correction import interior_change
+from stex.io import FrameSequence, open_store
+
+
+def neighbour_steps(image, label_map, chart):
+    """Mean channel |Δ| over 4-neighbour texel pairs in one chart: (across labels, same label)."""
+    im = np.asarray(image, np.float64)
+    across, same = [], []
+    for a, b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                 ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        ok = (label_map[a] >= 0) & (label_map[b] >= 0) & (chart[a] == chart[b]) & (chart[a] >= 0)
+        d = np.abs(im[a] - im[b]).mean(-1)
+        across.append(d[ok & (label_map[a] != label_map[b])])
+        same.append(d[ok & (label_map[a] == label_map[b])])
+    return float(np.concatenate(across).mean()), float(np.concatenate(same).mean())
+
+
+def main(argv=None):
+    R = Path((argv or sys.argv[1:])[0])
+    vol = FrameSequence(sorted((R / "volume").glob("block_*.zarr")), "volume")
+    cor = FrameSequence(sorted((R / "corrected").glob("block_*.zarr")), "corrected")
+    t = open_store(R / "template.zarr", "template")
+    tf, fc = t["texel/face_id"][...], t["face_chart"][...]
+    chart = np.where(tf >= 0, fc[np.maximum(tf, 0)], -1)
+    steps = np.array([s for p in sorted((R / "corrected").glob("block_*.zarr"))
+                      for s in open_store(p, "corrected").attrs["label_boundary_step"]])
+    fall = 1 - steps[:, 1] / steps[:, 0]
+    print(f"label-boundary step over {len(steps)} slices: {steps[:, 0].mean():.3f} -> "
+          f"{steps[:, 1].mean():.3f} grey levels, fall {100 * (1 - steps[:, 1].mean() / steps[:, 0].mean()):.1f} % "
+          f"(worst slice {100 * fall.min():.1f} %)")
+    rows, inner = [], []
+    for fid in vol.frame_ids[::10]:
+        lm = vol.read("label_map", fid).astype(np.int32)
+        before, after = vol.read("texture", fid), cor.read("texture", fid)
+        rows.append(neighbour_steps(before, lm, chart) + neighbour_steps(after, lm, chart))
+        inner.append([interior_change(before, after, lm, m) for m in (4, 8, 16)])
+    r, inner = np.array(rows).mean(0), np.array(inner)
+    print(f"every 10th slice: across labels {r[0]:.3f} -> {r[2]:.3f}, same label {r[1]:.3f} -> {r[3]:.3f}; "
+          f"excess at boundaries {r[0] - r[1]:.3f} -> {r[2] - r[3]:.3f} "
+          f"(fall {100 * (1 - (r[2] - r[3]) / (r[0] - r[1])):.1f} %)")
+    print("change inside label regions at > 4 / 8 / 16 texels from a boundary: mean "
+          + " / ".join(f"{x:.3f}" for x in np.nanmean(inner, 0)) + ", max "
+          + " / ".join(f"{x:.3f}" for x in np.nanmax(inner, 0)) + " grey levels")
+
+
+if __name__ == "__main__":
+    main()
