@@ -16,8 +16,9 @@ What it computes
   the regions seen / unseen by the camera at t.
 - :func:`image_scores`, :func:`coverage_scores`, :func:`truth_views`, :func:`method_views` —
   the pieces of :func:`score_frame`, for callers that score other images.
-- :func:`write_evaluation` — the stage: builds the baselines (Kim 2019 global texture over the
-  source frames, naive per-frame projection), scores ``ours`` (corrected volume),
+- :func:`write_evaluation` — the stage: reads the Kim 2019 global texture over the source
+  frames (the ``global_texture`` store, :func:`stex.baseline.write_global_texture`), builds the
+  naive per-frame projection baseline, scores ``ours`` (corrected volume),
   ``ours_uncorrected`` (volume), ``global`` and ``projection`` on the chosen frames, temporal
   flicker in borrowed regions, and writes ``evaluation.json``, one CSV per table, ``tables.rst``
   and PNG figures into a folder.
@@ -40,8 +41,10 @@ Held-out protocol
 With ``tables.source_stride`` = k only every k-th frame may texture anything (attr
 ``source_frames`` of the tables stores); every frame is still a target. Frames that are not
 sources are scored as ``held_out``: their own photo was not used by ``ours`` nor by ``global``
-(built from the source frames only). The naive ``projection`` baseline of a held-out frame is
-its own photo, so it is left out of the held-out summaries.
+(built from the source frames only by the ``global_texture`` stage, which takes the same
+``tables.source_stride``; its attr ``source_frames`` is checked against the tables'). The naive
+``projection`` baseline of a held-out frame is its own photo, so it is left out of the held-out
+summaries.
 """
 
 from __future__ import annotations
@@ -308,7 +311,8 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         mask); with ``face_has_texture`` the :func:`coverage_scores` keys (area on this frame's
         mesh); with ``truth`` ``gt_novel_*`` and ``gt_input_*``: ``psnr_all/seen/unseen`` (dB),
         ``ssim_all/seen/unseen``, ``n_seen``, ``n_unseen`` (px), ``iou`` (true vs our
-        silhouette).
+        silhouette), and ``blur_truth``: the blur of the true appearance rendered in the input
+        view (inside the mask, the render's and the true silhouette).
     """
     K, w, h, _ = _camera(calibration)
     img = np.asarray(image)
@@ -334,6 +338,10 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
             Vc = transform_points(_camera(calibration)[3], np.asarray(vertices, np.float64))
             seen_in = ev.seen_mask_in_view(Vc, a.faces, face_visible, K, w, h)
         out.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, seen_in))
+        # the sharpness a texture can have through this renderer: the true appearance rendered
+        # in the same view (no sensor noise, which the Crete metric reads as sharpness)
+        t_img, t_mask = truth["input"]
+        out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
         out.update(_truth_region_scores("gt_novel", *truth["novel"], *views["novel"],
                                         views["novel_seen"]))
     if return_views:
@@ -355,7 +363,7 @@ def vertex_motion(prev_vertices, vertices) -> float:
 
 
 #: Per-frame scores summarised (and plotted) by :func:`write_evaluation`.
-SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input",
+SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input", "blur_truth",
                    "mask_iou", "coverage_faces", "coverage_area", "coverage_seen",
                    "gt_novel_psnr_all", "gt_novel_psnr_seen", "gt_novel_psnr_unseen",
                    "gt_novel_ssim_all", "gt_novel_ssim_seen", "gt_novel_ssim_unseen",
@@ -442,6 +450,8 @@ def table_rows(summaries: dict) -> dict:
     for m in METHODS:
         add(rec, "SSIM (every frame)", m, "all", "ssim", digits=4)
     add(rec, "Blurriness (Crete et al.)", "ours", "all", "blur_input", digits=4, name=METHOD_NAMES["input"])
+    add(rec, "Blurriness (Crete et al.)", "ours", "all", "blur_truth", digits=4,
+        name="true appearance, rendered")
     for m in ("global", "ours", "ours_uncorrected", "projection"):
         add(rec, "Blurriness (Crete et al.)", m, "all", "blur", digits=4)
 
@@ -553,8 +563,8 @@ def _crop_box(masks, pad=4):
 
 def write_evaluation(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                      projection_path, labels_path, volume_paths, corrected_paths, out_dir,
-                     params: dict | None = None, *, truth_paths=None, coords_path=None,
-                     observations_path=None, tables_paths=None, frames=None,
+                     params: dict | None = None, *, global_texture_path, truth_paths=None,
+                     coords_path=None, observations_path=None, tables_paths=None, frames=None,
                      timing: dict | None = None) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
 
@@ -564,19 +574,23 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         frames_paths, masks_paths: ``frames`` / ``masks`` block stores (photos, GrabCut masks).
         template_path: ``template`` store (faces, atlas, texel map, face charts).
         tracking_path: ``tracking`` store (vertices [T, V, 3]).
-        projection_path: ``projection`` store (face_visible, face_cos [T, F]).
+        projection_path: ``projection`` store (face_visible [T, F]).
         labels_path: ``labels`` store (labels [T, F], never_seen).
         volume_paths, corrected_paths: ``volume`` / ``corrected`` block stores
             (``ours_uncorrected`` / ``ours``).
         out_dir: folder to write (built as ``<out_dir>.partial`` and moved into place when
             complete, replacing an older one).
         params: the evaluation settings (:func:`evaluation_params`).
+        global_texture_path: (keyword, required) ``global_texture`` store, the ``global``
+            method (:func:`stex.baseline.write_global_texture`: texture (W, W, 3) uint8,
+            face_textured (F,) bool, attrs source_frames and seconds); its source frames must be
+            the tables' source frames.
         truth_paths: ``truth`` block stores (synthetic scenes) -> ground-truth scores and flicker.
         coords_path: ``texcoords`` store (ξ) or the projection store (Φ, the default): the
             texture coordinates of the baselines, as used by the volume.
         observations_path: ``observations`` store -> the SSIM-dynamism figure.
         tables_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
-            texture (held-out protocol); without, every frame is a source.
+            texture (held-out protocol); without, the global texture's ``source_frames``.
         frames: global frame ids to score; None -> every ``stride``-th frame.
         timing: ``{stage: seconds}`` for the timing table, or None.
 
@@ -590,7 +604,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     Returns:
         the ``evaluation.json`` content (NaN as None).
     """
-    from stex.baseline import global_texture, projection_texture
+    from stex.baseline import projection_texture
     from stex.io import FrameSequence, StoreError, open_store
     from stex.observations import open_coordinates
     from stex.volume import TexelSampler
@@ -631,15 +645,37 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         raise ValueError(f"volume stores are {volume.groups[0]['texture'].shape[1]} texels wide, "
                          f"template atlas_size is {W}")
 
+    # the global baseline (Kim 2019), built from the source frames by the global_texture stage
+    global_store = open_store(global_texture_path, "global_texture")
+    global_tex = np.asarray(global_store["texture"][...], np.uint8)
+    global_faces = np.asarray(global_store["face_textured"][...], bool)
+    if global_tex.shape[0] != W:
+        raise ValueError(f"global_texture store {global_texture_path} is {global_tex.shape[0]} "
+                         f"texels wide, template {template_path} atlas_size is {W}")
+    if global_faces.shape != (F,):
+        raise ValueError(f"global_texture store {global_texture_path} has {len(global_faces)} "
+                         f"faces, template {template_path} has {F}")
+    global_sources = [int(i) for i in global_store.attrs["source_frames"]]
+    if not set(global_sources) <= set(ids):
+        raise ValueError(f"global_texture store {global_texture_path} was built from frames "
+                         f"{_short(global_sources)} that are not all frames of the scene "
+                         f"{scene_path} ({_short(ids)})")
+    seconds_global = float(global_store.attrs["seconds"])
+
     # held-out protocol: the frames allowed to texture
-    sources = set(ids)
-    stride_label = ""
+    sources = set(global_sources)
+    k = global_store.attrs.get("params", {}).get("source_stride")
     if tables_paths:
         src = open_store(list(tables_paths)[0], "tables").attrs.get("source_frames")
         if src is not None:
             sources = {int(i) for i in src}
             k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
-            stride_label = f"(1/{k})" if k else f"({len(sources)}/{T} frames)"
+        if sorted(sources) != sorted(global_sources):
+            raise ValueError(f"global_texture store {global_texture_path} was built from source "
+                             f"frames {_short(sorted(global_sources))}, the tables "
+                             f"{list(tables_paths)[0]} allow {_short(sorted(sources))} "
+                             f"(global_texture and tables must use the same source_stride)")
+    stride_label = "" if len(sources) == T else (f"(1/{k})" if k else f"({len(sources)}/{T} frames)")
     is_source = np.array([i in sources for i in ids])
 
     score_ids = list(ids[::int(p["stride"])]) if frames is None else [int(f) for f in frames]
@@ -669,7 +705,6 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                              f"the scene has {T}")
 
     face_visible = np.asarray(projection["face_visible"][...], bool)
-    face_cos = projection["face_cos"]
     labels = labels_store["labels"]
     seen_faces = (face_visible & is_source[:, None]).any(axis=0)
     coords, _, _ = open_coordinates(coords_path or projection_path)
@@ -678,22 +713,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                          f"{coords.shape[0]} frames, the scene has {T}")
     sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], atlas.faces)
 
-    # the global baseline over the source frames
-    t0 = time.perf_counter()
-    src_positions = np.flatnonzero(is_source)
-
-    def load(k):
-        t = int(src_positions[k])
-        return photos.read("color", ids[t]), np.asarray(coords[t], np.float64), face_visible[t]
-
-    global_tex, _ = global_texture(load, len(src_positions), sampler,
-                                   face_weight=lambda k: face_cos[int(src_positions[k])],
-                                   min_weight=float(p["global_min_weight"]), progress=True)
-    global_faces = (face_visible[src_positions]
-                    & (np.asarray(face_cos[...])[src_positions] > float(p["global_min_weight"]))).any(0)
-    seconds_global = time.perf_counter() - t0
-    log.info("evaluation: global texture from %d source frames in %.1f s", len(src_positions),
-             seconds_global)
+    log.info("evaluation: global texture %s from %d source frames (built in %.1f s)",
+             global_texture_path, len(global_sources), seconds_global)
 
     def textures(t):
         fid = ids[t]
@@ -895,6 +916,8 @@ def _plot_blur_motion(path, records, ids, motion):
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
     x = [r["frame"] for r in records]
     ax.plot(x, [r["methods"]["ours"]["blur_input"] for r in records], "k.-", label="input")
+    if all("blur_truth" in r["methods"]["ours"] for r in records):
+        ax.plot(x, [r["methods"]["ours"]["blur_truth"] for r in records], "k:", label="true appearance")
     for m in ("ours", "global"):
         ax.plot(x, [r["methods"][m]["blur"] for r in records], ".-", label=METHOD_NAMES[m])
     ax.set_xlabel("frame")

@@ -331,6 +331,26 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "label_boundary_step": "list[[before, after]]: mean colour step across label boundaries per slice (grey levels)",
         },
     ),
+    "global_texture": ArtifactSpec(
+        description="The comparison baseline of Kim et al. 2019 (stex.baseline.write_global_texture): "
+        "ONE texture for the whole sequence in the template atlas, every texel the weighted mean "
+        "of the source frames (held-out protocol: sequence positions 0, k, 2k, ..., k = "
+        "tables.source_stride) that see its face, sampled at the texture coordinates of the volume "
+        "(ξ or Φ), weight w_t(f) = projection face_cos, (t, f) with w_t(f) <= min_weight left out; "
+        "texels of faces never used are filled from their neighbours, gutters dilated (template "
+        "gutter_px). Read by the evaluation.",
+        path="global_texture.zarr",
+        arrays={
+            "texture": ArraySpec(("W", "W", 3), "uint8", "sRGB", "the global texture in the template atlas (template.zarr texcoords), RGB, row 0 = v 0", (1024, 1024, 3)),
+            "weight_sum": ArraySpec(("W", "W"), "float32", "1", "Σ_t w_t(f) over the used source frames of each texel's face; 0 = nothing observed (filled or empty texel)", (1024, 1024)),
+            "face_textured": ArraySpec(("F",), "bool", "1", "face with at least one used observation (visible in a source frame with face_cos > min_weight)"),
+        },
+        attrs={
+            "source_frames": "list[int]: global frame ids of the source frames blended (as the tables' source_frames)",
+            "sequence_frame_ids": "list[int]: every frame id of the scene, in order",
+            "seconds": "float: wall time of the blend (s)",
+        },
+    ),
 }
 
 

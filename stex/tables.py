@@ -37,7 +37,7 @@ import numpy as np
 log = logging.getLogger("stex.tables")
 
 __all__ = ["prefilter_candidates", "select_candidates", "finish_candidates", "block_candidates",
-           "unary_terms", "write_tables"]
+           "unary_terms", "source_mask", "write_tables"]
 
 SIMILARITY_MODES = ("both", "global", "local")
 
@@ -187,6 +187,16 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                               omega_g, similarity, n_candidates) for k in range(len(targets))]
 
 
+def source_mask(n_frames: int, stride: int) -> np.ndarray:
+    """The frames that may texture anything under the held-out protocol: (T,) bool, True at the
+    sequence positions 0, k, 2k, ... (k = ``stride`` >= 1, the ``tables.source_stride`` setting;
+    used by :func:`write_tables` and the global-texture baseline)."""
+    k = int(stride)
+    if k < 1:
+        raise ValueError(f"source_stride must be >= 1, got {stride}")
+    return np.arange(int(n_frames)) % k == 0
+
+
 def write_tables(scene_path, template_path, tracking_path, poses_path, observations_path,
                  positions, params: dict, out) -> None:
     """Tables stage for one block of target frames: write a ``tables`` store.
@@ -222,7 +232,7 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     cal = Calibration.from_dict(scene.attrs["calibration"])
     face_visible = np.asarray(obs["face_visible"][...], bool)
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
-    sources = np.arange(len(ids)) % int(p["source_stride"]) == 0
+    sources = source_mask(len(ids), p["source_stride"])
     face_visible = face_visible & sources[:, None]
     e_qual = (np.asarray(obs["blurred"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))

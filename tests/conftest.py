@@ -45,11 +45,18 @@ def demo_config() -> dict:
     return load_config(REPO / "config" / "config.yaml")
 
 
+def tiny_scene_config(**sections) -> dict:
+    """The validated config of the tiny synthetic scene (fast to render; blocks of 4 frames),
+    schema defaults elsewhere; ``sections`` override whole config keys (e.g. template=...)."""
+    return load_config(overrides={"scene": "tiny", "frame_block": 4,
+                                  "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+                                  **sections})
+
+
 @pytest.fixture
 def tiny_config() -> dict:
     """A tiny synthetic scene (fast to render) with schema defaults."""
-    return load_config(overrides={"scene": "tiny", "frame_block": 4,
-                                  "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}})
+    return tiny_scene_config()
 
 
 def run_stages(cfg: dict, d) -> dict:
@@ -82,9 +89,11 @@ def run_stages(cfg: dict, d) -> dict:
 
 
 def run_pipeline(cfg: dict, d) -> dict:
-    """:func:`run_stages` then poses, observations (at Φ), tables, labeling, volume and correction
-    through the real stage writers. Returns the store paths of :func:`run_stages` plus poses,
-    observations, tables, labels, volume and corrected (lists per block)."""
+    """:func:`run_stages` then poses, observations (at Φ), tables, labeling, volume, correction
+    and the global texture (at Φ, the tables' source_stride) through the real stage writers.
+    Returns the store paths of :func:`run_stages` plus poses, observations, tables, labels,
+    volume and corrected (lists per block) and global_texture."""
+    from stex.baseline import write_global_texture
     from stex.correction import write_corrected
     from stex.io import open_store
     from stex.labeling import write_labels
@@ -112,4 +121,8 @@ def run_pipeline(cfg: dict, d) -> dict:
         write_volume(P["template"], P["labels"], P["projection"], P["frames"], [start, stop],
                      cfg["volume"], P["volume"][b])
         write_corrected(P["template"], P["volume"][b], cfg["correction"], P["corrected"][b])
+    P["global_texture"] = d / "global_texture.zarr"
+    write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], P["projection"],
+                         P["global_texture"],
+                         dict(cfg["global_texture"], source_stride=cfg["tables"]["source_stride"]))
     return P

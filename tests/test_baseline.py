@@ -3,8 +3,9 @@ import cv2
 import numpy as np
 import pytest
 
-from stex.baseline import global_texture, projection_texture
-from conftest import grid_atlas
+from stex.baseline import global_texture, projection_texture, write_global_texture
+from stex.tables import source_mask
+from conftest import grid_atlas, run_stages, tiny_scene_config
 from stex.template import texel_map
 from stex.volume import TexelSampler
 
@@ -144,3 +145,126 @@ def test_bad_inputs_raise(atlas):
         global_texture(lambda t: (img, xi), 1, atlas["sampler"])
     with pytest.raises(ValueError, match="image_t"):
         projection_texture(atlas["sampler"], xi, vis, img[..., 0])
+
+
+# --------------------------------------------------------------------------------------------
+# the global_texture stage on the tiny synthetic scene
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def stages(tmp_path_factory):
+    """ingest .. projection of the tiny synthetic scene (6 frames, blocks [0, 4) and [4, 6))."""
+    cfg = tiny_scene_config(template={"atlas_size": 128})
+    return run_stages(cfg, tmp_path_factory.mktemp("tiny"))
+
+
+def _direct(P, positions, min_weight, frames=None):
+    """global_texture called directly on the given sequence positions of the tiny scene."""
+    from stex.io import FrameSequence, open_store
+
+    template = open_store(P["template"], "template")
+    proj = open_store(P["projection"], "projection")
+    photos = FrameSequence(frames or P["frames"], "frames")
+    faces = template["faces"][...]
+    sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], faces)
+    vis, cos, phi = proj["face_visible"][...], proj["face_cos"][...], proj["phi"][...]
+    pos = list(positions)
+    tex, wsum = global_texture(lambda k: (photos.read("color", photos.frame_ids[pos[k]]),
+                                          phi[pos[k]].astype(np.float64), vis[pos[k]]),
+                               len(pos), sampler, face_weight=cos[pos], min_weight=min_weight,
+                               gutter_px=int(template.attrs["gutter_px"]))
+    return tex, wsum, (vis[pos] & (cos[pos] > min_weight)).any(0)
+
+
+def _write(P, out, params, frames=None):
+    write_global_texture(P["scene"], frames or P["frames"], P["template"], P["projection"],
+                         P["projection"], out, params)
+    from stex.io import open_store
+    return open_store(out, "global_texture")
+
+
+def test_source_mask():
+    assert source_mask(7, 3).tolist() == [True, False, False, True, False, False, True]
+    assert source_mask(4, 1).all()
+    with pytest.raises(ValueError, match="source_stride"):
+        source_mask(4, 0)
+
+
+def test_write_global_texture_is_the_direct_blend(stages, tmp_path):
+    P = stages
+    g = _write(P, tmp_path / "g.zarr", {"min_weight": 0.3})
+    tex, wsum, textured = _direct(P, range(6), 0.3)
+    assert g["texture"].dtype == np.uint8 and g["texture"].shape == (128, 128, 3)
+    np.testing.assert_array_equal(g["texture"][...], tex)
+    np.testing.assert_array_equal(g["weight_sum"][...], wsum)
+    np.testing.assert_array_equal(g["face_textured"][...], textured)
+    assert g.attrs["source_frames"] == list(range(6)) and g.attrs["seconds"] > 0
+    assert g.attrs["params"] == {"min_weight": 0.3, "source_stride": 1}
+    # min_weight matters: some faces are only seen at grazing angles
+    assert 0 < textured.sum() < _write(P, tmp_path / "g0.zarr", {})["face_textured"][...].sum()
+
+
+def test_source_stride_uses_only_the_source_frames(stages, tmp_path):
+    """With source_stride 2 only positions 0, 2, 4 are read: painting the odd frames red changes
+    nothing, while the stride-1 texture does change."""
+    import shutil
+
+    import zarr
+
+    P = stages
+    red_frames = []
+    for b, path in enumerate(P["frames"]):
+        q = tmp_path / f"frames_{b}.zarr"
+        shutil.copytree(path, q)
+        g = zarr.open_group(str(q), mode="r+")
+        for i, fid in enumerate(g.attrs["frame_ids"]):
+            if fid % 2 == 1:
+                img = g["color"][i]
+                img[...] = (255, 0, 0)
+                g["color"][i] = img
+        red_frames.append(q)
+    g2 = _write(P, tmp_path / "g2.zarr", {"source_stride": 2})
+    assert g2.attrs["source_frames"] == [0, 2, 4]
+    tex, wsum, textured = _direct(P, [0, 2, 4], 0.0)
+    np.testing.assert_array_equal(g2["texture"][...], tex)
+    np.testing.assert_array_equal(g2["weight_sum"][...], wsum)
+    np.testing.assert_array_equal(g2["face_textured"][...], textured)
+    g2_red = _write(P, tmp_path / "g2red.zarr", {"source_stride": 2}, frames=red_frames)
+    np.testing.assert_array_equal(g2_red["texture"][...], g2["texture"][...])
+    g1, g1_red = (_write(P, tmp_path / "g1.zarr", {}),
+                  _write(P, tmp_path / "g1red.zarr", {}, frames=red_frames))
+    assert (g1_red["texture"][...] != g1["texture"][...]).any()
+    # the odd frames add weight where they see faces
+    assert (g1["weight_sum"][...] > g2["weight_sum"][...]).any()
+
+
+def test_write_global_texture_bad_inputs_name_the_store(stages, tmp_path):
+    import shutil
+
+    import zarr
+
+    from stex.io import StoreError
+
+    P = stages
+    short = tmp_path / "projection_5.zarr"
+    shutil.copytree(P["projection"], short)
+    g = zarr.open_group(str(short), mode="r+")
+    g.attrs["frame_ids"] = g.attrs["frame_ids"][:5]
+    for name in ("phi", "vertex_visible", "vertex_cos", "face_visible", "face_cos"):
+        g[name].resize((5,) + g[name].shape[1:])
+    with pytest.raises(ValueError, match="projection_5.zarr"):
+        write_global_texture(P["scene"], P["frames"], P["template"], short, P["projection"],
+                             tmp_path / "a.zarr", {})
+    with pytest.raises(ValueError, match="projection_5.zarr"):   # as texture coordinates
+        write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], short,
+                             tmp_path / "b.zarr", {})
+    with pytest.raises(ValueError, match="frames"):              # a frame block missing
+        write_global_texture(P["scene"], P["frames"][:1], P["template"], P["projection"],
+                             P["projection"], tmp_path / "c.zarr", {})
+    with pytest.raises(StoreError, match="nothing.zarr"):
+        write_global_texture(P["scene"], P["frames"], tmp_path / "nothing.zarr", P["projection"],
+                             P["projection"], tmp_path / "d.zarr", {})
+    with pytest.raises(ValueError, match="min_weights"):
+        write_global_texture(P["scene"], P["frames"], P["template"], P["projection"],
+                             P["projection"], tmp_path / "e.zarr", {"min_weights": 0.1})
+    assert not any((tmp_path / n).exists() for n in ("a.zarr", "b.zarr", "c.zarr", "d.zarr", "e.zarr"))

@@ -7,20 +7,18 @@ import numpy as np
 import pytest
 import zarr
 
-from conftest import TINY_SYNTHETIC, run_pipeline
+from conftest import run_pipeline, tiny_scene_config
 from stex import evaluate as ev
 from stex.camera import Calibration, transform_points
-from stex.config import load_config
 from stex.evaluation import (METHODS, Atlas, coverage_scores, dynamism_regions, image_scores,
                              rst_tables, score_frame, truth_views, vertex_motion, write_evaluation)
+from stex.baseline import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
 
 
 @pytest.fixture(scope="module")
 def pipe(tmp_path_factory):
-    cfg = load_config(overrides={"scene": "tiny", "frame_block": 4,
-                                 "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
-                                 "template": {"atlas_size": 256}})
+    cfg = tiny_scene_config(template={"atlas_size": 256})
     return run_pipeline(cfg, tmp_path_factory.mktemp("tiny"))
 
 
@@ -29,12 +27,17 @@ def _args(P):
             P["labels"], P["volume"], P["corrected"])
 
 
+def _evaluate(P, out, **kw):
+    """write_evaluation of the pipeline ``P`` (its global_texture store) into ``out``."""
+    return write_evaluation(*_args(P), out, global_texture_path=P["global_texture"], **kw)
+
+
 @pytest.fixture(scope="module")
 def evaluation(pipe, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
-    res = write_evaluation(*_args(pipe), out, truth_paths=pipe["truth"],
-                           observations_path=pipe["observations"], tables_paths=pipe["tables"],
-                           timing={"labeling": 90.0, "volume": 30.0})
+    res = _evaluate(pipe, out, truth_paths=pipe["truth"],
+                    observations_path=pipe["observations"], tables_paths=pipe["tables"],
+                    timing={"labeling": 90.0, "volume": 30.0})
     return out, res
 
 
@@ -78,6 +81,8 @@ def test_truth_scored_by_the_ground_truth_path_is_perfect(frame):
         assert s[f"gt_{view}_psnr_all"] == ev.PSNR_CAP
         assert s[f"gt_{view}_ssim_all"] == pytest.approx(1.0, abs=1e-9)
         assert s[f"gt_{view}_iou"] == 1.0
+    # the truth rendered as the method: the reference blur is the method's own blur
+    assert s["blur_truth"] == pytest.approx(s["blur"], abs=1e-9)
     # the far side is unseen, the input view mostly seen
     assert s["gt_novel_n_seen"] < 0.02 * s["gt_novel_n_unseen"]
     assert s["gt_input_n_seen"] > 5 * s["gt_input_n_unseen"]
@@ -152,9 +157,18 @@ def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
         shutil.copytree(p, q)
         zarr.open_group(str(q), mode="r+").attrs.update(source_frames=[0, 2, 4])
         tables.append(q)
-    res = write_evaluation(*_args(pipe), tmp_path / "eval", tables_paths=tables, frames=[1, 2])
+    # the global baseline of the same source frames (what the workflow builds with stride 2)
+    glob2 = tmp_path / "global_2.zarr"
+    write_global_texture(pipe["scene"], pipe["frames"], pipe["template"], pipe["projection"],
+                         pipe["projection"], glob2, {"source_stride": 2})
+    with pytest.raises(ValueError, match="source_stride"):   # stride-1 global vs stride-2 tables
+        _evaluate(pipe, tmp_path / "bad", tables_paths=tables, frames=[1, 2])
+    assert not (tmp_path / "bad").exists()
+    res = _evaluate({**pipe, "global_texture": glob2}, tmp_path / "eval",
+                    tables_paths=tables, frames=[1, 2])
     assert [r["held_out"] for r in res["frames"]] == [True, False]
     assert res["source_frames"] == [0, 2, 4]
+    assert res["seconds"]["global_texture"] == open_store(glob2, "global_texture").attrs["seconds"]
     s = res["summary"]
     assert s["n_held_out"] == 1 and "projection" not in s["held_out"]
     assert s["held_out"]["ours"]["psnr"]["n"] == 1 and s["source"]["global"]["psnr"]["n"] == 1
@@ -164,13 +178,17 @@ def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
 
 def test_bad_input_names_the_store(pipe, tmp_path):
     with pytest.raises(ValueError, match="volume"):          # mismatched frame counts
-        write_evaluation(*_args({**pipe, "volume": pipe["volume"][:1]}), tmp_path / "a")
+        _evaluate({**pipe, "volume": pipe["volume"][:1]}, tmp_path / "a")
     with pytest.raises(StoreError, match="nothing.zarr"):   # missing store
-        write_evaluation(*_args({**pipe, "labels": tmp_path / "nothing.zarr"}), tmp_path / "b")
+        _evaluate({**pipe, "labels": tmp_path / "nothing.zarr"}, tmp_path / "b")
     with pytest.raises(ValueError, match="frames to score"):
-        write_evaluation(*_args(pipe), tmp_path / "c", frames=[99])
+        _evaluate(pipe, tmp_path / "c", frames=[99])
     with pytest.raises(ValueError, match="strides"):
-        write_evaluation(*_args(pipe), tmp_path / "d", params={"strides": 2})
+        _evaluate(pipe, tmp_path / "d", params={"strides": 2})
+    with pytest.raises(ValueError, match="global_min_weight"):   # moved to global_texture.min_weight
+        _evaluate(pipe, tmp_path / "e", params={"global_min_weight": 0.3})
+    with pytest.raises(StoreError, match="global_texture"):      # another kind of store
+        _evaluate({**pipe, "global_texture": pipe["labels"]}, tmp_path / "f")
     assert not (tmp_path / "a").exists()
 
 

@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import TINY_SYNTHETIC, run_stages
+from conftest import run_stages, tiny_scene_config
 from stex.camera import Calibration, transform_points
-from stex.config import load_config
 from stex.io import FrameSequence, open_store
 from stex.projection import project_frame, projection_overlay, write_projection
 from stex.render import face_normals
@@ -15,8 +14,7 @@ from stex.render import face_normals
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """Scene, frames, truth, masks (GrabCut), template and 'given' tracking of the tiny scene."""
-    cfg = load_config(overrides={"scene": "tiny", "frame_block": 4,
-                                 "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC}})
+    cfg = tiny_scene_config()
     d = tmp_path_factory.mktemp("proj")
     paths = run_stages(cfg, d)
     frames, truth, masks = paths["frames"], paths["truth"], paths["masks"]

@@ -65,7 +65,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
     downstream = {"tracking", "poses", "projection", "projection_preview", "texcoords", "observations",
                   "tables", "labeling", "volume", "correction", "labels_preview", "preview_video",
-                  "evaluate", "texcoords_preview"}
+                  "evaluate", "texcoords_preview", "global_texture"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out
 

@@ -204,7 +204,14 @@ class ProceduralBody:
         c = (np.arange(size) + 0.5) / size
         s, v = np.meshgrid(c, c)
         h = 1.0 - v
-        comp = self.compression(s, h, time_s)
+        # The compression field is smooth: evaluated on at most 512^2 texel centres and
+        # upsampled (cv2 aligns texel centres), which makes a 2048^2 slice ~10x cheaper.
+        n = min(size, 512)
+        cc = (np.arange(n) + 0.5) / n
+        cs, cv_ = np.meshgrid(cc, cc)
+        comp = self.compression(cs, 1.0 - cv_, time_s).astype(np.float32)
+        if n != size:
+            comp = cv2.resize(comp, (size, size), interpolation=cv2.INTER_LINEAR)
         wrinkle = np.clip(comp / 0.15, 0, 1) * (0.5 + 0.5 * np.cos(2 * np.pi * 28 * h))
         tex = base * (1 - 0.6 * wrinkle)[..., None]
         pose = self.pose_parameter(time_s)

@@ -31,7 +31,7 @@ def all_outputs():
         out += [f"{RESULTS}/previews/texcoords.png"]
     out += expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS)
     out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
-    out += [f"{RESULTS}/evaluation"]
+    out += [f"{RESULTS}/global_texture.zarr", f"{RESULTS}/evaluation"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
     out += expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS)
     if SYNTHETIC:

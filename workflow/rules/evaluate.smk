@@ -17,6 +17,7 @@ rule evaluate:
         labels=f"{RESULTS}/labels.zarr",
         volume=expand(f"{RESULTS}/volume/block_{{block}}.zarr", block=BLOCK_IDS),
         corrected=expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS),
+        global_texture=f"{RESULTS}/global_texture.zarr",
     output:
         report(
             directory(f"{RESULTS}/evaluation"),

@@ -1,0 +1,24 @@
+# Global texture: the comparison baseline of Kim et al. 2019, one texture for the whole sequence
+# blended from the source frames (the tables' source_stride), read by the evaluation.
+
+
+rule global_texture:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        template=f"{RESULTS}/template.zarr",
+        projection=f"{RESULTS}/projection.zarr",
+        coords=COORDS,
+    output:
+        directory(f"{RESULTS}/global_texture.zarr"),
+    params:
+        global_texture=config["global_texture"],
+        source_stride=config["tables"]["source_stride"],
+    log:
+        f"{RESULTS}/logs/global_texture.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/global_texture.tsv",
+    conda:
+        ENV
+    script:
+        "../scripts/global_texture.py"
