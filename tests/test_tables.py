@@ -47,6 +47,20 @@ def test_pruned_candidates_equal_full_ranking_where_exact(similarity):
     assert res["e_qual"][f, 0] == qual[l, f] and res["e_glo"][f, 0] == pytest.approx(glo[l])
 
 
+def test_target_groups_do_not_change_the_candidates():
+    """E_loc computed for a few targets at a time (memory bound) equals all targets at once."""
+    rng = np.random.default_rng(2)
+    faces, vis, qual, desc, _ = _random_case(rng)
+    glo_rows = rng.random((3, 12)).astype(np.float32)
+    args = ([2, 5, 9], glo_rows, vis, qual, desc, faces, 0.9, "both", 3)
+    one = block_candidates(*args, prefilter=6, median_hops=1, target_group=1)
+    together = block_candidates(*args, prefilter=6, median_hops=1, target_group=3)
+    assert any((r["e_loc"] != 0).any() for r in one)
+    for a, b in zip(one, together):
+        for name in ("candidates", "e_loc", "e_glo", "e_qual"):
+            assert np.array_equal(a[name], b[name])
+
+
 def test_unary_modes():
     q, g, l = np.float32(1), np.float32(0.5), np.float32(-0.8)
     assert unary_terms(q, g, l, 0.9, "both") == pytest.approx(1 + 0.45 - 0.08)
