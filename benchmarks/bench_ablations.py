@@ -4,8 +4,9 @@ On a finished synthetic run (``snakemake --cores 2`` → results/demo) every var
 stages it changes into a scratch folder — tables (similarity global-only / local-only),
 labeling (temporal off / constant / selective, spatial selective weighting on), then the volume
 of every frame — and is scored by :func:`stex.evaluation.write_evaluation` on every
-``--stride``-th frame, exactly as the workflow scores ``ours_uncorrected`` (the variants are not
-colour-corrected; the main run's corrected row gives the correction's own effect).
+``--stride``-th frame, exactly as the workflow scores ``ours_uncorrected``: the variant's volume
+is passed as the uncorrected volume (the variants are not colour-corrected; the main run's
+``ours`` row against its ``ours_uncorrected`` row gives the correction's own effect).
 
 Reported per variant:
 - input view: patch-shift PSNR (dB) against the photos;
@@ -97,7 +98,7 @@ def run_variant(R: Path, out: Path, tables_over: dict, labels_over: dict, stride
     t0 = time.perf_counter()
     ids = [int(i) for i in scene.attrs["frame_ids"]]
     ev = write_evaluation(R / "scene.zarr", _blocks(R, "frames"), _blocks(R, "masks"), R / "template.zarr",
-                          R / "tracking.zarr", R / "projection.zarr", labels, volume, volume,
+                          R / "tracking.zarr", R / "projection.zarr", labels, volume, _blocks(R, "corrected"),
                           out / "evaluation", {"stride": stride},
                           truth_paths=_blocks(R, "truth"), coords_path=coords,
                           global_texture_path=R / "global_texture.zarr",
@@ -142,7 +143,7 @@ def main(argv=None):
         t_over, l_over = VARIANTS[name]
         t0 = time.perf_counter()
         r = run_variant(R, args.scratch / f"variant_{list(VARIANTS).index(name)}", t_over, l_over, args.stride)
-        s = r["summary"]["all"]["ours"]
+        s = r["summary"]["all"]["ours_uncorrected"]   # the variant's volume ("ours" = the main run's)
         L = open_store(r["labels"], "labels")["labels"][...]
         row = {"input_psnr": s["psnr"]["mean"],
                "gt_novel_psnr_seen": s.get("gt_novel_psnr_seen", {}).get("mean"),
