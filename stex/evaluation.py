@@ -311,7 +311,9 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         mask); with ``face_has_texture`` the :func:`coverage_scores` keys (area on this frame's
         mesh); with ``truth`` ``gt_novel_*`` and ``gt_input_*``: ``psnr_all/seen/unseen`` (dB),
         ``ssim_all/seen/unseen``, ``n_seen``, ``n_unseen`` (px), ``iou`` (true vs our
-        silhouette), and ``blur_truth``: the blur of the true appearance rendered in the input
+        silhouette); with ``seen_faces`` too, ``gt_novel_psnr_borrowed`` / ``_never_seen`` (dB)
+        and ``gt_novel_n_borrowed`` / ``_never_seen`` (px): the novel view's region unseen at t
+        split into surface some source frame saw and surface no frame saw; and ``blur_truth``: the blur of the true appearance rendered in the input
         view (inside the mask, the render's and the true silhouette).
     """
     K, w, h, _ = _camera(calibration)
@@ -344,6 +346,16 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
         out.update(_truth_region_scores("gt_novel", *truth["novel"], *views["novel"],
                                         views["novel_seen"]))
+        if seen_faces is not None and views["novel_seen"] is not None:
+            # unseen at t, split: surface some source frame saw (borrowed from another frame:
+            # what the labeling decides) and surface no frame saw (filled: a guess for any method)
+            Vn = transform_points(np.asarray(truth["novel_transform"], np.float64),
+                                  transform_points(_camera(calibration)[3], np.asarray(vertices, np.float64)))
+            ever = ev.seen_mask_in_view(Vn, a.faces, seen_faces, K, w, h)
+            (t_img, t_mask), (r_img, r_mask) = truth["novel"], views["novel"]
+            r = ev.region_psnr(t_img, r_img, t_mask & r_mask & ~views["novel_seen"], ever)
+            out.update(gt_novel_psnr_borrowed=r["psnr_seen"], gt_novel_n_borrowed=r["n_seen"],
+                       gt_novel_psnr_never_seen=r["psnr_unseen"], gt_novel_n_never_seen=r["n_unseen"])
     if return_views:
         out["views"] = views
     return out
@@ -366,6 +378,7 @@ def vertex_motion(prev_vertices, vertices) -> float:
 SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input", "blur_truth",
                    "mask_iou", "coverage_faces", "coverage_area", "coverage_seen",
                    "gt_novel_psnr_all", "gt_novel_psnr_seen", "gt_novel_psnr_unseen",
+                   "gt_novel_psnr_borrowed", "gt_novel_psnr_never_seen",
                    "gt_novel_ssim_all", "gt_novel_ssim_seen", "gt_novel_ssim_unseen",
                    "gt_input_psnr_all", "gt_input_ssim_all", "gt_novel_iou",
                    "flicker", "flicker_excess")
@@ -466,6 +479,8 @@ def table_rows(summaries: dict) -> dict:
     for metric, label, digits in (("gt_novel_psnr_all", "PSNR, dB, whole object", 2),
                                   ("gt_novel_psnr_seen", "PSNR, dB, seen at t", 2),
                                   ("gt_novel_psnr_unseen", "PSNR, dB, unseen at t", 2),
+                                  ("gt_novel_psnr_borrowed", "PSNR, dB, unseen at t, seen by another frame", 2),
+                                  ("gt_novel_psnr_never_seen", "PSNR, dB, never seen", 2),
                                   ("gt_novel_ssim_unseen", "SSIM, unseen at t", 4),
                                   ("gt_input_psnr_all", "PSNR, dB, input view", 2),
                                   ("flicker", "flicker in borrowed regions, grey levels", 2)):

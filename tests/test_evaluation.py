@@ -108,6 +108,25 @@ def test_ours_beats_a_black_texture(frame):
     assert ours["gt_input_psnr_all"] > 28
 
 
+def test_unseen_region_splits_into_borrowed_and_never_seen(frame):
+    """The novel view's pixels unseen at t split into surface some frame saw and surface none saw."""
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
+    F = len(frame["atlas"].faces)
+    seen_faces = frame["visible"] | (np.arange(F) % 2 == 0)    # half the far side "seen" elsewhere
+    kw = dict(truth=tv, face_visible=frame["visible"], seen_faces=seen_faces)
+    ours = score_frame(frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"],
+                       frame["cal"], **kw)
+    assert ours["gt_novel_n_borrowed"] > 0 and ours["gt_novel_n_never_seen"] > 0
+    assert ours["gt_novel_n_borrowed"] + ours["gt_novel_n_never_seen"] == ours["gt_novel_n_unseen"]
+    black = score_frame(np.zeros_like(frame["ours"]), frame["V"], frame["atlas"], frame["image"],
+                        frame["mask"], frame["cal"], **kw)
+    assert ours["gt_novel_psnr_borrowed"] > black["gt_novel_psnr_borrowed"] + 5
+    # without seen_faces there is no split
+    assert "gt_novel_psnr_borrowed" not in score_frame(
+        frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"], frame["cal"],
+        truth=tv, face_visible=frame["visible"])
+
+
 def test_coverage(evaluation):
     _, res = evaluation
     for rec in res["frames"]:
