@@ -12,7 +12,10 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   node pairs whose motions differ), solved by half-quadratic splitting: auxiliary s_jk,
   hard-thresholded (s = r where |r|^2 > lambda/beta, else 0), with beta increasing.
 - Each (x-step) is Gauss-Newton with the normal equations solved by conjugate gradients with a
-  12x12 block-Jacobi preconditioner (measured: 20 ms for 3,600 unknowns).
+  12x12 block-Jacobi preconditioner (measured: 20 ms for 3,600 unknowns). J^T J is assembled
+  directly as 12x12 node-pair blocks (every data-like residual of a vertex folds into one 3x3
+  matrix first; :func:`_normal_equations`), not as a sparse Jacobian times its transpose, and
+  the mesh is rasterised for visibility every ``VISIBILITY_EVERY`` steps, not every step.
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
   as a reprojection term; and optionally a silhouette term (:func:`silhouette_field`): rim
@@ -30,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import LinearOperator, cg
 
@@ -40,6 +44,7 @@ log = logging.getLogger("stex.tracking")
 
 PARAMS_PER_NODE = 12  # A (3x3, row-major) then t (3)
 SILHOUETTE_MAX_PX = 20.0  # farther from the mask's boundary, a vertex is not on the rim it sees
+VISIBILITY_EVERY = 4  # Gauss-Newton steps per rasterisation of the mesh for visibility
 
 
 # -- deformation graph -------------------------------------------------------------------------
@@ -254,15 +259,20 @@ class TrackParams:
         return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
 
 
-def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: TrackParams, max_dist: float):
+def _correspondences(Vd: np.ndarray, faces: np.ndarray, target: DepthTarget, p: TrackParams, max_dist: float,
+                     visibility: tuple | None = None):
     """Data association for the camera-visible vertices: (vertex ids, target points, target
-    normals) of usable pairs, and every vertex's visibility and cos in the depth camera.
+    normals) of usable pairs, and every vertex's visibility and cos in the depth camera
+    (``visibility`` = (vis, cos) from an earlier call reuses them instead of rasterising).
     ``p.association`` 'closest' pairs each vertex with the nearest
     foreground depth point (robust to motion along the surface and across the silhouette);
     'projective' with the depth pixel it projects to (faster, the classic DynamicFusion choice)."""
     H, W = target.valid.shape
-    raster = rasterize(Vd, faces, target.K, W, H)
-    vis, cos = vertex_visibility(Vd, faces, target.K, raster.depth)
+    if visibility is None:
+        raster = rasterize(Vd, faces, target.K, W, H)
+        vis, cos = vertex_visibility(Vd, faces, target.K, raster.depth)
+    else:
+        vis, cos = visibility
     ids = np.flatnonzero(vis)
     if p.association == "closest":
         if target.tree is None:
@@ -305,19 +315,6 @@ def _rot_terms(x: np.ndarray):
             J[:, m, 3 * rr + a] += c[b][:, rr]
             J[:, m, 3 * rr + b] += c[a][:, rr]
     return res, J
-
-
-def _blocks(ids, D, graph, local, sw):
-    """Jacobian rows for residuals D_m . x'_i (D (n, 3) per residual) w.r.t. node parameters:
-    d/dA_j[a, b] = w_ij D_a loc_b, d/dt_j[a] = w_ij D_a. Returns (cols (n*k*12,), vals)."""
-    k = graph.vertex_nodes.shape[1]
-    w = graph.vertex_weights[ids]
-    nodes = graph.vertex_nodes[ids]
-    loc = local[ids]
-    dA = w[:, :, None, None] * D[:, None, :, None] * loc[:, :, None, :]
-    dt = w[:, :, None] * D[:, None, :]
-    blk = np.concatenate([dA.reshape(len(ids), k, 9), dt], axis=2) * sw[:, None, None]
-    return (nodes[:, :, None] * 12 + np.arange(12)).ravel(), blk.ravel()
 
 
 def _huber_sqrt_weight(r, delta):
@@ -367,6 +364,119 @@ def silhouette_field(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sdf, np.stack([gu, gv], -1).astype(np.float32)
 
 
+# -- normal equations ---------------------------------------------------------------------------
+#
+# Every data-like residual (depth, point, flow, silhouette) has the form sw * D . x'_i for one
+# vertex i, and x'_i depends on a node j's 12 parameters through w_ij [A_j row r] . [local; 1].
+# So a vertex's residuals fold into one 3x3 information matrix M_i = sum sw^2 D D^T and a 3-vector
+# b_i = sum sw^2 r D, and J^T J gains G_a^T M_i G_b = w_a w_b M[r, s] h_a[c] h_b[d] between node
+# slots a, b (h = [local; 1]). The graph-smoothness residuals have the same shape (two slots,
+# h = [g_k - g_j; 1] and [0; -1], M = w I). Accumulating these 12x12 node-pair blocks directly
+# (numba) replaces building the sparse Jacobian and the sparse product J^T J, which took about
+# a third of a paper-scale solve.
+
+@njit(cache=True, nogil=True)
+def _vertex_information(n_vertices, vid, Dw, rw):
+    """Fold weighted residuals rw (n,) with rows Dw (n, 3) per vertex vid (n,) into
+    M (V, 3, 3) = sum Dw Dw^T and b (V, 3) = sum rw Dw."""
+    M = np.zeros((n_vertices, 3, 3))
+    b = np.zeros((n_vertices, 3))
+    for i in range(len(vid)):
+        v = vid[i]
+        for a in range(3):
+            b[v, a] += rw[i] * Dw[i, a]
+            for c in range(3):
+                M[v, a, c] += Dw[i, a] * Dw[i, c]
+    return M, b
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_normal(blocks, grad, nodes, h, M, b, bidx):
+    """blocks (nb, 12, 12) += G^T M G and grad (N, 12) += G^T b for points (n,) with slots
+    nodes (n, s), h (n, s, 4) (the slot weight folded in), M (n, 3, 3), b (n, 3), and bidx
+    (n, s, s) the block of each slot pair."""
+    n, s = nodes.shape
+    for i in range(n):
+        for a in range(s):
+            ja = nodes[i, a]
+            for r in range(3):
+                for c in range(4):
+                    pa = 3 * r + c if c < 3 else 9 + r
+                    grad[ja, pa] += h[i, a, c] * b[i, r]
+            for q in range(s):
+                blk = bidx[i, a, q]
+                for r in range(3):
+                    for c in range(4):
+                        hac = h[i, a, c]
+                        if hac == 0.0:
+                            continue
+                        pa = 3 * r + c if c < 3 else 9 + r
+                        for r2 in range(3):
+                            m = M[i, r, r2] * hac
+                            if m == 0.0:
+                                continue
+                            for d in range(4):
+                                pb = 3 * r2 + d if d < 3 else 9 + r2
+                                blocks[blk, pa, pb] += m * h[i, q, d]
+
+
+class _NormalPattern:
+    """Block-sparse (BSR, 12x12 blocks) pattern of J^T J for one deformation graph: a block for
+    every pair of nodes sharing a vertex or a graph edge, and the diagonal."""
+
+    def __init__(self, graph: DeformationGraph, n_nodes: int):
+        N = n_nodes
+        vn = graph.vertex_nodes.astype(np.int64)
+        ends = graph.edges.astype(np.int64).reshape(-1, 2)
+        keys = np.concatenate([(vn[:, :, None] * N + vn[:, None, :]).ravel(),
+                               (ends[:, :, None] * N + ends[:, None, :]).ravel(),
+                               np.arange(N) * (N + 1)])
+        self.keys = np.unique(keys)
+        rows = self.keys // N
+        self.indices = (self.keys % N).astype(np.int32)
+        self.indptr = np.searchsorted(rows, np.arange(N + 1)).astype(np.int32)
+        self.vertex_blocks = np.searchsorted(self.keys, vn[:, :, None] * N + vn[:, None, :])
+        self.edge_blocks = np.searchsorted(self.keys, ends[:, :, None] * N + ends[:, None, :])
+        self.diag = np.searchsorted(self.keys, np.arange(N) * (N + 1))
+        self.n_nodes = N
+
+
+def _normal_equations(pattern: _NormalPattern, graph: DeformationGraph, local, vid, Dw, rw,
+                      rot_res, rot_jac, smooth_res, smooth_weight, d_jk, damping=0.0):
+    """J^T J (BSR, 12N x 12N) and J^T r (12N,) of the weighted residuals of one GN step.
+
+    vid (n,) vertex of each data-like residual, Dw (n, 3) its row d r / d x'_i, rw (n,) its
+    value (weights folded in); rot_res (N, 6) / rot_jac (N, 6, 9) the rotation residuals and their
+    Jacobian w.r.t. A (weight folded in); smooth_res (E, 3) the graph residuals r_jk - s_jk, with
+    weight smooth_weight (the square root of it scales each residual), d_jk (E, 3) = g_k - g_j;
+    damping is added to the diagonal. Also returns the (N, 12, 12) diagonal blocks.
+    """
+    N = pattern.n_nodes
+    blocks = np.zeros((len(pattern.keys), 12, 12))
+    grad = np.zeros((N, 12))
+    if len(vid):
+        M, b = _vertex_information(len(local), vid, Dw, rw)
+        act = np.unique(vid)
+        w = graph.vertex_weights[act]
+        h = np.concatenate([local[act] * w[..., None], w[..., None]], axis=2)
+        _accumulate_normal(blocks, grad, graph.vertex_nodes[act].astype(np.int64), h, M[act], b[act],
+                           pattern.vertex_blocks[act])
+    E = len(smooth_res)
+    if E:
+        h = np.zeros((E, 2, 4))
+        h[:, 0, :3] = d_jk
+        h[:, 0, 3] = 1.0
+        h[:, 1, 3] = -1.0
+        M = np.broadcast_to(np.eye(3) * smooth_weight, (E, 3, 3)).copy()
+        _accumulate_normal(blocks, grad, graph.edges.astype(np.int64), h, M, smooth_res * smooth_weight,
+                           pattern.edge_blocks)
+    blocks[pattern.diag, :9, :9] += np.einsum("nmi,nmj->nij", rot_jac, rot_jac)
+    grad[:, :9] += np.einsum("nmi,nm->ni", rot_jac, rot_res)
+    blocks[pattern.diag] += np.eye(12) * damping
+    JtJ = sp.bsr_matrix((blocks, pattern.indices, pattern.indptr), shape=(12 * N, 12 * N))
+    return JtJ, grad.ravel(), blocks[pattern.diag]
+
+
 def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None, silhouette=None):
     """Gauss-Newton + HQS for the incremental warp of one frame. Returns (x, stats).
 
@@ -385,36 +495,35 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     s = np.zeros((len(e), 3))
     # Constant Jacobian pieces of the data term: d x'_i / d(A_j, t_j).
     local = V0[:, None, :] - node_pos[graph.vertex_nodes]  # (V, k, 3)
+    pattern = getattr(graph, "normal_pattern", None)
+    if pattern is None or pattern.n_nodes != N:
+        pattern = graph.normal_pattern = _NormalPattern(graph, N)   # once per graph
     stats = {"n_corr": 0, "data_rms_m": np.nan}
     max_dist = p.max_distance_m
     for rnd in range(p.l0_rounds):
         for it in range(p.gn_iterations):
             Vd = deform(V0, node_pos, graph, x)
-            ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, max_dist)
-            rows, cols, vals, res = [], [], [], []
-            nres = 0
+            # Visibility changes little between Gauss-Newton steps: the mesh is rasterised on
+            # every VISIBILITY_EVERY-th step only (the association itself is redone every step).
+            ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, max_dist,
+                                                    None if it % VISIBILITY_EVERY == 0 else (vis, cos))
+            vids, Dws, rws = [], [], []   # data-like residuals: vertex, weighted row, value
             # data: r_i = n_q . (x'_i - q), Huber weighted
             if len(ids):
                 rd = (nq * (Vd[ids] - q)).sum(1)
                 sw = _huber_sqrt_weight(rd, p.huber_m)
-                c, v = _blocks(ids, nq, graph, local, sw)
-                rows.append(np.repeat(np.arange(len(ids)), len(c) // len(ids)))
-                cols.append(c)
-                vals.append(v)
-                res.append(rd * sw)
-                nres = len(ids)
+                vids.append(ids)
+                Dws.append(nq * sw[:, None])
+                rws.append(rd * sw)
                 if p.w_point > 0:  # a little point-to-point: pins motion along flat surfaces
                     diff = Vd[ids] - q
                     for axis in range(3):
                         D = np.zeros((len(ids), 3))
-                        D[:, axis] = 1.0
                         swp = _huber_sqrt_weight(diff[:, axis], p.huber_m) * np.sqrt(p.w_point)
-                        c, v = _blocks(ids, D, graph, local, swp)
-                        rows.append(nres + np.repeat(np.arange(len(ids)), len(c) // len(ids)))
-                        cols.append(c)
-                        vals.append(v)
-                        res.append(diff[:, axis] * swp)
-                        nres += len(ids)
+                        D[:, axis] = swp
+                        vids.append(ids)
+                        Dws.append(D)
+                        rws.append(diff[:, axis] * swp)
                 stats["n_corr"] = len(ids)
                 stats["data_rms_m"] = float(np.sqrt(np.mean(rd**2)))
             # flow: (pi(T_dc x'_i) - u_i) * z / fx, about metres at the vertex, Huber weighted
@@ -425,12 +534,9 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 sqw = np.sqrt(p.w_flow * fw)
                 for m in range(2):
                     sw = _huber_sqrt_weight(rf[:, m], p.huber_m) * sqw
-                    c, v = _blocks(fid, Dm[:, m], graph, local, sw)
-                    rows.append(nres + np.repeat(np.arange(len(fid)), len(c) // len(fid)))
-                    cols.append(c)
-                    vals.append(v)
-                    res.append(rf[:, m] * sw)
-                    nres += len(fid)
+                    vids.append(fid)
+                    Dws.append(Dm[:, m] * sw[:, None])
+                    rws.append(rf[:, m] * sw)
                 stats["n_flow"] = len(fid)
             # silhouette: sdf(pi(T_dc x'_i)) * z / fx for rim vertices (two-sided: the rim lies on
             # the mask's boundary) and for any visible vertex outside the mask (one-sided)
@@ -448,53 +554,27 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                     grad = sample_bilinear(sdf_grad, proj)          # (n, 2) px per px
                     rs = d_px * scale
                     sw = _huber_sqrt_weight(rs, p.huber_m) * np.sqrt(p.w_silhouette)
-                    c, v = _blocks(sid, np.einsum("na,nab->nb", grad, Dm), graph, local, sw)
-                    rows.append(nres + np.repeat(np.arange(len(sid)), len(c) // len(sid)))
-                    cols.append(c)
-                    vals.append(v)
-                    res.append(rs * sw)
-                    nres += len(sid)
+                    vids.append(sid)
+                    Dws.append(np.einsum("na,nab->nb", grad, Dm) * sw[:, None])
+                    rws.append(rs * sw)
                 stats["n_silhouette"] = len(sid)
             # rotation: sqrt(w_rot) * (A^T A - I)
             rr, Jr = _rot_terms(x)
             sr = np.sqrt(p.w_rot)
-            rows.append(nres + (np.arange(N)[:, None, None] * 6 + np.arange(6)[None, :, None]).repeat(9, 2).ravel())
-            cols.append(np.broadcast_to(np.arange(N)[:, None, None] * 12 + np.arange(9)[None, None, :], (N, 6, 9)).ravel())
-            vals.append((Jr * sr).ravel())
-            res.append(rr.ravel() * sr)
-            nres += 6 * N
             # smoothness with HQS: sqrt(w_reg * beta) * (r_jk - s_jk)
             A = x[:, :9].reshape(N, 3, 3)
             t = x[:, 9:]
             r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + node_pos[j_] + t[j_] - node_pos[k_] - t[k_]
-            sg = np.sqrt(p.w_reg * beta)
-            E = len(e)
-            base = nres + np.arange(E)[:, None] * 3 + np.arange(3)[None, :]       # (E, 3) row ids
-            # dA_j[a, b] = d_jk[b] for row a
-            rows.append(np.repeat(base[:, :, None], 3, 2).ravel())
-            cols.append((j_[:, None, None] * 12 + np.arange(3)[None, :, None] * 3 + np.arange(3)[None, None, :]).ravel())
-            vals.append((np.broadcast_to(d_jk[:, None, :], (E, 3, 3)) * sg).ravel())
-            rows.append(base.ravel())
-            cols.append((j_[:, None] * 12 + 9 + np.arange(3)).ravel())
-            vals.append(np.full(E * 3, sg))
-            rows.append(base.ravel())
-            cols.append((k_[:, None] * 12 + 9 + np.arange(3)).ravel())
-            vals.append(np.full(E * 3, -sg))
-            res.append(((r_jk - s) * sg).ravel())
-            nres += 3 * E
-            J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nres, nP))
-            r = np.concatenate(res)
-            JtJ = (J.T @ J).tocsr()
-            g = J.T @ r
-            JtJ = JtJ + sp.identity(nP, format="csr") * p.damping
+            vid = np.concatenate(vids) if vids else np.zeros(0, np.int64)
+            JtJ, g, diag_blocks = _normal_equations(
+                pattern, graph, local, vid.astype(np.int64),
+                np.concatenate(Dws) if vids else np.zeros((0, 3)), np.concatenate(rws) if vids else np.zeros(0),
+                rr * sr, Jr * sr, r_jk - s, p.w_reg * beta, d_jk, p.damping)
             # 12x12 block-Jacobi preconditioner
-            blocks = np.zeros((N, 12, 12))
-            coo = JtJ.tocoo()
-            same = (coo.row // 12) == (coo.col // 12)
-            blocks[coo.row[same] // 12, coo.row[same] % 12, coo.col[same] % 12] = coo.data[same]
-            inv = np.linalg.inv(blocks + np.eye(12) * 1e-12)
-            M = LinearOperator((nP, nP), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
-            delta, _ = cg(JtJ, -g, rtol=p.cg_tol, maxiter=200, M=M)
+            inv = np.linalg.inv(diag_blocks + np.eye(12) * 1e-12)
+            precond = LinearOperator((nP, nP), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
+            # CSR: scipy's CSR mat-vec is ~1.7x faster than its BSR one at 12x12 blocks
+            delta, _ = cg(JtJ.tocsr(), -g, rtol=p.cg_tol, maxiter=200, M=precond)
             x = x + delta.reshape(N, 12)
             if np.abs(delta).max() < 1e-6:
                 break

@@ -206,3 +206,46 @@ def test_silhouette_term_pulls_a_shifted_mesh_onto_the_mask():
     before = np.abs((shifted - V).mean(0)[:2])
     after = np.abs((out[1.0] - V).mean(0)[:2])
     assert (after < 0.3 * before).all(), (before, after)
+
+
+def test_normal_equations_match_the_jacobian_by_finite_differences():
+    """The 12x12 node-pair blocks assembled per vertex equal J^T J and J^T r of the stacked
+    residuals (data rows D . x'_i, rotation A^T A - I, graph smoothness), J by central differences."""
+    from stex.tracking import _NormalPattern, _normal_equations, _rot_terms
+    V, F = _sphere()
+    g = build_graph(V, F, 0.12)
+    nodes = V[g.nodes]
+    N = len(nodes)
+    rng = np.random.default_rng(3)
+    x0 = identity_params(N) + rng.normal(0, 0.05, (N, 12))
+    vid = rng.integers(0, len(V), 400)
+    Dw = rng.normal(0, 1, (400, 3))
+    c = rng.normal(0, 0.01, 400)
+    s = rng.normal(0, 0.01, (len(g.edges), 3))
+    w_rot, w_smooth = 2.0, 3.0
+    j_, k_ = g.edges[:, 0], g.edges[:, 1]
+    d_jk = nodes[k_] - nodes[j_]
+
+    def residuals(xf):
+        x = xf.reshape(N, 12)
+        data = (Dw * deform(V, nodes, g, x)[vid]).sum(1) - c
+        rot, _ = _rot_terms(x)
+        A, t = x[:, :9].reshape(N, 3, 3), x[:, 9:]
+        r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
+        return np.concatenate([data, np.sqrt(w_rot) * rot.ravel(), np.sqrt(w_smooth) * (r_jk - s).ravel()])
+
+    r0 = residuals(x0.ravel())
+    eps = 1e-6
+    J = np.stack([(residuals(x0.ravel() + eps * e) - residuals(x0.ravel() - eps * e)) / (2 * eps)
+                  for e in np.eye(12 * N)], axis=1)
+    rot, Jr = _rot_terms(x0)
+    A, t = x0[:, :9].reshape(N, 3, 3), x0[:, 9:]
+    r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
+    local = V[:, None, :] - nodes[g.vertex_nodes]
+    JtJ, grad, diag = _normal_equations(_NormalPattern(g, N), g, local, vid.astype(np.int64), Dw, r0[:400],
+                                        rot * np.sqrt(w_rot), Jr * np.sqrt(w_rot), r_jk - s, w_smooth, d_jk,
+                                        damping=0.5)
+    ref = J.T @ J + 0.5 * np.eye(12 * N)
+    assert np.abs(JtJ.toarray() - ref).max() < 1e-6 * np.abs(ref).max()
+    assert np.allclose(grad, J.T @ r0, rtol=1e-6, atol=1e-9 * np.abs(J.T @ r0).max())
+    assert np.allclose(diag, np.stack([ref[12 * n:12 * n + 12, 12 * n:12 * n + 12] for n in range(N)]))
