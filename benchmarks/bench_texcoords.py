@@ -5,8 +5,10 @@
     python benchmarks/bench_texcoords.py --scene paper --frames 64         # speed at paper scale
 
 Renders the scene's frames (colour with the scene's degradations, true masks) once into a cache
-directory (grey + mask as uint8 memmaps, so the stage still streams them frame by frame),
-builds the template on the true frame-0 mesh as the workflow does, carries the source's 'given'
+directory (grey + mask as uint8 memmaps, so the stage still streams them frame by frame; keyed
+by a digest of the scene, template and projection settings, so that a cache rendered under other
+settings — e.g. before a degradation was switched on — is never reused silently), builds the
+template on the true frame-0 mesh as the workflow does, carries the source's 'given'
 meshes — the truth plus the ``tracking_drift`` perturbation (``--drift`` m) — to the template
 topology, projects them (stex.projection.project_frame: Φ and visibility) and runs
 stex.texcoords.optimize_texcoords.
@@ -54,8 +56,23 @@ def _project(cal, X):
                      K[1, 1] * Xc[..., 1] / Xc[..., 2] + K[1, 2]], -1)
 
 
+def cache_digest(cfg, T) -> str:
+    """Short digest of everything the render cache depends on (scene source, template, projection,
+    frame count)."""
+    import hashlib
+    key = json.dumps({"source": cfg["source"], "template": cfg["template"], "projection": cfg["projection"],
+                      "frames": T}, sort_keys=True, default=str)
+    return hashlib.sha256(key.encode()).hexdigest()[:10]
+
+
 def prepare(cfg, T, cache: Path, proj_params):
     """Render (or load from ``cache``) the frames; return everything the stage needs + truth."""
+    digest = cache_digest(cfg, T)
+    done = cache / "done.json"
+    if done.exists() and json.loads(done.read_text() or "{}").get("digest") != digest:
+        raise SystemExit(f"render cache {cache} was made with other scene/template/projection settings "
+                         f"(digest {json.loads(done.read_text() or '{}').get('digest')} != {digest}); "
+                         "remove it or pass another --cache")
     scene = SyntheticScene(cfg["source"]["synthetic"])
     cal = scene.calibration
     W, H = cal.color.width, cal.color.height
@@ -64,7 +81,6 @@ def prepare(cfg, T, cache: Path, proj_params):
     emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
     V = len(tmpl["vertices"])
     cache.mkdir(parents=True, exist_ok=True)
-    done = cache / "done.json"
     grey = np.lib.format.open_memmap(cache / "grey.npy", mode="r+" if done.exists() else "w+", dtype=np.uint8, shape=(T, H, W))
     mask = np.lib.format.open_memmap(cache / "mask.npy", mode="r+" if done.exists() else "w+", dtype=np.uint8, shape=(T, H, W))
     if done.exists():
@@ -96,7 +112,7 @@ def prepare(cfg, T, cache: Path, proj_params):
             oracle[t] = _project(cal, Xt[t] + mean_drift @ Rs[t].T)
         grey.flush(); mask.flush()
         np.savez(cache / "geom.npz", phi=phi, vvis=vvis, fvis=fvis, fcos=fcos, true=true, oracle=oracle)
-        done.write_text("{}")
+        done.write_text(json.dumps({"digest": digest}))
     return {"grey": grey, "mask": mask, "phi": phi, "vvis": vvis, "fvis": fvis, "fcos": fcos,
             "true": true, "oracle": oracle, "faces": F, "size": (W, H)}
 
@@ -122,7 +138,7 @@ def main() -> int:
     ap.add_argument("--drift", type=float, default=0.01, help="tracking_drift amplitude (m)")
     ap.add_argument("--params", default="{}", help="JSON overrides of the texcoords section")
     ap.add_argument("--table3", action="store_true", help="also run keyframe_step 1..5")
-    ap.add_argument("--cache", default=None, help="render cache directory (default /tmp/stex_bench_texcoords_<scene>_<T>_<drift>)")
+    ap.add_argument("--cache", default=None, help="render cache directory (default /tmp/stex_bench_texcoords_<scene>_<T>_<drift>_<settings digest>)")
     args = ap.parse_args()
     over = json.loads(args.params)
     cfg = load_config(REPO / "config" / "config.yaml", *[REPO / f for f in SCENES[args.scene]],
@@ -131,7 +147,7 @@ def main() -> int:
                                      "enabled": True, "amplitude_m": args.drift}}}}})
     n = cfg["source"]["synthetic"]["n_frames"]
     T = min(args.frames or n, n)
-    cache = Path(args.cache or f"/tmp/stex_bench_texcoords_{args.scene}_{T}_{args.drift}")
+    cache = Path(args.cache or f"/tmp/stex_bench_texcoords_{args.scene}_{T}_{args.drift}_{cache_digest(cfg, T)}")
     t0 = time.perf_counter()
     d = prepare(cfg, T, cache, cfg["projection"])
     print(f"scene {args.scene}: {T} frames {d['size'][0]}x{d['size'][1]}, {len(d['faces'])} faces, "
@@ -146,10 +162,12 @@ def main() -> int:
     print(f"consensus bound: median |truth slid by its mean drift − truth| {m_or:.3f} px "
           f"(best reduction an Eq.-1 optimiser can reach: {100 * (1 - m_or / m_phi):.1f} %); "
           f"|ξ − consensus| {med(r['xi'], d['oracle'], val):.3f} px vs |Φ − consensus| {med(d['phi'], d['oracle'], val):.3f} px")
-    for s, row in zip(r["stages"], r["energy"]):
-        e = row[~np.isnan(row)]
+    for s, row, orow in zip(r["stages"], r["energy"], r["objective"]):
+        e, o = row[~np.isnan(row)], orow[~np.isnan(orow)]
         print(f"  {s['name']:8s} frames {s['frames']:4d} blurs {s['blurs']} iterations {s['iterations']:4d} "
-              f"E {e[0]:.5g} -> {e[-1]:.5g}  monotone {bool(np.all(np.diff(e) <= 0))}  {s['seconds']:.1f} s  crops {s['crop_mb']} MB")
+              f"E {e[0]:.5g} -> {e[-1]:.5g}  monotone {bool(np.all(np.diff(e) <= 0))}  "
+              f"E + edge {o[0]:.5g} -> {o[-1]:.5g}  monotone {bool(np.all(np.diff(o) <= 0))}  "
+              f"{s['seconds']:.1f} s  crops {s['crop_mb']} MB")
     print(f"stage time {sec:.1f} s; peak RSS of the process {rss:.2f} GB")
     if args.table3:
         res = {}

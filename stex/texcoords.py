@@ -10,36 +10,69 @@ with a proxy colour (the paper's Eq. 1):
     p_tfs   = Σ_k β_sk ξ_t(F_fk)        (S fixed barycentric samples β per face)
 
 What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_code_notes.md``
-§2.2); the differences are listed at the end.
+§2.2); the differences — several of them options that are ours — are listed at the end.
 
 - **Colour**: grey (OpenCV RGB→grey, 0..255), as the authors. C_t is bilinear in the grey image
   blurred for the current level; its gradient (for Gauss-Newton) is the central difference of
-  bilinear lookups 1 px apart.
+  bilinear lookups 1 px apart. Every energy evaluation samples the crops once per visible
+  (frame, face) pair and sample (C and the mask test, float32 / bool, Q × S each); proxies,
+  errors and the Gauss-Newton residuals reuse those samples.
 - **Samples**: the authors' 15 barycentric triples (:data:`SAMPLE_BARY`); ``samples_per_face``
   takes the first S of them.
-- **Proxy colour** of sample s of face f: weighted mean of C_t(p_tfs) over the stage's frames t
-  where f is visible, weight = face cosine (``projection`` face_cos) × mask weight, the mask weight
-  being 1 when the bilinearly interpolated foreground mask at p is 1 and ``background_weight``
-  (0.001, the authors' GrabCut weighting) otherwise. It is recomputed after every step
-  (alternation, as the authors).
-- **Gauss-Newton**, Jacobi style: every (t, v) takes a 2×2 step from its own normal equations with
-  its neighbours held fixed. Photometric residuals r = C_t(p) − P over the samples of the faces
-  around v visible at t, and 2 edge residuals per such face: with ``edge_mode`` 'length' (the
-  authors) ``edge_weight`` · (|ξ_v − ξ_k| − |Φ_v − Φ_k|) (grey levels; keeps ξ's triangles close
-  to Φ's lengths), with 'vector' the 2-vector ``edge_weight`` · ((ξ_v − ξ_k) − (Φ_v − Φ_k)), i.e.
-  the displacement ξ − Φ is smooth over the mesh, which carries the displacement of textured
-  vertices to untextured ones (tracking drift is smooth) instead of only keeping lengths.
-  Each photometric residual enters v's equations with weight β (v's barycentric) and Jacobian
-  ∇C (the sample moves with v): with the plain Jacobian β∇C every corner of a uniformly shifted
-  face would step ≈ 2.5× the shift when all three move at once. If det(A) < 1e-4, 1e-4 is added
-  to the diagonal (as the authors); NaN steps become 0; each component is clamped to
-  ±``step_clamp_px``; ξ stays inside the frame's working crop (below) and the image.
-- **Monotone energy**: a step of all unknowns is accepted only if E (with the proxy recomputed at
-  the new ξ) does not rise; otherwise it is halved up to ``backtracks`` times (the length carries
-  over to the next step and doubles, up to 1, after each accepted one), and the level stops
-  when no halving helps or when the relative decrease is below ``rel_tol`` (the authors: 1e-5),
-  or after ``iterations`` steps (the authors: 300). The recorded energy is therefore
-  non-increasing within every level.
+- **Proxy colour** of sample s of face f: weighted mean of g_t·C_t(p_tfs) over the stage's frames
+  t where f is visible, weight = face cosine (``projection`` face_cos) × mask weight × robust
+  weight ω_tf (below), the mask weight being 1 when the bilinearly interpolated foreground mask at
+  p is ≥ 0.999 and ``background_weight`` (0.001, the authors' GrabCut weighting) otherwise. It is
+  recomputed after every step (alternation, as the authors).
+- **Gain** (``gain`` 'frame', ours; 'none' = the authors, g_t = 1): a per-frame factor g_t on
+  the grey samples, the median over the frame's faces (all samples inside the mask) of
+  Σ_s P_fs / Σ_s C_t(p_tfs), set at each level's start (twice, the proxy recomputed; normalised to
+  geometric mean 1): auto exposure / white balance otherwise looks like motion to Eq. 1; the
+  median ignores local changes of appearance.
+- **Robust weights** (``robust_grey`` c > 0, ours; 0 = Eq. 1, the authors): with e_tf =
+  Σ_s (g_t C_t − P_fs)² (grey levels²) the energy is Σ ρ(e_tf) / 255², ρ(e) = S c² e / (S c² + e)
+  (Geman-McClure: ≈ e while the face's RMS residual is well under c, bounded above), so the
+  residuals of a (frame, face) pair enter the steps and the proxy with weight ω_tf = ρ'(e_tf) =
+  (1 + e_tf / (S c²))⁻². The proxy is the weighted mean after one reweighting pass (ω from the
+  residuals against the unweighted proxy), so E is a function of ξ. A face whose appearance
+  changes (the demo's wrinkles and tint patch; real folds, specularities) then stops dragging ξ:
+  with Eq. 1 the demo's wrinkle stripes pulled whole regions 10-40 px off (p99 |ξ − Φ| 23 px for
+  a drift whose p99 is 5 px), and E at the true coordinates was 3.7x E at the optimum.
+- **Gauss-Newton, solver 'jacobi'** (the authors' scheme): every (t, v) takes a 2×2 step from
+  its own normal equations with its neighbours held fixed. Photometric residuals
+  r = g_t C_t(p) − P over the samples of the faces around v visible at t, weighted by ω_tf, and
+  2 edge residuals per such face: with ``edge_mode`` 'length' (the authors) ``edge_weight`` ·
+  (|ξ_v − ξ_k| − |Φ_v − Φ_k|) (grey levels; keeps ξ's triangles close to Φ's lengths), with
+  'vector' the 2-vector ``edge_weight`` · ((ξ_v − ξ_k) − (Φ_v − Φ_k)), i.e. the displacement
+  ξ − Φ is smooth over the mesh, which carries the displacement of textured vertices to
+  untextured ones (tracking drift is smooth) instead of only keeping lengths. Each photometric
+  residual enters v's equations with weight β (v's barycentric) and Jacobian g_t ∇C (the sample
+  moves with v): with the plain Jacobian β∇C every corner of a uniformly shifted face would step
+  ≈ 2.5× the shift when all three move at once. If det(A) < 1e-4, 1e-4 is added to the diagonal
+  (as the authors); NaN steps become 0; each component is clamped to ±``step_clamp_px``; ξ stays
+  inside the frame's working crop (below) and the image. A step of all unknowns is accepted only
+  if E (proxy and weights recomputed at the new ξ) does not rise; otherwise it is halved up to
+  ``backtracks`` times (the length carries over to the next step and doubles, up to 1, after each
+  accepted one).
+- **Gauss-Newton, solver 'sparse'** (ours): per frame, with the proxy, gains and weights of the
+  current ξ held fixed, the full normal equations of all the frame's vertices — the same
+  residuals and weights as 'jacobi', but each photometric residual with its true Jacobian
+  β_k g_t ∇C for every corner k, so corners j, k of a face are coupled by β_j β_k g_t² ∇C∇Cᵀ; the
+  edge term adds the graph-Laplacian-like blocks. Per (frame, face) 6×6 blocks come from a numba
+  kernel (:func:`_face_blocks_kernel`) and are summed into one CSC matrix per frame through a
+  pattern built once per level; (H + λ (diag H + mean diag H) + 1e-4 I) δ = −g is solved by
+  SuperLU (:class:`_SparseSystems`). Levenberg–Marquardt: λ starts at ``lm_lambda`` each level,
+  follows Nielsen's rule on the gain ratio (actual / model decrease) after an accepted step and
+  doubles (×2, ×4, ...) after a rejected one, up to ``backtracks`` re-solves. The step is clamped,
+  gauge-projected and kept in the crop as above, and accepted only if neither E nor the objective
+  it minimises, O = E + edge term (/ 255²), rises. Measured (bench_texcoords): the same or a lower
+  O in 3-8x fewer steps, each 4-8x dearer (one LU per frame and trial: ≈ 7 ms at 3 000 unknowns,
+  ≈ 75 ms at 7 000), the same accuracy — the stage is not convergence-limited — so 'jacobi'
+  stays the default.
+- **Monotone energy**: a level stops when no halving / re-solve helps, when the relative decrease
+  is below ``rel_tol`` (the authors: 1e-5; default 1e-4, same accuracy, half the time), or after
+  ``iterations`` steps (the authors: 300). The recorded E is non-increasing within every level
+  for both solvers (and O for 'sparse').
 - **Gauge** (``gauge`` 'mean'): Eq. 1 only sees where the frames disagree: moving every frame's
   ξ of a vertex the same way (sliding the texture over the surface) leaves it unchanged, so the
   per-vertex mean of ξ − Φ over the stage's frames (where the vertex has a visible face) is
@@ -53,7 +86,8 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   uses the grey image blurred by ``levels − l`` successive 3×3 Gaussian blurs (the authors'
   ``blur_vec``: 6 blurs on the coarsest, 1 on the finest), always at full resolution. **The
   authors' mesh hierarchy (deformation-oriented decimation, ⌊F/2⌋ faces per coarser level) is
-  not built**: every level optimises the full mesh's vertices.
+  not built**: every level optimises the full mesh's vertices (the 'sparse' solver is the other
+  way to move smooth displacements across the mesh in few steps).
 - **Schedule** (``main.cpp``): key frames are the frames at positions ``i % keyframe_step == 0``
   of the sequence; they are optimised jointly coarse-to-fine; the displacements ξ − Φ are then
   linearly interpolated to the other frames (:func:`interpolate_displacements`, the authors'
@@ -66,7 +100,9 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   crop, all uint8 (3 B per cropped pixel). Paper scale (265 frames of 2048×1536, object ≈ 1/4 of
   the image): ≈ 265 × 0.8 Mpx × 3 B ≈ 0.6 GB, worst case (object filling every frame)
   265 × 3.1 Mpx × 3 B = 2.5 GB; plus ξ/Φ/visibility tables (T·V·(2·8·3) B ≈ 0.5 GB at V = 10k,
-  T = 265 in float64 work arrays) — under the 4 GB target.
+  T = 265 in float64 work arrays) and the samples of the current and the candidate ξ (Q·S·5 B
+  each, Q ≈ 7k faces × T: ≈ 0.14 GB each at T = 265) — under the 4 GB target ('sparse' adds
+  Q·(36 + 6)·8 B of blocks, ≈ 0.6 GB at T = 265, and one frame's LU at a time).
 
 Differences from the authors' code, deliberately: the mesh hierarchy above (not built); the
 proxy and the energy use the *level's* blurred image (the authors: the GN step on the blurred
@@ -74,10 +110,15 @@ image, proxy and energy on the unblurred one) so that accepting steps on E is co
 rest lengths come from Φ (the authors: the current ξ at the start of each level); bilinear
 interpolation instead of their non-standard 2×2 blend; steps are accepted only when E does not
 rise (the authors accept every step); the mask test is made on the proxy weights only (the
-``projection`` stage already dropped masked-out vertices and faces); optionally (settings
-``gauge`` 'mean' and ``edge_mode`` 'vector', not the authors') the unobservable mean
-displacement is held at 0 and the edge term keeps the displacement smooth, which is what
-brings ξ to the truth on drifting tracking (see ``benchmarks/bench_texcoords.py``).
+``projection`` stage already dropped masked-out vertices and faces); ``rel_tol`` 1e-4 (theirs
+1e-5). Options that are ours (the authors' behaviour in brackets): ``gauge`` 'mean' ['none'],
+``edge_mode`` 'vector' ['length'], ``gain`` 'frame' ['none'], ``robust_grey`` 4 [0] and
+``solver`` 'sparse' ['jacobi', the default]. Measured with ``benchmarks/bench_texcoords.py``
+(median |ξ − truth| relative to |Φ − truth|): demo, 120 frames with the current degradations
+(exposure drift, wrinkles): 46.7 % reduction with gain 'none' and robust_grey 0, 55.7 % with the
+defaults; paper scale, 64 frames: 77.5 % and 85.6 % (the consensus bound, what no Eq.-1
+optimiser can beat, is 81.2 % and 86.9 %). On the demo the wrinkled frames stay the limit: they
+are down-weighted, not corrected, so their ξ follows the edge term from the static parts.
 """
 
 from __future__ import annotations
@@ -232,56 +273,70 @@ def _sample_pos(bary, s, xi, k, faces, f, x0, y0):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _proxy_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, fvis, fw, bary, bg_weight, proxy):
-    """proxy[f, s] = Σ_k w·C_k(p) / Σ_k w over the frames where f is visible (0 if none)."""
-    K = xi.shape[0]
-    nF = faces.shape[0]
+def _sample_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, pk, pf, bary, C, inside):
+    """C[q, s] = C_k(p) (grey levels, float32) and inside[q, s] = foreground mask ≥ 0.999 at p, for
+    every visible (frame, face) pair q = (pk[q], pf[q]) and sample s (bilinear in the crops)."""
+    Q = pk.shape[0]
     S = bary.shape[0]
+    for q in prange(Q):
+        k = pk[q]
+        f = pf[q]
+        o = off[k]
+        h = hh[k]
+        w = ww[k]
+        for s in range(S):
+            u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
+            C[q, s] = _bilerp(buf, o, h, w, u, v)
+            inside[q, s] = _bilerp(mbuf, o, h, w, u, v) >= 0.999
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _proxy_kernel(C, inside, order, fstart, pk, wq, gain, bg_weight, proxy):
+    """proxy[f, s] = Σ_q w·g_k·C[q, s] / Σ_q w over the pairs q = order[fstart[f]:fstart[f + 1]] of
+    face f (0 if none), w = wq[q] (face cosine × robust weight) × (1 inside the mask, bg_weight
+    outside), g_k = gain[pk[q]]."""
+    nF = proxy.shape[0]
+    S = proxy.shape[1]
     for f in prange(nF):
         num = np.zeros(S)
         den = np.zeros(S)
-        for k in range(K):
-            if not fvis[k, f]:
-                continue
-            wf = fw[k, f]
-            o = off[k]
-            h = hh[k]
-            w = ww[k]
+        for i in range(fstart[f], fstart[f + 1]):
+            q = order[i]
+            w = wq[q]
+            gw = w * gain[pk[q]]
             for s in range(S):
-                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                m = _bilerp(mbuf, o, h, w, u, v)
-                wt = wf if m >= 0.999 else wf * bg_weight
-                num[s] += wt * _bilerp(buf, o, h, w, u, v)
-                den[s] += wt
+                if inside[q, s]:
+                    num[s] += gw * C[q, s]
+                    den[s] += w
+                else:
+                    num[s] += bg_weight * gw * C[q, s]
+                    den[s] += bg_weight * w
         for s in range(S):
             proxy[f, s] = num[s] / den[s] if den[s] > 0 else 0.0
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _energy_kernel(buf, off, hh, ww, x0, y0, xi, faces, fvis, bary, proxy, out):
-    """out[k] = Σ_{f visible at k} Σ_s ((C_k(p) − P_fs)/255)²."""
-    K = xi.shape[0]
-    nF = faces.shape[0]
-    S = bary.shape[0]
-    for k in prange(K):
+def _face_err_kernel(C, pk, pf, gain, proxy, out):
+    """out[q] = Σ_s (g_k·C[q, s] − P[pf[q], s])² (grey levels²)."""
+    Q = C.shape[0]
+    S = C.shape[1]
+    for q in prange(Q):
+        g = gain[pk[q]]
+        f = pf[q]
         e = 0.0
-        o = off[k]
-        h = hh[k]
-        w = ww[k]
-        for f in range(nF):
-            if not fvis[k, f]:
-                continue
-            for s in range(S):
-                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                r = (_bilerp(buf, o, h, w, u, v) - proxy[f, s]) / 255.0
-                e += r * r
-        out[k] = e
+        for s in range(S):
+            r = g * C[q, s] - proxy[f, s]
+            e += r * r
+        out[q] = e
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge_w, edge_vec, clamp,
-               step):
-    """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed)."""
+def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary, proxy, C, qs,
+               edge_w, edge_vec, clamp, step):
+    """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed); the
+    photometric residuals g_k·C_k(p) − P of face f at frame k are weighted by omega[k, f].
+    C (Q, S): the samples at ``xi`` of the visible pairs, frame-major (:func:`_sample_kernel`),
+    frame k's pairs at qs[k]..qs[k + 1] in face order."""
     K, V = xi.shape[0], xi.shape[1]
     nF = faces.shape[0]
     S = bary.shape[0]
@@ -291,16 +346,20 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge
         o = off[k]
         h = hh[k]
         w = ww[k]
+        gk = gain[k]
+        q = qs[k] - 1
         for f in range(nF):
             if not fvis[k, f]:
                 continue
+            q += 1
+            om = omega[k, f]
             for s in range(S):
                 u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                r = _bilerp(buf, o, h, w, u, v) - proxy[f, s]
-                gx = 0.5 * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
-                gy = 0.5 * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
+                r = gk * C[q, s] - proxy[f, s]
+                gx = 0.5 * gk * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
+                gy = 0.5 * gk * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
                 for j in range(3):
-                    bj = bary[s, j]
+                    bj = om * bary[s, j]
                     if bj <= 0.0:
                         continue
                     vi = faces[f, j]
@@ -354,6 +413,120 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, bary, proxy, edge
                 dy = 0.0
             step[k, vi, 0] = min(max(dx, -clamp), clamp)
             step[k, vi, 1] = min(max(dy, -clamp), clamp)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _face_blocks_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, pk, pf, omega, gain, bary, proxy,
+                        C, edge_w, edge_vec, Hq, gq):
+    """Full Gauss-Newton blocks of every visible (frame, face) pair q = (pk[q], pf[q]).
+
+    The unknowns of face f at frame k are its corners' (u, v), ordered (u0, v0, u1, v1, u2, v2).
+    Hq[q] (6, 6) = JᵀJ and gq[q] (6,) = Jᵀr of the residuals that live on that face: its S
+    photometric residuals g_k·C_k(p) − P_fs (grey levels, weighted by omega[k, f]; corner a's
+    Jacobian β_a g_k ∇C, so corners a, b are coupled by β_a β_b g_k² ∇C∇Cᵀ) and its 3 edge
+    residuals, each edge (a, b) with the weight the Jacobi kernel gives it (vector: edge_w · ((ξ_a − ξ_b) − (Φ_a − Φ_b)); length: edge_w ·
+    (|ξ_a − ξ_b| − |Φ_a − Φ_b|)). Summed over the faces this is the normal matrix of E·255² +
+    edge term (:func:`_edge_energy_kernel`).
+    """
+    Q = pk.shape[0]
+    S = bary.shape[0]
+    for q in prange(Q):
+        k = pk[q]
+        f = pf[q]
+        o = off[k]
+        h = hh[k]
+        w = ww[k]
+        gk = gain[k]
+        om = omega[k, f]
+        for i in range(6):
+            gq[q, i] = 0.0
+            for j in range(6):
+                Hq[q, i, j] = 0.0
+        for s in range(S):
+            u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
+            r = gk * C[q, s] - proxy[f, s]
+            gx = 0.5 * gk * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
+            gy = 0.5 * gk * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
+            for a in range(3):
+                ba = om * bary[s, a]
+                if ba == 0.0:
+                    continue
+                gq[q, 2 * a] += ba * gx * r
+                gq[q, 2 * a + 1] += ba * gy * r
+                for b in range(3):
+                    bb = ba * bary[s, b]
+                    if bb == 0.0:
+                        continue
+                    Hq[q, 2 * a, 2 * b] += bb * gx * gx
+                    Hq[q, 2 * a, 2 * b + 1] += bb * gx * gy
+                    Hq[q, 2 * a + 1, 2 * b] += bb * gy * gx
+                    Hq[q, 2 * a + 1, 2 * b + 1] += bb * gy * gy
+        if edge_w <= 0.0:
+            continue
+        w2 = edge_w * edge_w
+        for a in range(3):
+            b = (a + 1) % 3
+            va = faces[f, a]
+            vb = faces[f, b]
+            ex = xi[k, va, 0] - xi[k, vb, 0]
+            ey = xi[k, va, 1] - xi[k, vb, 1]
+            px = phi[k, va, 0] - phi[k, vb, 0]
+            py = phi[k, va, 1] - phi[k, vb, 1]
+            if edge_vec:
+                dx = ex - px
+                dy = ey - py
+                for c in range(2):
+                    Hq[q, 2 * a + c, 2 * a + c] += w2
+                    Hq[q, 2 * b + c, 2 * b + c] += w2
+                    Hq[q, 2 * a + c, 2 * b + c] -= w2
+                    Hq[q, 2 * b + c, 2 * a + c] -= w2
+                gq[q, 2 * a] += w2 * dx
+                gq[q, 2 * a + 1] += w2 * dy
+                gq[q, 2 * b] -= w2 * dx
+                gq[q, 2 * b + 1] -= w2 * dy
+                continue
+            L = np.sqrt(ex * ex + ey * ey)
+            if L < 1e-9:
+                continue
+            L0 = np.sqrt(px * px + py * py)
+            re = edge_w * (L - L0)
+            jj = (edge_w * ex / L, edge_w * ey / L)
+            for c in range(2):
+                gq[q, 2 * a + c] += jj[c] * re
+                gq[q, 2 * b + c] -= jj[c] * re
+                for d in range(2):
+                    t = jj[c] * jj[d]
+                    Hq[q, 2 * a + c, 2 * a + d] += t
+                    Hq[q, 2 * b + c, 2 * b + d] += t
+                    Hq[q, 2 * a + c, 2 * b + d] -= t
+                    Hq[q, 2 * b + c, 2 * a + d] -= t
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _edge_energy_kernel(xi, phi, faces, fvis, edge_w, edge_vec, out):
+    """out[k] = Σ_{f visible at k} Σ_{edges (a, b) of f} |edge residual / 255|² (the residuals
+    of the Gauss-Newton kernels: 3 per visible face, an edge shared by two visible faces counts
+    twice, as it does in the Jacobi kernel)."""
+    K = xi.shape[0]
+    nF = faces.shape[0]
+    for k in prange(K):
+        e = 0.0
+        for f in range(nF):
+            if not fvis[k, f]:
+                continue
+            for a in range(3):
+                va = faces[f, a]
+                vb = faces[f, (a + 1) % 3]
+                ex = xi[k, va, 0] - xi[k, vb, 0]
+                ey = xi[k, va, 1] - xi[k, vb, 1]
+                px = phi[k, va, 0] - phi[k, vb, 0]
+                py = phi[k, va, 1] - phi[k, vb, 1]
+                if edge_vec:
+                    r2 = (ex - px) ** 2 + (ey - py) ** 2
+                else:
+                    r2 = (np.sqrt(ex * ex + ey * ey) - np.sqrt(px * px + py * py)) ** 2
+                e += r2 * (edge_w / 255.0) ** 2
+        out[k] = e
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -433,33 +606,123 @@ def interpolate_displacements(delta_key, key_pos, valid) -> np.ndarray:
     return out
 
 
-def _proxy(stack: CropStack, xi, faces, fvis, fw, bary, bg_weight) -> np.ndarray:
-    proxy = np.zeros((faces.shape[0], bary.shape[0]))
-    if faces.shape[0]:
-        _proxy_kernel(stack.blur, stack.mask, stack.off, stack.h, stack.w, stack.x0, stack.y0,
-                      xi, faces, fvis, fw, bary, float(bg_weight), proxy)
-    return proxy
+class _Photometric:
+    """The photometric term of one level: samples, proxy colours, per-(frame, face) errors, weights.
 
+    E(ξ) = Σ_{k, f visible at k} ρ(e_kf) / 255², e_kf = Σ_s (g_k·C_k(p_kfs) − P_fs)² (grey
+    levels²), with the proxy P recomputed at ξ. ``robust_grey`` c = 0: ρ(e) = e and every weight
+    is 1 — Eq. 1 exactly. c > 0: ρ(e) = S c² e / (S c² + e) (Geman-McClure on the face's
+    residuals; ≈ e while their RMS is well under c, bounded by S c² above), and both the
+    Gauss-Newton residuals and the proxy are weighted by ω_kf = ρ'(e_kf) = (1 + e_kf / (S c²))⁻²
+    — a face whose appearance at k disagrees with the other frames (a wrinkle, a tint, a
+    specularity) stops pulling ξ and stops colouring the proxy; the proxy is the weighted mean
+    after one reweighting pass (weights from the residuals against the unweighted proxy), so E
+    stays a function of ξ. g_k = ``gain`` [k] (1 unless ``gain`` 'frame', see :meth:`set_gain`).
 
-def _energy(stack: CropStack, xi, faces, fvis, bary, proxy) -> float:
-    out = np.zeros(xi.shape[0])
-    if faces.shape[0] and xi.shape[0]:
-        _energy_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, faces,
-                       fvis, bary, proxy, out)
-    return float(out.sum())
+    Each evaluation samples the crops once (C and the mask test for every visible pair and
+    sample, :func:`_sample_kernel`); proxies and errors are reductions of those samples.
+    """
+
+    def __init__(self, stack: CropStack, faces, fvis, fw, bary, params):
+        self.stack, self.faces, self.fvis, self.bary = stack, faces, fvis, bary
+        self.bg = float(params["background_weight"])
+        c = float(params.get("robust_grey", 0.0))
+        self.c2 = c * c * bary.shape[0]
+        self.gain_mode = params.get("gain", "none")
+        self.gain = np.ones(fvis.shape[0])
+        # visible (frame, face) pairs, frame-major; and the same pairs grouped by face
+        self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))
+        self.order = np.argsort(self.pf, kind="stable").astype(np.int64)
+        self.fstart = np.searchsorted(self.pf[self.order], np.arange(faces.shape[0] + 1)).astype(np.int64)
+        self.fw = np.ascontiguousarray(fw[self.pk, self.pf], np.float64)
+        self.ones = np.ones(len(self.pk))
+
+    def samples(self, xi):
+        """(C (Q, S) float32 grey levels, inside (Q, S) bool) at ``xi`` (K, V, 2)."""
+        st = self.stack
+        Q, S = len(self.pk), self.bary.shape[0]
+        C = np.zeros((Q, S), np.float32)
+        inside = np.zeros((Q, S), np.bool_)
+        if Q:
+            _sample_kernel(st.blur, st.mask, st.off, st.h, st.w, st.x0, st.y0, xi, self.faces,
+                           self.pk, self.pf, self.bary, C, inside)
+        return C, inside
+
+    def proxy(self, C, inside, omega_q) -> np.ndarray:
+        P = np.zeros((self.faces.shape[0], self.bary.shape[0]))
+        if len(self.pk):
+            _proxy_kernel(C, inside, self.order, self.fstart, self.pk, self.fw * omega_q, self.gain,
+                          self.bg, P)
+        return P
+
+    def face_err(self, C, P) -> np.ndarray:
+        e = np.zeros(len(self.pk))
+        if len(self.pk):
+            _face_err_kernel(C, self.pk, self.pf, self.gain, P, e)
+        return e
+
+    def weights(self, e) -> np.ndarray:
+        """(Q,) robust weights of the pairs from their errors e (Q,)."""
+        return self.ones if self.c2 <= 0 else 1.0 / (1.0 + e / self.c2) ** 2
+
+    def dense(self, omega_q) -> np.ndarray:
+        """(K, F) weights (0 where the face is not visible) from the (Q,) pair weights."""
+        out = np.zeros(self.fvis.shape)
+        out[self.pk, self.pf] = omega_q
+        return out
+
+    def evaluate(self, xi):
+        """(P (F, S) proxy, E float, omega (K, F) weights, C (Q, S) samples) at ``xi`` (K, V, 2)."""
+        C, inside = self.samples(xi)
+        P = self.proxy(C, inside, self.ones)
+        if self.c2 > 0:
+            P = self.proxy(C, inside, self.weights(self.face_err(C, P)))
+        e = self.face_err(C, P)
+        rho = e if self.c2 <= 0 else self.c2 * e / (self.c2 + e)
+        return P, float(rho.sum()) / 255.0**2, self.dense(self.weights(e)), C
+
+    def set_gain(self, xi) -> None:
+        """``gain`` 'frame': g_k = the median over the frame's visible faces (all samples inside the
+        foreground mask) of Σ_s P_fs / Σ_s C_k(p) — an exposure / white-balance change of the
+        whole frame stops looking like motion, while a local change of appearance (a wrinkle, a
+        tint: a minority of the faces) does not move the median —, twice (the proxy recomputed
+        with the new gains), normalised to geometric mean 1 over the frames (frames with fewer
+        than 10 such faces keep 1)."""
+        K = self.fvis.shape[0]
+        self.gain = np.ones(K)
+        if self.gain_mode != "frame" or not len(self.pk):
+            return
+        C, inside = self.samples(xi)
+        full = inside.all(1)
+        a = C.sum(1, dtype=np.float64)
+        for _ in range(2):
+            b = self.proxy(C, inside, self.ones)[self.pf].sum(1)
+            ok = full & (a > 0) & (b > 0)
+            g = np.ones(K)
+            ratio = np.where(ok, b / np.where(a > 0, a, 1.0), np.nan)
+            bounds = np.searchsorted(self.pk, np.arange(K + 1))
+            for k in range(K):
+                r = ratio[bounds[k]:bounds[k + 1]]
+                r = r[np.isfinite(r)]
+                if len(r) >= 10:
+                    g[k] = np.median(r)
+            g /= np.exp(np.mean(np.log(g)))
+            self.gain = g
 
 
 def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, params=None):
-    """Eq. 1 of the stage's frames at ``xi``, with the proxy colours recomputed there.
+    """The photometric energy of the stage's frames at ``xi``, with the proxy recomputed there.
 
     Args:
         stack: the frames' crops (``blur`` is used: call ``stack.set_blur`` first).
         xi: (K, V, 2) float texture coordinates (colour px) of the stack's frames.
         faces: (F, 3) int; face_visible: (K, F) bool; face_weight: (K, F) float (cosines).
-        params: ``texcoords`` section (samples_per_face, background_weight).
+        params: ``texcoords`` section (samples_per_face, background_weight, robust_grey, gain).
 
     Returns:
-        (E, proxy): E float = Σ ((C − P)/255)² over visible faces and samples; proxy (F, S).
+        (E, proxy): E float = Σ ((C − P)/255)² over visible faces and samples (Eq. 1; its robust,
+        gain-compensated form if ``robust_grey`` > 0 / ``gain`` 'frame', see :class:`_Photometric`);
+        proxy (F, S) grey levels.
     """
     p = texcoords_params(params)
     bary = np.ascontiguousarray(SAMPLE_BARY[: int(p["samples_per_face"])])
@@ -467,8 +730,10 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
     faces = np.ascontiguousarray(faces, np.int64)
     fvis = np.ascontiguousarray(face_visible, np.bool_)
     fw = np.ascontiguousarray(face_weight, np.float64)
-    P = _proxy(stack, xi, faces, fvis, fw, bary, p["background_weight"])
-    return _energy(stack, xi, faces, fvis, bary, P), P
+    ph = _Photometric(stack, faces, fvis, fw, bary, p)
+    ph.set_gain(xi)
+    P, E, _, _ = ph.evaluate(xi)
+    return E, P
 
 
 def _vertex_used(fvis, faces, n_vertices):
@@ -480,6 +745,79 @@ def _vertex_used(fvis, faces, n_vertices):
     return used
 
 
+def _edge_energy(xi, phi, faces, fvis, edge_w, edge_vec) -> float:
+    """The edge term of the Gauss-Newton kernels, / 255² (:func:`_edge_energy_kernel`)."""
+    out = np.zeros(xi.shape[0])
+    if faces.shape[0] and xi.shape[0] and edge_w > 0:
+        _edge_energy_kernel(xi, phi, faces, fvis, float(edge_w), bool(edge_vec), out)
+    return float(out.sum())
+
+
+class _SparseSystems:
+    """Per-frame sparse Gauss-Newton systems of one level (fixed pattern, values per step).
+
+    Frame k's unknowns are the (u, v) of the vertices used at k (corner of a visible face), in
+    vertex order: unknown 2·loc[k, v] + c. The (frame, face) blocks of :func:`_face_blocks_kernel`
+    are summed into one CSC matrix per frame through a pattern built once per level.
+    """
+
+    def __init__(self, faces, fvis, used):
+        K = fvis.shape[0]
+        self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))   # sorted by frame
+        self.qs = np.searchsorted(self.pk, np.arange(K + 1))
+        self.verts = [np.flatnonzero(used[k]) for k in range(K)]
+        loc = np.full(used.shape, -1, np.int64)
+        for k in range(K):
+            loc[k, self.verts[k]] = np.arange(len(self.verts[k]))
+        corner = loc[self.pk[:, None], faces[self.pf]]                       # (Q, 3)
+        rows6 = (2 * corner[:, :, None] + np.arange(2)).reshape(-1, 6)       # (Q, 6)
+        self.pattern = []
+        for k in range(K):
+            n = 2 * len(self.verts[k])
+            r6 = rows6[self.qs[k]:self.qs[k + 1]]
+            rr = np.broadcast_to(r6[:, :, None], (len(r6), 6, 6)).ravel()
+            cc = np.broadcast_to(r6[:, None, :], (len(r6), 6, 6)).ravel()
+            key, inv = np.unique(cc * max(n, 1) + rr, return_inverse=True)   # column-major
+            indices = (key % max(n, 1)).astype(np.int32)
+            indptr = np.searchsorted(key // max(n, 1), np.arange(n + 1)).astype(np.int32)
+            diag = np.flatnonzero(indices == (key // max(n, 1)))
+            self.pattern.append((n, inv, indices, indptr, diag, r6.ravel()))
+        self.factorisations = 0
+
+    def solve(self, Hq, gq, lam: float, out) -> None:
+        """out[k, verts[k]] = −(H_k + lam·(D_k + mean(D_k)·I) + 1e-4·I)⁻¹ g_k for every frame k,
+        D_k = diag(H_k) (Levenberg-Marquardt damping; the mean term also damps vertices whose
+        own diagonal is tiny — untextured, barely constrained; 1e-4 as the Jacobi kernel's
+        singularity guard). Hq (Q, 6, 6), gq (Q, 6): :func:`_face_blocks_kernel`. Direct sparse
+        LU (SuperLU, symmetric mode, minimum-degree ordering on A + Aᵀ), one frame at a time:
+        reusing a frame's factors as the preconditioner of later solves needed fewer
+        factorisations but kept K factors in memory (≈ 3.6 GB at 64 paper-scale frames) and did
+        not make the stage faster."""
+        from scipy.sparse import csc_matrix
+        from scipy.sparse.linalg import splu
+
+        for k, (n, inv, indices, indptr, diag, r6) in enumerate(self.pattern):
+            if n == 0:
+                continue
+            q0, q1 = self.qs[k], self.qs[k + 1]
+            data = np.bincount(inv, weights=Hq[q0:q1].ravel(), minlength=len(indices))
+            b = -np.bincount(r6, weights=gq[q0:q1].ravel(), minlength=n)
+            d = data[diag]
+            data[diag] = d + lam * (d + d.mean()) + 1e-4
+            A = csc_matrix((data, indices, indptr), shape=(n, n))
+            lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                      options={"SymmetricMode": True})
+            self.factorisations += 1
+            out[k, self.verts[k]] = lu.solve(b).reshape(-1, 2)
+
+    def model_decrease(self, Hq, gq, faces, step) -> float:
+        """−(2 gᵀs + sᵀHs) / 255²: the decrease of the objective Σ r² / 255² that the Gauss-Newton
+        model r + Js (proxy and weights fixed; g = Jᵀr, H = JᵀJ) predicts for ``step`` (K, V, 2)."""
+        sq = step[self.pk[:, None], faces[self.pf]].reshape(-1, 6)
+        d = -(2.0 * np.einsum("qi,qi->", gq, sq) + np.einsum("qi,qij,qj->", sq, Hq, sq))
+        return float(d) / 255.0**2
+
+
 def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight, params,
                    iterations: int, width: int, height: int):
     """Gauss-Newton iterations of one level on the frames of ``stack``.
@@ -489,13 +827,16 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
         xi0: (K, V, 2) float64 starting texture coordinates (colour px).
         phi: (K, V, 2) float Φ (edge rest lengths).
         faces: (F, 3) int; face_visible (K, F) bool; face_weight (K, F) float cosines.
-        params: completed ``texcoords`` section.
+        params: completed ``texcoords`` section (``solver`` picks the step, see the module
+            docstring).
         iterations: maximum number of accepted steps.
         width, height: colour image size (px).
 
     Returns:
-        (xi (K, V, 2) float64, energies list[float]: E at the start and after every accepted
-        step — non-increasing).
+        (xi (K, V, 2) float64, energies list[float], objectives list[float]): Eq. 1 E and the
+        objective E + edge term (both dimensionless, grey levels / 255 squared) at the start and
+        after every accepted step. The accepted quantity — E for 'jacobi', E + edge term for
+        'sparse' — is non-increasing.
     """
     p = params
     bary = np.ascontiguousarray(SAMPLE_BARY[: int(p["samples_per_face"])])
@@ -511,42 +852,96 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     hi = np.minimum(hi, np.array([width - 1.0, height - 1.0]))
     gauge = p["gauge"] == "mean"
     edge_vec = p["edge_mode"] == "vector"
+    edge_w = float(p["edge_weight"])
+    clamp = float(p["step_clamp_px"])
+    sparse = p.get("solver", "jacobi") == "sparse"
     used = _vertex_used(fvis, faces, xi.shape[1])
     n_used = np.maximum(used.sum(0), 1)[:, None]
-    P = _proxy(stack, xi, faces, fvis, fw, bary, p["background_weight"])
-    E = _energy(stack, xi, faces, fvis, bary, P)
-    energies = [E]
+
+    def finish(step_xi):
+        cand = step_xi
+        if gauge:
+            # hold every vertex's mean displacement over its frames: Eq. 1 cannot see it
+            dsp = np.where(used[..., None], cand - phi, 0.0)
+            cand = cand - used[..., None] * (dsp.sum(0) / n_used)[None]
+        return np.clip(cand, lo, hi)
+
+    photo = _Photometric(stack, faces, fvis, fw, bary, p)
+    photo.set_gain(xi)
+
+    qs = np.searchsorted(photo.pk, np.arange(K + 1)).astype(np.int64)
+
+    def evaluate(x):
+        Px, Ex, om, Cx = photo.evaluate(x)
+        return Px, Ex, Ex + _edge_energy(x, phi, faces, fvis, edge_w, edge_vec), om, Cx
+
+    P, E, J, omega, C = evaluate(xi)
+    energies, objectives = [E], [J]
     step = np.zeros_like(xi)
+    if sparse:
+        systems = _SparseSystems(faces, fvis, used)
+        Q = len(systems.pk)
+        Hq = np.zeros((Q, 6, 6))
+        gq = np.zeros((Q, 6))
+        lam = float(p["lm_lambda"])
+        nu = 2.0
     alpha = 1.0
     for _ in range(int(iterations)):
         if E <= 0 or K == 0:
             break
-        _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi, faces,
-                   fvis, bary, P, float(p["edge_weight"]), edge_vec, float(p["step_clamp_px"]), step)
-        # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
         accepted = False
-        for _b in range(int(p["backtracks"]) + 1):
-            cand = xi + alpha * step
-            if gauge:
-                # hold every vertex's mean displacement over its frames: Eq. 1 cannot see it
-                dsp = np.where(used[..., None], cand - phi, 0.0)
-                cand = cand - used[..., None] * (dsp.sum(0) / n_used)[None]
-            cand = np.clip(cand, lo, hi)
-            Pc = _proxy(stack, cand, faces, fvis, fw, bary, p["background_weight"])
-            Ec = _energy(stack, cand, faces, fvis, bary, Pc)
-            if Ec <= E:
-                accepted = True
+        if sparse:
+            # full Gauss-Newton of every frame (proxy and weights fixed), Levenberg-Marquardt
+            # damped; λ follows the gain ratio (Nielsen's rule: shrinks when the model predicted
+            # the decrease well, grows ×2, ×4, ... on each rise)
+            _face_blocks_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi,
+                                phi, faces, systems.pk, systems.pf, omega, photo.gain, bary, P,
+                                C, edge_w, edge_vec, Hq, gq)
+            for _b in range(int(p["backtracks"]) + 1):
+                step[...] = 0.0
+                systems.solve(Hq, gq, lam, step)
+                np.nan_to_num(step, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+                np.clip(step, -clamp, clamp, out=step)
+                pred = systems.model_decrease(Hq, gq, faces, step)
+                cand = finish(xi + step)
+                Pc, Ec, Jc, omc, Cc = evaluate(cand)
+                log.debug("sparse λ %.3g: J %.6g -> %.6g (model %.6g), E %.6g -> %.6g, |step| max %.3g",
+                          lam, J, Jc, J - pred, E, Ec, np.abs(step).max())
+                if Jc <= J and Ec <= E:
+                    accepted = True
+                    gain_ratio = (J - Jc) / pred if pred > 0 else 0.0
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * gain_ratio - 1.0) ** 3)
+                    nu = 2.0
+                    break
+                lam = max(lam, 1e-6) * nu
+                nu *= 2.0
+            if not accepted:
                 break
-            alpha *= 0.5
-        if not accepted:
-            break
-        alpha = min(1.0, 2.0 * alpha)
-        rel = (E - Ec) / E
-        xi, P, E = cand, Pc, Ec
+            rel = (J - Jc) / J
+        else:
+            _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
+                       faces, fvis, omega, photo.gain, bary, P, C, qs, edge_w, edge_vec, clamp, step)
+            # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
+            for _b in range(int(p["backtracks"]) + 1):
+                cand = finish(xi + alpha * step)
+                Pc, Ec, Jc, omc, Cc = evaluate(cand)
+                if Ec <= E:
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:
+                break
+            alpha = min(1.0, 2.0 * alpha)
+            rel = (E - Ec) / E
+        xi, P, E, J, omega, C = cand, Pc, Ec, Jc, omc, Cc
         energies.append(E)
+        objectives.append(J)
         if rel < float(p["rel_tol"]):
             break
-    return xi, energies
+    if sparse:
+        log.debug("sparse solver: %d accepted steps, %d factorisations of %d frames",
+                  len(energies) - 1, systems.factorisations, K)
+    return xi, energies, objectives
 
 
 def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, faces,
@@ -565,7 +960,8 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
         dict: ``xi`` (T, V, 2) float32 (Φ where not visible), ``valid`` (T, V) bool,
         ``energy`` (levels + 1, max(iterations, refine_iterations) + 1) float64 — row l < levels is
         key-frame level l (0 coarsest), the last row the all-frame refinement; column 0 the energy
-        at the start of the stage, column i after accepted step i, NaN after the stage stopped —,
+        E at the start of the stage, column i after accepted step i, NaN after the stage stopped —,
+        ``objective`` the same for E + edge term (what the 'sparse' solver minimises),
         ``keyframes`` (K,) int positions, ``stages`` list of dicts (name, frames, blurs,
         iterations, seconds, crop_mb, energy_start, energy_end).
     """
@@ -580,6 +976,7 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
     L = int(p["levels"])
     n_it = max(int(p["iterations"]), int(p["refine_iterations"]))
     energy = np.full((L + 1, n_it + 1), np.nan)
+    objective = np.full((L + 1, n_it + 1), np.nan)
     stages = []
     margin = int(p["crop_margin_px"])
 
@@ -591,9 +988,10 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
         ts = time.perf_counter()
         nb = L - lev
         stack.set_blur(nb)
-        xi_key, en = optimize_level(stack, xi_key, phi[keys], faces, fvis_all[keys], fw_all[keys],
-                                    p, int(p["iterations"]), W, H)
+        xi_key, en, ob = optimize_level(stack, xi_key, phi[keys], faces, fvis_all[keys],
+                                        fw_all[keys], p, int(p["iterations"]), W, H)
         energy[lev, :len(en)] = en
+        objective[lev, :len(ob)] = ob
         stages.append({"name": f"level {lev}", "frames": len(keys), "blurs": nb,
                        "iterations": len(en) - 1, "seconds": round(time.perf_counter() - ts, 3),
                        "crop_mb": round(stack.nbytes / 2**20, 1),
@@ -614,9 +1012,10 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
     if int(p["refine_iterations"]) >= 0:
         stack = build_stack(load, allf, xi, valid, margin, W, H)
         stack.set_blur(1)
-        xi, en = optimize_level(stack, xi, phi, faces, fvis_all, fw_all, p,
-                                int(p["refine_iterations"]), W, H)
+        xi, en, ob = optimize_level(stack, xi, phi, faces, fvis_all, fw_all, p,
+                                    int(p["refine_iterations"]), W, H)
         energy[L, :len(en)] = en
+        objective[L, :len(ob)] = ob
         stages.append({"name": "refine", "frames": T, "blurs": 1, "iterations": len(en) - 1,
                        "seconds": round(time.perf_counter() - ts, 3),
                        "crop_mb": round(stack.nbytes / 2**20, 1),
@@ -627,7 +1026,7 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
         del stack
     xi = np.where(valid[..., None], xi, phi)
     return {"xi": xi.astype(np.float32), "valid": valid.copy(), "energy": energy,
-            "keyframes": keys, "stages": stages}
+            "objective": objective, "keyframes": keys, "stages": stages}
 
 
 def write_texcoords(scene, template, projection, frames_paths, masks_paths, params: dict, out) -> None:
