@@ -224,7 +224,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         arrays={
             "xi": ArraySpec(("T", "V", 2), "float32", "px", "optimised colour-image coordinates (u column, v row; integer = pixel centre); Φ where the vertex is not visible", (1, "V", 2)),
             "valid": ArraySpec(("T", "V"), "bool", "1", "vertex visible at that frame (projection vertex_visible): ξ is meaningful", (1, "V")),
-            "energy": ArraySpec(("L", "I"), "float64", "(grey/255)^2", "Eq. 1, Σ ((C − P)/255)² over the stage's frames, visible faces and samples (grey image blurred as the stage), per stage (row) and accepted step (column); NaN-padded"),
+            "energy": ArraySpec(("L", "I"), "float64", "(grey/255)^2", "Eq. 1, Σ ((g C − P)/255)² over the stage's frames, visible faces and samples (grey image blurred as the stage; g the frame's gain, 1 with texcoords.gain none), each (frame, face) sum e passed through ρ(e) = S c² e / (S c² + e) when texcoords.robust_grey c > 0; per stage (row) and accepted step (column); NaN-padded"),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each row",
