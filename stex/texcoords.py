@@ -262,6 +262,21 @@ def _bilerp(buf, off, h, w, x, y):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _grad(buf, off, h, w, u, v, g):
+    """g · ∇C at (u, v): central differences of bilinear lookups 1 px apart (grey levels / px)."""
+    gx = 0.5 * g * (_bilerp(buf, off, h, w, u + 1.0, v) - _bilerp(buf, off, h, w, u - 1.0, v))
+    gy = 0.5 * g * (_bilerp(buf, off, h, w, u, v + 1.0) - _bilerp(buf, off, h, w, u, v - 1.0))
+    return gx, gy
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_vectors(xi, phi, k, va, vb):
+    """(ξ_a − ξ_b, Φ_a − Φ_b) components (ex, ey, px, py) of the edge (va, vb) at frame k."""
+    return (xi[k, va, 0] - xi[k, vb, 0], xi[k, va, 1] - xi[k, vb, 1],
+            phi[k, va, 0] - phi[k, vb, 0], phi[k, va, 1] - phi[k, vb, 1])
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _sample_pos(bary, s, xi, k, faces, f, x0, y0):
     """Crop-pixel position (u, v) of sample ``s`` of face ``f`` in frame ``k`` (through ξ)."""
     a = faces[f, 0]
@@ -356,8 +371,7 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
             for s in range(S):
                 u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                 r = gk * C[q, s] - proxy[f, s]
-                gx = 0.5 * gk * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
-                gy = 0.5 * gk * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
+                gx, gy = _grad(buf, o, h, w, u, v, gk)
                 for j in range(3):
                     bj = om * bary[s, j]
                     if bj <= 0.0:
@@ -373,10 +387,7 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
                     vi = faces[f, j]
                     for dj in range(1, 3):
                         vk = faces[f, (j + dj) % 3]
-                        ex = xi[k, vi, 0] - xi[k, vk, 0]
-                        ey = xi[k, vi, 1] - xi[k, vk, 1]
-                        px = phi[k, vi, 0] - phi[k, vk, 0]
-                        py = phi[k, vi, 1] - phi[k, vk, 1]
+                        ex, ey, px, py = _edge_vectors(xi, phi, k, vi, vk)
                         if edge_vec:
                             # edge vectors: the displacement ξ − Φ is smooth over the mesh
                             A[vi, 0] += edge_w * edge_w
@@ -424,8 +435,8 @@ def _face_blocks_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, pk, pf, omega,
     Hq[q] (6, 6) = JᵀJ and gq[q] (6,) = Jᵀr of the residuals that live on that face: its S
     photometric residuals g_k·C_k(p) − P_fs (grey levels, weighted by omega[k, f]; corner a's
     Jacobian β_a g_k ∇C, so corners a, b are coupled by β_a β_b g_k² ∇C∇Cᵀ) and its 3 edge
-    residuals, each edge (a, b) with the weight the Jacobi kernel gives it (vector: edge_w · ((ξ_a − ξ_b) − (Φ_a − Φ_b)); length: edge_w ·
-    (|ξ_a − ξ_b| − |Φ_a − Φ_b|)). Summed over the faces this is the normal matrix of E·255² +
+    residuals, each edge (a, b) with the weight the Jacobi kernel gives it (vector: edge_w ·
+    ((ξ_a − ξ_b) − (Φ_a − Φ_b)); length: edge_w · (|ξ_a − ξ_b| − |Φ_a − Φ_b|)). Summed over the faces this is the normal matrix of E·255² +
     edge term (:func:`_edge_energy_kernel`).
     """
     Q = pk.shape[0]
@@ -445,8 +456,7 @@ def _face_blocks_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, pk, pf, omega,
         for s in range(S):
             u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
             r = gk * C[q, s] - proxy[f, s]
-            gx = 0.5 * gk * (_bilerp(buf, o, h, w, u + 1.0, v) - _bilerp(buf, o, h, w, u - 1.0, v))
-            gy = 0.5 * gk * (_bilerp(buf, o, h, w, u, v + 1.0) - _bilerp(buf, o, h, w, u, v - 1.0))
+            gx, gy = _grad(buf, o, h, w, u, v, gk)
             for a in range(3):
                 ba = om * bary[s, a]
                 if ba == 0.0:
@@ -468,10 +478,7 @@ def _face_blocks_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, pk, pf, omega,
             b = (a + 1) % 3
             va = faces[f, a]
             vb = faces[f, b]
-            ex = xi[k, va, 0] - xi[k, vb, 0]
-            ey = xi[k, va, 1] - xi[k, vb, 1]
-            px = phi[k, va, 0] - phi[k, vb, 0]
-            py = phi[k, va, 1] - phi[k, vb, 1]
+            ex, ey, px, py = _edge_vectors(xi, phi, k, va, vb)
             if edge_vec:
                 dx = ex - px
                 dy = ey - py
@@ -517,10 +524,7 @@ def _edge_energy_kernel(xi, phi, faces, fvis, edge_w, edge_vec, out):
             for a in range(3):
                 va = faces[f, a]
                 vb = faces[f, (a + 1) % 3]
-                ex = xi[k, va, 0] - xi[k, vb, 0]
-                ey = xi[k, va, 1] - xi[k, vb, 1]
-                px = phi[k, va, 0] - phi[k, vb, 0]
-                py = phi[k, va, 1] - phi[k, vb, 1]
+                ex, ey, px, py = _edge_vectors(xi, phi, k, va, vb)
                 if edge_vec:
                     r2 = (ex - px) ** 2 + (ey - py) ** 2
                 else:
@@ -632,6 +636,7 @@ class _Photometric:
         self.gain = np.ones(fvis.shape[0])
         # visible (frame, face) pairs, frame-major; and the same pairs grouped by face
         self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))
+        self.qs = np.searchsorted(self.pk, np.arange(fvis.shape[0] + 1)).astype(np.int64)  # frame k's
         self.order = np.argsort(self.pf, kind="stable").astype(np.int64)
         self.fstart = np.searchsorted(self.pf[self.order], np.arange(faces.shape[0] + 1)).astype(np.int64)
         self.fw = np.ascontiguousarray(fw[self.pk, self.pf], np.float64)
@@ -700,9 +705,8 @@ class _Photometric:
             ok = full & (a > 0) & (b > 0)
             g = np.ones(K)
             ratio = np.where(ok, b / np.where(a > 0, a, 1.0), np.nan)
-            bounds = np.searchsorted(self.pk, np.arange(K + 1))
             for k in range(K):
-                r = ratio[bounds[k]:bounds[k + 1]]
+                r = ratio[self.qs[k]:self.qs[k + 1]]
                 r = r[np.isfinite(r)]
                 if len(r) >= 10:
                     g[k] = np.median(r)
@@ -761,10 +765,9 @@ class _SparseSystems:
     are summed into one CSC matrix per frame through a pattern built once per level.
     """
 
-    def __init__(self, faces, fvis, used):
-        K = fvis.shape[0]
-        self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))   # sorted by frame
-        self.qs = np.searchsorted(self.pk, np.arange(K + 1))
+    def __init__(self, faces, pk, pf, qs, used):
+        K = used.shape[0]
+        self.pk, self.pf, self.qs = pk, pf, qs   # the visible pairs, frame-major (_Photometric)
         self.verts = [np.flatnonzero(used[k]) for k in range(K)]
         loc = np.full(used.shape, -1, np.int64)
         for k in range(K):
@@ -869,8 +872,6 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     photo = _Photometric(stack, faces, fvis, fw, bary, p)
     photo.set_gain(xi)
 
-    qs = np.searchsorted(photo.pk, np.arange(K + 1)).astype(np.int64)
-
     def evaluate(x):
         Px, Ex, om, Cx = photo.evaluate(x)
         return Px, Ex, Ex + _edge_energy(x, phi, faces, fvis, edge_w, edge_vec), om, Cx
@@ -879,7 +880,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     energies, objectives = [E], [J]
     step = np.zeros_like(xi)
     if sparse:
-        systems = _SparseSystems(faces, fvis, used)
+        systems = _SparseSystems(faces, photo.pk, photo.pf, photo.qs, used)
         Q = len(systems.pk)
         Hq = np.zeros((Q, 6, 6))
         gq = np.zeros((Q, 6))
@@ -920,7 +921,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
             rel = (J - Jc) / J
         else:
             _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
-                       faces, fvis, omega, photo.gain, bary, P, C, qs, edge_w, edge_vec, clamp, step)
+                       faces, fvis, omega, photo.gain, bary, P, C, photo.qs, edge_w, edge_vec, clamp, step)
             # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
             for _b in range(int(p["backtracks"]) + 1):
                 cand = finish(xi + alpha * step)

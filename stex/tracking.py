@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -54,13 +54,15 @@ class DeformationGraph:
     """Nodes over a mesh and each vertex's binding.
 
     nodes: (N,) int32 vertex index of each node; vertex_nodes (V, k) int32; vertex_weights (V, k)
-    float64 (rows sum to 1; padding entries have weight 0); edges (E, 2) int32 node pairs j < k.
+    float64 (rows sum to 1; padding entries have weight 0); edges (E, 2) int32 node pairs j < k;
+    normal_pattern: the block pattern of the tracker's normal equations, built on first use.
     """
 
     nodes: np.ndarray
     vertex_nodes: np.ndarray
     vertex_weights: np.ndarray
     edges: np.ndarray
+    normal_pattern: object = field(default=None, repr=False, compare=False)
 
 
 def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
@@ -495,9 +497,9 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     s = np.zeros((len(e), 3))
     # Constant Jacobian pieces of the data term: d x'_i / d(A_j, t_j).
     local = V0[:, None, :] - node_pos[graph.vertex_nodes]  # (V, k, 3)
-    pattern = getattr(graph, "normal_pattern", None)
-    if pattern is None or pattern.n_nodes != N:
-        pattern = graph.normal_pattern = _NormalPattern(graph, N)   # once per graph
+    if graph.normal_pattern is None:
+        graph.normal_pattern = _NormalPattern(graph, N)
+    pattern = graph.normal_pattern
     stats = {"n_corr": 0, "data_rms_m": np.nan}
     max_dist = p.max_distance_m
     for rnd in range(p.l0_rounds):
@@ -565,11 +567,12 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             A = x[:, :9].reshape(N, 3, 3)
             t = x[:, 9:]
             r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + node_pos[j_] + t[j_] - node_pos[k_] - t[k_]
-            vid = np.concatenate(vids) if vids else np.zeros(0, np.int64)
+            vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
+            Dws.append(np.zeros((0, 3)))
+            rws.append(np.zeros(0))
             JtJ, g, diag_blocks = _normal_equations(
-                pattern, graph, local, vid.astype(np.int64),
-                np.concatenate(Dws) if vids else np.zeros((0, 3)), np.concatenate(rws) if vids else np.zeros(0),
-                rr * sr, Jr * sr, r_jk - s, p.w_reg * beta, d_jk, p.damping)
+                pattern, graph, local, np.concatenate(vids).astype(np.int64), np.concatenate(Dws),
+                np.concatenate(rws), rr * sr, Jr * sr, r_jk - s, p.w_reg * beta, d_jk, p.damping)
             # 12x12 block-Jacobi preconditioner
             inv = np.linalg.inv(diag_blocks + np.eye(12) * 1e-12)
             precond = LinearOperator((nP, nP), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
