@@ -210,7 +210,7 @@ def coverage_scores(face_has_texture, face_area, seen_faces=None) -> dict:
 
 
 def truth_views(true_vertices, true_atlas, appearance, calibration,
-                novel_angle_deg=180.0) -> dict:
+                novel_angle_deg=180.0, template_vertices=None) -> dict:
     """Renders of the true appearance on the true mesh at one frame, in the input colour camera
     and in the novel view.
 
@@ -221,11 +221,14 @@ def truth_views(true_vertices, true_atlas, appearance, calibration,
         calibration: :class:`stex.camera.Calibration` (or its dict).
         novel_angle_deg: orbit angle of the novel view about the vertical (camera y) axis
             through the true mesh's centroid (deg).
+        template_vertices: optional (V, 3) the true surface at this frame in the *template's*
+            topology (the true vertices carried by the template's embedding), depth-camera
+            coordinates (m): the methods' textures are then also scored on the true geometry.
 
     Returns:
         dict ``novel_transform`` (4, 4), colour-camera -> novel-view coordinates (apply it to
         every mesh compared in this view), ``input`` and ``novel``: (image (H, W, 3) float32,
-        mask (H, W) bool).
+        mask (H, W) bool); ``template_vertices`` as given (None if not).
     """
     K, w, h, d2c = _camera(calibration)
     a = _atlas(true_atlas)
@@ -236,6 +239,7 @@ def truth_views(true_vertices, true_atlas, appearance, calibration,
         "input": ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, appearance, K, w, h),
         "novel": ev.render_texture(transform_points(N, Vc), a.faces, a.texcoords,
                                    a.texcoord_faces, appearance, K, w, h),
+        "template_vertices": None if template_vertices is None else np.asarray(template_vertices, np.float64),
     }
 
 
@@ -282,6 +286,24 @@ def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen)
     return out
 
 
+def _novel_scores(prefix, truth, views, vertices, a, calibration, seen_faces) -> dict:
+    """Novel-view scores of one render (``views`` of :func:`method_views` on ``vertices``) against
+    the true render: :func:`_truth_region_scores`, and the unseen region split into surface some
+    source frame saw (borrowed from another frame: what the labeling decides) and surface no
+    frame saw (filled: a guess for any method)."""
+    K, w, h, d2c = _camera(calibration)
+    out = _truth_region_scores(prefix, *truth["novel"], *views["novel"], views["novel_seen"])
+    if seen_faces is not None and views["novel_seen"] is not None:
+        Vn = transform_points(np.asarray(truth["novel_transform"], np.float64),
+                              transform_points(d2c, np.asarray(vertices, np.float64)))
+        ever = ev.seen_mask_in_view(Vn, a.faces, seen_faces, K, w, h)
+        (t_img, t_mask), (r_img, r_mask) = truth["novel"], views["novel"]
+        r = ev.region_psnr(t_img, r_img, t_mask & r_mask & ~views["novel_seen"], ever)
+        out.update({f"{prefix}_psnr_borrowed": r["psnr_seen"], f"{prefix}_n_borrowed": r["n_seen"],
+                    f"{prefix}_psnr_never_seen": r["psnr_unseen"], f"{prefix}_n_never_seen": r["n_unseen"]})
+    return out
+
+
 def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_texture=None,
                 seen_faces=None, face_visible=None, truth=None,
                 novel_angle_deg=180.0, patch=ev.DEFAULT_PATCH,
@@ -313,8 +335,10 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         ``ssim_all/seen/unseen``, ``n_seen``, ``n_unseen`` (px), ``iou`` (true vs our
         silhouette); with ``seen_faces`` too, ``gt_novel_psnr_borrowed`` / ``_never_seen`` (dB)
         and ``gt_novel_n_borrowed`` / ``_never_seen`` (px): the novel view's region unseen at t
-        split into surface some source frame saw and surface no frame saw; and ``blur_truth``: the blur of the true appearance rendered in the input
-        view (inside the mask, the render's and the true silhouette).
+        split into surface some source frame saw and surface no frame saw; ``blur_truth``: the blur of the true appearance rendered in the input
+        view (inside the mask, the render's and the true silhouette); and, when ``truth`` holds
+        ``template_vertices``, the same novel-view keys with prefix ``gt_truegeom`` for the
+        texture rendered on the true surface instead of the tracked one.
     """
     K, w, h, _ = _camera(calibration)
     img = np.asarray(image)
@@ -344,18 +368,14 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         # in the same view (no sensor noise, which the Crete metric reads as sharpness)
         t_img, t_mask = truth["input"]
         out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
-        out.update(_truth_region_scores("gt_novel", *truth["novel"], *views["novel"],
-                                        views["novel_seen"]))
-        if seen_faces is not None and views["novel_seen"] is not None:
-            # unseen at t, split: surface some source frame saw (borrowed from another frame:
-            # what the labeling decides) and surface no frame saw (filled: a guess for any method)
-            Vn = transform_points(np.asarray(truth["novel_transform"], np.float64),
-                                  transform_points(_camera(calibration)[3], np.asarray(vertices, np.float64)))
-            ever = ev.seen_mask_in_view(Vn, a.faces, seen_faces, K, w, h)
-            (t_img, t_mask), (r_img, r_mask) = truth["novel"], views["novel"]
-            r = ev.region_psnr(t_img, r_img, t_mask & r_mask & ~views["novel_seen"], ever)
-            out.update(gt_novel_psnr_borrowed=r["psnr_seen"], gt_novel_n_borrowed=r["n_seen"],
-                       gt_novel_psnr_never_seen=r["psnr_unseen"], gt_novel_n_never_seen=r["n_unseen"])
+        out.update(_novel_scores("gt_novel", truth, views, vertices, a, calibration, seen_faces))
+        if truth.get("template_vertices") is not None:
+            # the same texture on the true surface: what is left is the texture's own error
+            # (the tracked mesh adds its geometric error to every method)
+            tv = method_views(texture, truth["template_vertices"], a, calibration,
+                              truth["novel_transform"], face_visible)
+            out.update(_novel_scores("gt_truegeom", truth, tv, truth["template_vertices"], a,
+                                     calibration, seen_faces))
     if return_views:
         out["views"] = views
     return out
@@ -381,6 +401,8 @@ SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur
                    "gt_novel_psnr_borrowed", "gt_novel_psnr_never_seen",
                    "gt_novel_ssim_all", "gt_novel_ssim_seen", "gt_novel_ssim_unseen",
                    "gt_input_psnr_all", "gt_input_ssim_all", "gt_novel_iou",
+                   "gt_truegeom_psnr_unseen", "gt_truegeom_psnr_borrowed", "gt_truegeom_psnr_never_seen",
+                   "gt_truegeom_ssim_unseen",
                    "flicker", "flicker_excess")
 
 
@@ -483,6 +505,9 @@ def table_rows(summaries: dict) -> dict:
                                   ("gt_novel_psnr_never_seen", "PSNR, dB, never seen", 2),
                                   ("gt_novel_ssim_unseen", "SSIM, unseen at t", 4),
                                   ("gt_input_psnr_all", "PSNR, dB, input view", 2),
+                                  ("gt_truegeom_psnr_unseen", "on the true surface: PSNR, dB, unseen at t", 2),
+                                  ("gt_truegeom_psnr_borrowed", "on the true surface: PSNR, dB, unseen at t, seen by another frame", 2),
+                                  ("gt_truegeom_psnr_never_seen", "on the true surface: PSNR, dB, never seen", 2),
                                   ("flicker", "flicker in borrowed regions, grey levels", 2)):
         for m in METHODS:
             add(gt, label, m, "all", metric, digits=digits)
@@ -525,7 +550,9 @@ def rst_tables(summaries: dict, timing: dict | None = None) -> str:
         "coverage": "Faces (or area) with texture per frame, averaged over the scored frames.",
         "ground_truth": "Renders of the texture on our tracked mesh against the true appearance "
                         "on the true mesh, from the opposite side (novel view), split into the "
-                        "surface the camera sees at t and the rest.",
+                        "surface the camera sees at t and the rest. 'On the true surface': the "
+                        "same texture rendered on the true geometry (the template carried onto "
+                        "the true mesh), so that only the texture's own error remains.",
         "timing": "Wall time per stage.",
     }
     tabs = table_rows(summaries)
@@ -622,6 +649,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     from stex.baseline import projection_texture
     from stex.io import FrameSequence, StoreError, open_store
     from stex.observations import open_coordinates
+    from stex.template import transfer_vertices
     from stex.volume import TexelSampler
 
     p = evaluation_params(params)
@@ -706,6 +734,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
     # ground truth
     truth = None
+    true_embedding = None
     if truth_paths:
         if "truth" not in scene:
             raise StoreError(f"{scene_path}: truth stores given but the scene has no truth/vertices")
@@ -715,6 +744,12 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                            scene["template/texcoords"][...],
                            np.asarray(scene["template/texcoord_faces"][...], np.int64))
         true_vertices = scene["truth/vertices"]
+        # the template's embedding in the scene's mesh carries the truth onto the template
+        true_embedding = None
+        if "embedding" in template:
+            emb_face = np.asarray(template["embedding/face"][...], np.int64)
+            if len(emb_face) == template["vertices"].shape[0] and emb_face.max(initial=-1) < len(true_atlas.faces):
+                true_embedding = (emb_face, np.asarray(template["embedding/bary"][...], np.float64))
         if true_vertices.shape[0] != T:
             raise ValueError(f"{scene_path}: truth/vertices has {true_vertices.shape[0]} frames, "
                              f"the scene has {T}")
@@ -748,8 +783,11 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                 "projection": face_visible[t]}
 
     def truth_at(t):
+        tv_ = None
+        if true_embedding is not None:
+            tv_ = transfer_vertices(np.asarray(true_vertices[t], np.float64), true_atlas.faces, *true_embedding)
         return truth_views(true_vertices[t], true_atlas, truth.read("appearance", ids[t]), cal,
-                           p["novel_angle_deg"])
+                           p["novel_angle_deg"], template_vertices=tv_)
 
     # novel-view renders of every method at t, for the flicker of t and t+1
     def novel_renders(t, tv, texs):

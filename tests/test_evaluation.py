@@ -127,6 +127,34 @@ def test_unseen_region_splits_into_borrowed_and_never_seen(frame):
         truth=tv, face_visible=frame["visible"])
 
 
+def test_texture_on_the_true_surface(frame, pipe):
+    """gt_truegeom: the same texture rendered on the true surface (the truth carried onto the
+    template). With the tracked mesh in its place the scores are the gt_novel ones; with the
+    tracked mesh moved 1 cm sideways, gt_novel drops and gt_truegeom does not see the move."""
+    from stex.template import transfer_vertices
+    template = open_store(pipe["template"], "template")
+    tvv = transfer_vertices(frame["true_V"], frame["true_atlas"].faces, template["embedding/face"][...],
+                            template["embedding/bary"][...])
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"],
+                     template_vertices=tvv)
+    F = len(frame["atlas"].faces)
+    kw = dict(truth=tv, face_visible=frame["visible"], seen_faces=frame["visible"] | (np.arange(F) % 2 == 0))
+    same = score_frame(frame["ours"], tvv, frame["atlas"], frame["image"], frame["mask"], frame["cal"], **kw)
+    for k in ("psnr_unseen", "psnr_borrowed", "psnr_never_seen", "ssim_unseen"):
+        assert same[f"gt_truegeom_{k}"] == pytest.approx(same[f"gt_novel_{k}"], abs=1e-9)
+    moved = score_frame(frame["ours"], tvv + np.array([0.01, 0.0, 0.0]), frame["atlas"], frame["image"],
+                        frame["mask"], frame["cal"], **kw)
+    assert moved["gt_truegeom_psnr_unseen"] == pytest.approx(same["gt_truegeom_psnr_unseen"], abs=1e-9)
+    print("same / moved: gt_novel iou", same["gt_novel_iou"], moved["gt_novel_iou"])
+    assert moved["gt_novel_iou"] < same["gt_novel_iou"] - 0.05
+    assert abs(moved["gt_novel_psnr_unseen"] - same["gt_novel_psnr_unseen"]) > 0.01
+    # no template vertices in the truth: no such keys
+    plain = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
+    assert "gt_truegeom_psnr_unseen" not in score_frame(
+        frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"], frame["cal"],
+        truth=plain, face_visible=frame["visible"])
+
+
 def test_coverage(evaluation):
     _, res = evaluation
     for rec in res["frames"]:
