@@ -693,8 +693,9 @@ class _Photometric:
     def set_gain(self, xi, max_iterations: int = 100, tol: float = 1e-5) -> None:
         """``gain`` 'frame': alternate g_k = the half-sample mode over the frame's visible faces
         (all samples inside the foreground mask) of Σ_s P_fs / Σ_s C_k(p) with the face sums
-        Σ_s P_fs recomputed from the new gains (weighted mean of g_k Σ_s C_k over those pairs), normalised to geometric mean 1 over the frames (frames with
-        fewer than 10 such faces keep 1), until no gain moves by more than ``tol``. An exposure /
+        Σ_s P_fs recomputed from the new gains (weighted mean of g_k Σ_s C_k over those pairs),
+        normalised to geometric mean 1 over the frames (frames with fewer than 10 such faces
+        keep 1), until no gain moves by more than ``tol``. An exposure /
         white-balance change of the whole frame then stops looking like motion, while a local
         change of appearance (a wrinkle, a tint: a minority of the faces) does not move the mode.
         Starts from ``stack.gain`` when it holds one per frame and stores the result there.
