@@ -69,10 +69,10 @@ def prepare(cfg, T, cache: Path, proj_params):
     """Render (or load from ``cache``) the frames; return everything the stage needs + truth."""
     digest = cache_digest(cfg, T)
     done = cache / "done.json"
-    if done.exists() and json.loads(done.read_text() or "{}").get("digest") != digest:
+    found = json.loads(done.read_text() or "{}").get("digest") if done.exists() else digest
+    if found != digest:
         raise SystemExit(f"render cache {cache} was made with other scene/template/projection settings "
-                         f"(digest {json.loads(done.read_text() or '{}').get('digest')} != {digest}); "
-                         "remove it or pass another --cache")
+                         f"(digest {found} != {digest}); remove it or pass another --cache")
     scene = SyntheticScene(cfg["source"]["synthetic"])
     cal = scene.calibration
     W, H = cal.color.width, cal.color.height

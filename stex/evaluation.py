@@ -335,8 +335,9 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         ``ssim_all/seen/unseen``, ``n_seen``, ``n_unseen`` (px), ``iou`` (true vs our
         silhouette); with ``seen_faces`` too, ``gt_novel_psnr_borrowed`` / ``_never_seen`` (dB)
         and ``gt_novel_n_borrowed`` / ``_never_seen`` (px): the novel view's region unseen at t
-        split into surface some source frame saw and surface no frame saw; ``blur_truth``: the blur of the true appearance rendered in the input
-        view (inside the mask, the render's and the true silhouette); and, when ``truth`` holds
+        split into surface some source frame saw and surface no frame saw; ``blur_truth``: the
+        blur of the true appearance rendered in the input view (inside the mask, the render's and
+        the true silhouette); and, when ``truth`` holds
         ``template_vertices``, the same novel-view keys with prefix ``gt_truegeom`` for the
         texture rendered on the true surface instead of the tracked one.
     """
@@ -369,13 +370,18 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         t_img, t_mask = truth["input"]
         out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
         out.update(_novel_scores("gt_novel", truth, views, vertices, a, calibration, seen_faces))
-        if truth.get("template_vertices") is not None:
+        surface = truth.get("template_vertices")
+        if surface is not None:
             # the same texture on the true surface: what is left is the texture's own error
-            # (the tracked mesh adds its geometric error to every method)
-            tv = method_views(texture, truth["template_vertices"], a, calibration,
-                              truth["novel_transform"], face_visible)
-            out.update(_novel_scores("gt_truegeom", truth, tv, truth["template_vertices"], a,
-                                     calibration, seen_faces))
+            # (the tracked mesh adds its geometric error to every method); 'given' meshes without
+            # drift are the true surface already (to float32, the tracking store's precision),
+            # and their renders are reused
+            same = np.array_equal(np.asarray(surface, np.float32), np.asarray(vertices, np.float32))
+            on_surface = (views if same else
+                          method_views(texture, surface, a, calibration, truth["novel_transform"],
+                                       face_visible))
+            out.update(_novel_scores("gt_truegeom", truth, on_surface, surface, a, calibration,
+                                     seen_faces))
     if return_views:
         out["views"] = views
     return out
@@ -745,7 +751,6 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                            np.asarray(scene["template/texcoord_faces"][...], np.int64))
         true_vertices = scene["truth/vertices"]
         # the template's embedding in the scene's mesh carries the truth onto the template
-        true_embedding = None
         if "embedding" in template:
             emb_face = np.asarray(template["embedding/face"][...], np.int64)
             if len(emb_face) == template["vertices"].shape[0] and emb_face.max(initial=-1) < len(true_atlas.faces):
@@ -783,11 +788,12 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                 "projection": face_visible[t]}
 
     def truth_at(t):
-        tv_ = None
+        surface = None
         if true_embedding is not None:
-            tv_ = transfer_vertices(np.asarray(true_vertices[t], np.float64), true_atlas.faces, *true_embedding)
+            surface = transfer_vertices(np.asarray(true_vertices[t], np.float64), true_atlas.faces,
+                                        *true_embedding)
         return truth_views(true_vertices[t], true_atlas, truth.read("appearance", ids[t]), cal,
-                           p["novel_angle_deg"], template_vertices=tv_)
+                           p["novel_angle_deg"], template_vertices=surface)
 
     # novel-view renders of every method at t, for the flicker of t and t+1
     def novel_renders(t, tv, texs):

@@ -707,10 +707,10 @@ class _Photometric:
         and 65.0 % with the mode instead of the median)."""
         K = self.fvis.shape[0]
         g0 = self.stack.gain
-        self.gain = np.array(g0, np.float64) if g0 is not None and len(g0) == K else np.ones(K)
         if self.gain_mode != "frame" or not len(self.pk):
             self.gain = np.ones(K)
             return
+        self.gain = np.array(g0, np.float64) if g0 is not None and len(g0) == K else np.ones(K)
         C, inside = self.samples(xi)
         a = C.sum(1, dtype=np.float64)
         use = inside.all(1) & (a > 0)
