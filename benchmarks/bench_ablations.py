@@ -84,7 +84,8 @@ def run_variant(R: Path, out: Path, tables_over: dict, labels_over: dict, stride
     labels = out / "labels.zarr"
     shutil.rmtree(labels, ignore_errors=True)
     base = dict(open_store(R / "labels.zarr", "labels").attrs["params"])
-    write_labels(R / "observations.zarr", tables, R / "template.zarr", dict(base, **labels_over), labels)
+    write_labels(R / "observations.zarr", tables, R / "template.zarr", dict(base, **labels_over), labels,
+                 projection_path=R / "projection.zarr")
     timing["labeling_s"] = round(time.perf_counter() - t0, 1)
     t0 = time.perf_counter()
     coords = R / "texcoords.zarr" if (R / "texcoords.zarr").exists() else R / "projection.zarr"

@@ -203,6 +203,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "vertex_cos": ArraySpec(("T", "V"), "float32", "1", "cosine between the area-weighted vertex normal and the view ray (attr cos_mode), clipped to [0, 1], every vertex", (1, "V")),
             "face_visible": ArraySpec(("T", "F"), "bool", "1", "face seen: its own test (face normal, depth test of its corners against its plane) and its 3 vertices visible", (1, "F")),
             "face_cos": ArraySpec(("T", "F"), "float32", "1", "cosine between the face normal and the view ray from its centroid (attr cos_mode), clipped to [0, 1], every face", (1, "F")),
+            "face_glimpsed": ArraySpec(("T", "F"), "bool", "1", "face_visible, or the face's own test passes and its 3 corners project inside the margin and the mask, not eroded (a face on a silhouette: the image shows it, a corner fails the vertex rule)", (1, "F")),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each row",
@@ -284,19 +285,22 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         description="The frame labeling (stex.labeling): for every frame t and face f the "
         "source frame l_{f,t} whose image textures f at t (Eq. 2: data term + spatial and "
         "temporal smoothness with selective weighting), by α-expansion per frame and block "
-        "coordinate descent over even and odd frames. Faces never seen get -1 (the volume "
-        "stage fills them in texture space).",
+        "coordinate descent over even and odd frames. Faces no frame sees but a source frame "
+        "glimpses (projection face_glimpsed) get that frame at every t (glimpse_source); faces "
+        "left without any source get -1 (the volume stage fills them in texture space).",
         path="labels.zarr",
         arrays={
-            "labels": ArraySpec(("T", "F"), "int16", "index", "source frame (sequence position) of each face at each frame; -1 = never seen", (1, "F")),
+            "labels": ArraySpec(("T", "F"), "int16", "index", "source frame (sequence position) of each face at each frame; -1 = no source (never_seen)", (1, "F")),
             "energy": ArraySpec(("R",), "float64", "1", "total energy of Eq. 2 after the initial per-frame solves (row 0) and after every BCD round"),
             "frame_energy": ArraySpec(("R", "T"), "float64", "1", "energy terms of each frame's MRF (its unary, spatial and its temporal links to the previous frame) per round"),
-            "never_seen": ArraySpec(("F",), "bool", "1", "faces visible in no frame"),
+            "never_seen": ArraySpec(("F",), "bool", "1", "faces without any source: visible in no source frame and glimpsed by none (label -1)"),
+            "glimpse_source": ArraySpec(("F",), "int32", "index", "for faces visible in no source frame: the source frame that glimpses them at the largest face_cos, their label at every frame; -1 = none or face visible somewhere"),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each row",
             "rounds": "list[dict]: per round: energy, seconds, frames changed",
-            "n_never_seen": "int: faces visible in no frame",
+            "n_never_seen": "int: faces without any source (never_seen)",
+            "n_glimpsed": "int: faces labelled with their glimpse_source",
         },
     ),
     "volume": ArtifactSpec(

@@ -37,8 +37,12 @@ the frame's energy falls) warm-started from its current labels: the total energy
 Frames of one parity do not interact, so they are solved in parallel threads (numba releases the
 GIL).
 
-Faces never visible have no candidate and stay -1 (``never_seen``); the volume stage fills their
-texels in texture space from the nearest labelled surface.
+Faces never visible have no candidate. Those that some source frame glimpses (``projection``
+``face_glimpsed``: the face's own test passes there, but a corner fails the vertex rule, e.g. on
+a silhouette) take, at every frame, the source frame that glimpses them at the largest cosine
+(:func:`glimpse_sources`; stex's addition, outside the MRF and its energy). The rest stay -1
+(``never_seen``); the volume stage fills their texels in texture space from the nearest labelled
+surface.
 """
 
 from __future__ import annotations
@@ -54,7 +58,8 @@ from stex import mrf
 log = logging.getLogger("stex.labeling")
 
 __all__ = ["spatial_features", "EdgeFeatures", "FrameProblem",
-           "frame_problem", "temporal_cost", "label_sequence", "total_energy", "write_labels"]
+           "frame_problem", "temporal_cost", "label_sequence", "total_energy", "glimpse_sources",
+           "write_labels"]
 
 TEMPORAL_MODES = ("selective", "constant", "off")
 SIMILARITY_MODES = ("both", "global", "local")
@@ -368,11 +373,34 @@ def labeling_inputs(observations_path, tables_paths, template_path, params: dict
             "never_seen": (cand[:, :, 0] < 0).all(axis=0)}   # no source frame sees them
 
 
+def glimpse_sources(face_glimpsed, face_cos, never_seen, is_source) -> np.ndarray:
+    """The source frame of each face that no frame sees but some source frame glimpses.
+
+    Args:
+        face_glimpsed: (T, F) bool (``projection`` store). face_cos: (T, F) float viewing cosine.
+        never_seen: (F,) bool, faces without any label candidate.
+        is_source: (T,) bool, the frames allowed to texture (held-out protocol).
+
+    Returns:
+        (F,) int32: for never-seen faces glimpsed by a source frame, the one with the largest
+        ``face_cos`` (earliest on ties); -1 elsewhere.
+    """
+    g = np.asarray(face_glimpsed, bool) & np.asarray(is_source, bool)[:, None]
+    g &= np.asarray(never_seen, bool)[None, :]
+    score = np.where(g, np.asarray(face_cos, np.float32), -1.0)
+    best = np.argmax(score, axis=0)
+    return np.where(g.any(axis=0), best, -1).astype(np.int32)
+
+
 def write_labels(observations_path, tables_paths, template_path, params: dict, out,
-                 threads: int = 2) -> None:
-    """Labeling stage: write the ``labels`` store."""
+                 threads: int = 2, projection_path=None) -> None:
+    """Labeling stage: write the ``labels`` store.
+
+    With ``projection_path``, never-seen faces glimpsed by a source frame are labelled with it
+    at every frame (:func:`glimpse_sources`); ``never_seen`` then holds the faces left without
+    any source."""
     from stex.config import section_params
-    from stex.io import create_store
+    from stex.io import create_store, open_store
 
     p = section_params("labeling", params)
     args = labeling_inputs(observations_path, tables_paths, template_path, p)
@@ -383,13 +411,37 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
     labels = res["labels"]
     seen = ~never
     coverage = [float((labels[t, seen] >= 0).mean()) if seen.any() else 1.0 for t in range(len(ids))]
+    glimpse = np.full(never.size, -1, np.int32)
+    if projection_path is not None and never.any():
+        proj = open_store(projection_path, "projection")
+        if list(proj.attrs["frame_ids"]) != ids:
+            raise ValueError(f"{projection_path} holds frames {_short_ids(proj.attrs['frame_ids'])}, "
+                             f"the observations {_short_ids(ids)}")
+        sources = set(ids)
+        for path in tables_paths:
+            sources = {int(i) for i in open_store(path, "tables").attrs.get("source_frames", ids)}
+            break
+        is_source = np.array([i in sources for i in ids])
+        glimpse = glimpse_sources(proj["face_glimpsed"][...], proj["face_cos"][...], never, is_source)
+        got = glimpse >= 0
+        labels[:, got] = glimpse[got]
+        never = never & ~got
+        log.info("labeling: %d never-seen faces glimpsed by a source frame, labelled with it; "
+                 "%d left without a source", int(got.sum()), int(never.sum()))
     attrs = {"frame_ids": ids, "rounds": res["rounds"], "n_never_seen": int(never.sum()),
+             "n_glimpsed": int((glimpse >= 0).sum()),
              "coverage_of_seen_faces": [round(c, 6) for c in coverage]}
     with create_store(out, "labels", attrs=attrs, params=p) as store:
         store.write("labels", labels)
         store.write("energy", res["energy"])
         store.write("frame_energy", res["frame_energy"])
         store.write("never_seen", never)
+        store.write("glimpse_source", glimpse)
+
+
+def _short_ids(ids) -> str:
+    ids = list(ids)
+    return str(ids) if len(ids) <= 6 else f"[{ids[0]}, {ids[1]}, ..., {ids[-1]}] ({len(ids)})"
 
 
 def preview_labels(volume_paths, corrected_paths, observations_path, template_path, out,

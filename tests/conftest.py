@@ -114,7 +114,8 @@ def run_pipeline(cfg: dict, d) -> dict:
         write_tables(P["scene"], P["template"], P["tracking"], P["poses"], P["observations"],
                      [start, stop], cfg["tables"], path)
     P["labels"] = d / "labels.zarr"
-    write_labels(P["observations"], P["tables"], P["template"], cfg["labeling"], P["labels"])
+    write_labels(P["observations"], P["tables"], P["template"], cfg["labeling"], P["labels"],
+                 projection_path=P["projection"])
     P["volume"] = [d / f"volume_{b}.zarr" for b in range(len(blocks))]
     P["corrected"] = [d / f"corrected_{b}.zarr" for b in range(len(blocks))]
     for b, (start, stop) in enumerate(blocks):

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from stex.labeling import (EdgeFeatures, frame_problem, label_sequence, spatial_features,
-                           temporal_cost, total_energy)
+from stex.labeling import (EdgeFeatures, frame_problem, glimpse_sources, label_sequence,
+                           spatial_features, temporal_cost, total_energy)
 
 
 def _grid_pairs(n):
@@ -106,3 +106,21 @@ def test_temporal_term_makes_labels_steadier():
     on = label_sequence(**P, omega_t=20.0, max_rounds=6)
     switches = lambda L: int(((L[1:] != L[:-1]) & (L[1:] >= 0)).sum())
     assert switches(on["labels"]) < switches(off["labels"])
+
+
+def test_glimpse_sources_pick_the_best_glimpse_of_a_source_frame():
+    T, F = 5, 4
+    glimpsed = np.zeros((T, F), bool)
+    cos = np.zeros((T, F), np.float32)
+    glimpsed[[1, 2, 3], 0] = True                 # face 0: glimpsed thrice, best at frame 3 ...
+    cos[[1, 2, 3], 0] = [0.2, 0.5, 0.9]
+    glimpsed[[0, 4], 1] = True                    # face 1: only by frame 4 among the sources
+    cos[[0, 4], 1] = [0.9, 0.1]
+    glimpsed[:, 2] = True                         # face 2: seen somewhere (not never_seen)
+    cos[:, 2] = 0.7
+    never = np.array([True, True, False, True])   # face 3: never seen, never glimpsed
+    is_source = np.array([False, True, True, False, True])
+    got = glimpse_sources(glimpsed, cos, never, is_source)
+    assert got.dtype == np.int32
+    assert got.tolist() == [2, 4, -1, -1]         # ... but frame 3 is not a source
+    assert glimpse_sources(glimpsed, cos, never, np.ones(T, bool)).tolist() == [3, 0, -1, -1]

@@ -84,6 +84,8 @@ def test_texture_outputs(tiny_run):
     L = labels["labels"][...]
     never = labels["never_seen"][...]
     assert L.shape == (6, len(never)) and (L[:, ~never] >= 0).all() and (L[:, never] == -1).all()
+    glimpse = labels["glimpse_source"][...]
+    assert not (never & (glimpse >= 0)).any() and (L[:, glimpse >= 0] == glimpse[glimpse >= 0]).all()
     assert np.all(np.diff(labels["energy"][...]) <= 1e-9)
     corrected = FrameSequence(sorted((res / "corrected").glob("block_*.zarr")), "corrected")
     assert corrected.frame_ids == list(range(6))

@@ -6,6 +6,7 @@ rule labeling:
     input:
         template=f"{RESULTS}/template.zarr",
         observations=f"{RESULTS}/observations.zarr",
+        projection=f"{RESULTS}/projection.zarr",
         tables=expand(f"{RESULTS}/tables/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/labels.zarr"),

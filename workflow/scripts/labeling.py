@@ -4,4 +4,5 @@ from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])
 write_labels(snakemake.input.observations, list(snakemake.input.tables), snakemake.input.template,
-             snakemake.params.labeling, snakemake.output[0], threads=snakemake.threads)
+             snakemake.params.labeling, snakemake.output[0], threads=snakemake.threads,
+             projection_path=snakemake.input.projection)
