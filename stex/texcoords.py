@@ -40,6 +40,16 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   changes (the demo's wrinkles and tint patch; real folds, specularities) then stops dragging ξ:
   with Eq. 1 the demo's wrinkle stripes pulled whole regions 10-40 px off (p99 |ξ − Φ| 23 px for
   a drift whose p99 is 5 px), and E at the true coordinates was 3.7x E at the optimum.
+- **Local photometric model** (``face_photometric``, ours; 'none' = Eq. 1, the authors): each
+  (t, f) pair's residuals are taken after removing their mean over the face's samples ('offset')
+  and, with 'affine' (default), after fitting the contrast a_tf of its samples to the proxy's
+  (least squares, clamped to [0.5, 2]): r_s = a_tf g_t C_t(p_s) − P_fs − m_tf, m_tf their mean.
+  Wrinkle shading and a changing tint change a face's brightness and contrast at some frames, and
+  a single static proxy per sample can explain that only by moving ξ. The 2×2 steps then use the
+  exact Gauss-Newton blocks of the mean-removed residuals (corner j's Jacobian a β_sj ∇C_s − M_j,
+  M_j its mean over the samples; a_tf held at its value for the step, refitted by the energy).
+  Demo, 120 frames (harness of bench_texcoords): 65.0 % median drift reduction with 'none',
+  67.0 % with 'offset', 68.2 % with 'affine'. Not with solver 'sparse'.
 - **Gauss-Newton, solver 'jacobi'** (the authors' scheme): every (t, v) takes a 2×2 step from
   its own normal equations with its neighbours held fixed. Photometric residuals
   r = g_t C_t(p) − P over the samples of the faces around v visible at t, weighted by ω_tf, and
@@ -114,14 +124,15 @@ interpolation instead of their non-standard 2×2 blend; steps are accepted only 
 rise (the authors accept every step); the mask test is made on the proxy weights only (the
 ``projection`` stage already dropped masked-out vertices and faces); ``rel_tol`` 1e-4 (theirs
 1e-5). Options that are ours (the authors' behaviour in brackets): ``gauge`` 'mean' ['none'],
-``edge_mode`` 'vector' ['length'], ``gain`` 'frame' ['none'], ``robust_grey`` 4 [0] and
-``solver`` 'sparse' ['jacobi', the default]. Measured with ``benchmarks/bench_texcoords.py``
-(median |ξ − truth| relative to |Φ − truth|): demo, 120 frames with the current degradations
-(exposure drift, wrinkles): 46.7 % reduction with gain 'none' and robust_grey 0, 65.0 % with the
-defaults (65.1 % with the same defaults and no exposure drift: the gain removes all of it); paper
-scale, 64 frames: 77.5 % and 85.6 % (the consensus bound, what no Eq.-1 optimiser can beat, is
-81.2 % and 86.9 %). On the demo the wrinkled frames stay the limit: they
-are down-weighted, not corrected, so their ξ follows the edge term from the static parts.
+``edge_mode`` 'vector' ['length'], ``gain`` 'frame' ['none'], ``robust_grey`` 4 [0],
+``face_photometric`` 'affine' ['none'] and ``solver`` 'sparse' ['jacobi', the default]. Measured
+with ``benchmarks/bench_texcoords.py`` (median |ξ − truth| relative to |Φ − truth|): demo, 120
+frames with the current degradations (exposure drift, wrinkles): 46.7 % reduction with gain
+'none', robust_grey 0 and face_photometric 'none'; 65.0 % with gain and robust weights; 68.2 %
+with the defaults (stage 71 s instead of ~130 s: the levels converge in fewer steps); paper
+scale, 64 frames: 77.5 % and 85.6 % before the face model (the consensus bound, what no Eq.-1
+optimiser can beat, is 81.2 % and 86.9 %). On the demo the wrinkled frames stay the limit: their
+shading is not affine inside a face, so they are down-weighted rather than explained.
 """
 
 from __future__ import annotations
@@ -148,9 +159,16 @@ SAMPLE_BARY = np.array([
     (.5, .5, 0), (0, .5, .5), (.5, 0, .5), (.2, .2, .6), (.6, .2, .2), (.2, .6, .2),
     (.1, .5, .4), (.5, .4, .1), (.4, .1, .5)], dtype=np.float64)
 
+#: texcoords.face_photometric modes, in the order of the kernels' integer code
+FACE_PHOTOMETRIC = ("none", "offset", "affine")
+
+
 def texcoords_params(params: dict | None) -> dict:
     """``params`` (the ``texcoords`` config section) completed with the schema defaults, checked."""
     p = section_params("texcoords", params)
+    if p["solver"] == "sparse" and p["face_photometric"] != "none":
+        raise ValueError("texcoords.solver 'sparse' needs texcoords.face_photometric 'none' "
+                         f"(got {p['face_photometric']!r}): its blocks are the plain residuals'")
     if not 1 <= int(p["samples_per_face"]) <= len(SAMPLE_BARY):
         raise ValueError(f"texcoords.samples_per_face must be in 1..{len(SAMPLE_BARY)}")
     if int(p["levels"]) < 1 or int(p["keyframe_step"]) < 1:
@@ -335,23 +353,56 @@ def _proxy_kernel(C, inside, order, fstart, pk, wq, gain, bg_weight, proxy):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _face_err_kernel(C, pk, pf, gain, proxy, out):
-    """out[q] = Σ_s (g_k·C[q, s] − P[pf[q], s])² (grey levels²)."""
+def _face_err_kernel(C, pk, pf, gain, proxy, face_mean, out):
+    """out[q] = Σ_s (r_s − m)², r_s = g_k·C[q, s] − P[pf[q], s] (grey levels²); m = the mean of
+    the face's residuals with ``face_mean``, else 0."""
     Q = C.shape[0]
     S = C.shape[1]
     for q in prange(Q):
         g = gain[pk[q]]
         f = pf[q]
+        a, m = _face_fit(C, q, f, g, proxy, face_mean)
         e = 0.0
         for s in range(S):
-            r = g * C[q, s] - proxy[f, s]
+            r = a * g * C[q, s] - proxy[f, s] - m
             e += r * r
         out[q] = e
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _face_fit(C, q, f, g, proxy, face_mean):
+    """(a, m) of the residuals a·g·C_s − P_s − m of pair q (face f) by ``face_photometric``
+    (index in FACE_PHOTOMETRIC): none (1, 0); offset: m their mean; affine: also a, the
+    least-squares contrast of the face's samples to the proxy's, clamped to [0.5, 2]."""
+    S = C.shape[1]
+    if face_mean == 0:
+        return 1.0, 0.0
+    a = 1.0
+    if face_mean == 2:
+        xm = 0.0
+        ym = 0.0
+        for s in range(S):
+            xm += g * C[q, s]
+            ym += proxy[f, s]
+        xm /= S
+        ym /= S
+        sxy = 0.0
+        sxx = 0.0
+        for s in range(S):
+            dx = g * C[q, s] - xm
+            sxy += dx * (proxy[f, s] - ym)
+            sxx += dx * dx
+        if sxx > 1e-9:
+            a = min(max(sxy / sxx, 0.5), 2.0)
+    m = 0.0
+    for s in range(S):
+        m += a * g * C[q, s] - proxy[f, s]
+    return a, m / S
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary, proxy, C, qs,
-               edge_w, edge_vec, clamp, step):
+               edge_w, edge_vec, clamp, face_mean, step):
     """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed); the
     photometric residuals g_k·C_k(p) − P of face f at frame k are weighted by omega[k, f].
     C (Q, S): the samples at ``xi`` of the visible pairs, frame-major (:func:`_sample_kernel`),
@@ -372,7 +423,33 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
                 continue
             q += 1
             om = omega[k, f]
+            if face_mean:
+                # residuals r_s − mean_s r: exact Gauss-Newton blocks of the corners, whose
+                # Jacobians are β_sj ∇C_s − M_j with M_j = mean_s β_sj ∇C_s
+                a, m = _face_fit(C, q, f, gk, proxy, face_mean)
+                M = np.zeros((3, 2))
+                for s in range(S):
+                    u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
+                    gx, gy = _grad(buf, o, h, w, u, v, a * gk)
+                    r = a * gk * C[q, s] - proxy[f, s] - m
+                    for j in range(3):
+                        b = bary[s, j]
+                        vi = faces[f, j]
+                        A[vi, 0] += om * b * b * gx * gx
+                        A[vi, 1] += om * b * b * gx * gy
+                        A[vi, 2] += om * b * b * gy * gy
+                        g[vi, 0] += om * b * gx * r
+                        g[vi, 1] += om * b * gy * r
+                        M[j, 0] += b * gx / S
+                        M[j, 1] += b * gy / S
+                for j in range(3):
+                    vi = faces[f, j]
+                    A[vi, 0] -= om * S * M[j, 0] * M[j, 0]
+                    A[vi, 1] -= om * S * M[j, 0] * M[j, 1]
+                    A[vi, 2] -= om * S * M[j, 1] * M[j, 1]
             for s in range(S):
+                if face_mean:
+                    break
                 u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                 r = gk * C[q, s] - proxy[f, s]
                 gx, gy = _grad(buf, o, h, w, u, v, gk)
@@ -637,6 +714,7 @@ class _Photometric:
         c = float(params.get("robust_grey", 0.0))
         self.c2 = c * c * bary.shape[0]
         self.gain_mode = params.get("gain", "none")
+        self.face_mean = FACE_PHOTOMETRIC.index(params.get("face_photometric", "none"))
         self.gain = np.ones(fvis.shape[0])
         # visible (frame, face) pairs, frame-major; and the same pairs grouped by face
         self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))
@@ -667,7 +745,7 @@ class _Photometric:
     def face_err(self, C, P) -> np.ndarray:
         e = np.zeros(len(self.pk))
         if len(self.pk):
-            _face_err_kernel(C, self.pk, self.pf, self.gain, P, e)
+            _face_err_kernel(C, self.pk, self.pf, self.gain, P, self.face_mean, e)
         return e
 
     def weights(self, e) -> np.ndarray:
@@ -956,7 +1034,8 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
             rel = (J - Jc) / J
         else:
             _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
-                       faces, fvis, omega, photo.gain, bary, P, C, photo.qs, edge_w, edge_vec, clamp, step)
+                       faces, fvis, omega, photo.gain, bary, P, C, photo.qs, edge_w, edge_vec, clamp,
+                       photo.face_mean, step)
             # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
             for _b in range(int(p["backtracks"]) + 1):
                 cand = finish(xi + alpha * step)
