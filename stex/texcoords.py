@@ -130,8 +130,8 @@ with ``benchmarks/bench_texcoords.py`` (median |ξ − truth| relative to |Φ �
 frames with the current degradations (exposure drift, wrinkles): 46.7 % reduction with gain
 'none', robust_grey 0 and face_photometric 'none'; 65.0 % with gain and robust weights; 68.2 %
 with the defaults (stage 71 s instead of ~130 s: the levels converge in fewer steps); paper
-scale, 64 frames: 77.5 % and 85.6 % before the face model (the consensus bound, what no Eq.-1
-optimiser can beat, is 81.2 % and 86.9 %). On the demo the wrinkled frames stay the limit: their
+scale, all 265 frames: 92.8 % with the defaults (91.7 % before the face model; the consensus
+bound, what no Eq.-1 optimiser can beat, is 81.2 % on the demo and 94.5 % there). On the demo the wrinkled frames stay the limit: their
 shading is not affine inside a face, so they are down-weighted rather than explained.
 """
 
