@@ -62,6 +62,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stex import evaluate as ev
+from stex.io import short_ids
 from stex.camera import Calibration, transform_points
 
 log = logging.getLogger("stex.evaluation")
@@ -589,13 +590,8 @@ def _finite_or_none(x):
 
 def _check_frames(name, path, ids, expected):
     if list(ids) != list(expected):
-        raise ValueError(f"{name} store {path} holds frames {_short(ids)}, the scene has "
-                         f"{_short(expected)}")
-
-
-def _short(ids):
-    ids = list(ids)
-    return f"{len(ids)} frames [{ids[0]}..{ids[-1]}]" if len(ids) > 4 else str(ids)
+        raise ValueError(f"{name} store {path} holds frames {short_ids(ids)}, the scene has "
+                         f"{short_ids(expected)}")
 
 
 def _crop_box(masks, pad=4):
@@ -707,8 +703,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     global_sources = [int(i) for i in global_store.attrs["source_frames"]]
     if not set(global_sources) <= set(ids):
         raise ValueError(f"global_texture store {global_texture_path} was built from frames "
-                         f"{_short(global_sources)} that are not all frames of the scene "
-                         f"{scene_path} ({_short(ids)})")
+                         f"{short_ids(global_sources)} that are not all frames of the scene "
+                         f"{scene_path} ({short_ids(ids)})")
     seconds_global = float(global_store.attrs["seconds"])
 
     # held-out protocol: the frames allowed to texture
@@ -721,8 +717,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
         if sorted(sources) != sorted(global_sources):
             raise ValueError(f"global_texture store {global_texture_path} was built from source "
-                             f"frames {_short(sorted(global_sources))}, the tables "
-                             f"{list(tables_paths)[0]} allow {_short(sorted(sources))} "
+                             f"frames {short_ids(sorted(global_sources))}, the tables "
+                             f"{list(tables_paths)[0]} allow {short_ids(sorted(sources))} "
                              f"(global_texture and tables must use the same source_stride)")
     stride_label = "" if len(sources) == T else (f"(1/{k})" if k else f"({len(sources)}/{T} frames)")
     is_source = np.array([i in sources for i in ids])
@@ -731,11 +727,11 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     bad = [f for f in score_ids if f not in ids]
     if bad or not score_ids:
         raise ValueError(f"frames to score {bad or score_ids} are not frames of the scene "
-                         f"{scene_path} ({_short(ids)})")
+                         f"{scene_path} ({short_ids(ids)})")
     pos_of = {fid: k for k, fid in enumerate(ids)}
     fig_t = score_ids[len(score_ids) // 2] if p["figure_frame"] is None else int(p["figure_frame"])
     if fig_t not in pos_of:
-        raise ValueError(f"figure_frame {fig_t} is not a frame of the scene ({_short(ids)})")
+        raise ValueError(f"figure_frame {fig_t} is not a frame of the scene ({short_ids(ids)})")
     fig_pos = pos_of[fig_t]
 
     # ground truth

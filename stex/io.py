@@ -504,6 +504,12 @@ def position_range(positions, n_frames: int, what: str) -> tuple[int, int]:
     return start, stop
 
 
+def short_ids(ids) -> str:
+    """A frame-id list for an error message: whole up to 4, else its count and range."""
+    ids = list(ids)
+    return f"{len(ids)} frames [{ids[0]}..{ids[-1]}]" if len(ids) > 4 else str(ids)
+
+
 class FrameSequence:
     """Frame-block stores of one artifact read as one sequence of frames.
 

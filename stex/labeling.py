@@ -400,7 +400,7 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
     at every frame (:func:`glimpse_sources`); ``never_seen`` then holds the faces left without
     any source."""
     from stex.config import section_params
-    from stex.io import create_store, open_store
+    from stex.io import create_store, open_store, short_ids
 
     p = section_params("labeling", params)
     args = labeling_inputs(observations_path, tables_paths, template_path, p)
@@ -415,12 +415,10 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
     if projection_path is not None and never.any():
         proj = open_store(projection_path, "projection")
         if list(proj.attrs["frame_ids"]) != ids:
-            raise ValueError(f"{projection_path} holds frames {_short_ids(proj.attrs['frame_ids'])}, "
-                             f"the observations {_short_ids(ids)}")
-        sources = set(ids)
-        for path in tables_paths:
-            sources = {int(i) for i in open_store(path, "tables").attrs.get("source_frames", ids)}
-            break
+            raise ValueError(f"{projection_path} holds frames {short_ids(proj.attrs['frame_ids'])}, "
+                             f"the observations {short_ids(ids)}")
+        # the held-out protocol's source frames, as the tables ranked them
+        sources = set(open_store(tables_paths[0], "tables").attrs.get("source_frames", ids))
         is_source = np.array([i in sources for i in ids])
         glimpse = glimpse_sources(proj["face_glimpsed"][...], proj["face_cos"][...], never, is_source)
         got = glimpse >= 0
@@ -437,11 +435,6 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
         store.write("frame_energy", res["frame_energy"])
         store.write("never_seen", never)
         store.write("glimpse_source", glimpse)
-
-
-def _short_ids(ids) -> str:
-    ids = list(ids)
-    return str(ids) if len(ids) <= 6 else f"[{ids[0]}, {ids[1]}, ..., {ids[-1]}] ({len(ids)})"
 
 
 def preview_labels(volume_paths, corrected_paths, observations_path, template_path, out,

@@ -156,9 +156,7 @@ def project_frame(vertices_depth, faces, calibration: Calibration, params: dict 
     vvis &= inside
     # face_glimpsed: the face's own test with its corners inside the margin and the mask as
     # segmented — faces on a silhouette fail the vertex rule below although the image shows them
-    own = fvis.copy()
-    if F.shape[0]:
-        own &= inside[F].all(axis=1)
+    own = fvis & inside[F].all(axis=1)
     if p["use_mask"]:
         if mask is None:
             raise ValueError("projection.use_mask is set but no mask was given")
@@ -169,9 +167,8 @@ def project_frame(vertices_depth, faces, calibration: Calibration, params: dict 
         c = np.clip(np.floor(u + 0.5).astype(np.int64), 0, Wc - 1)
         r = np.clip(np.floor(v + 0.5).astype(np.int64), 0, Hc - 1)
         vvis &= fg[r, c]
-        if F.shape[0]:
-            # not eroded: on thin parts (the Fox's legs, a few px wide) that keeps nothing
-            own &= mask[r, c][F].all(axis=1)
+        # not eroded: on thin parts (the Fox's legs, a few px wide) that keeps nothing
+        own &= mask[r, c][F].all(axis=1)
     # a face's frame set is the intersection of its vertices' sets (the authors' rule)
     if F.shape[0]:
         fvis &= vvis[F].all(axis=1)

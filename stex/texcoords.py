@@ -131,8 +131,9 @@ frames with the current degradations (exposure drift, wrinkles): 46.7 % reductio
 'none', robust_grey 0 and face_photometric 'none'; 65.0 % with gain and robust weights; 68.2 %
 with the defaults (stage 71 s instead of ~130 s: the levels converge in fewer steps); paper
 scale, all 265 frames: 92.8 % with the defaults (91.7 % before the face model; the consensus
-bound, what no Eq.-1 optimiser can beat, is 81.2 % on the demo and 94.5 % there). On the demo the wrinkled frames stay the limit: their
-shading is not affine inside a face, so they are down-weighted rather than explained.
+bound, what no Eq.-1 optimiser can beat, is 81.2 % on the demo and 94.5 % there). On the demo
+the wrinkled frames stay the limit: their shading is not affine inside a face, so they are
+down-weighted rather than explained.
 """
 
 from __future__ import annotations
@@ -353,15 +354,15 @@ def _proxy_kernel(C, inside, order, fstart, pk, wq, gain, bg_weight, proxy):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _face_err_kernel(C, pk, pf, gain, proxy, face_mean, out):
-    """out[q] = Σ_s (r_s − m)², r_s = g_k·C[q, s] − P[pf[q], s] (grey levels²); m = the mean of
-    the face's residuals with ``face_mean``, else 0."""
+def _face_err_kernel(C, pk, pf, gain, proxy, face_model, out):
+    """out[q] = Σ_s (a·g_k·C[q, s] − P[pf[q], s] − m)² (grey levels²), (a, m) the pair's fit by
+    ``face_model`` (:func:`_face_fit`; (1, 0) for 'none')."""
     Q = C.shape[0]
     S = C.shape[1]
     for q in prange(Q):
         g = gain[pk[q]]
         f = pf[q]
-        a, m = _face_fit(C, q, f, g, proxy, face_mean)
+        a, m = _face_fit(C, q, f, g, proxy, face_model)
         e = 0.0
         for s in range(S):
             r = a * g * C[q, s] - proxy[f, s] - m
@@ -370,15 +371,15 @@ def _face_err_kernel(C, pk, pf, gain, proxy, face_mean, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _face_fit(C, q, f, g, proxy, face_mean):
+def _face_fit(C, q, f, g, proxy, face_model):
     """(a, m) of the residuals a·g·C_s − P_s − m of pair q (face f) by ``face_photometric``
     (index in FACE_PHOTOMETRIC): none (1, 0); offset: m their mean; affine: also a, the
     least-squares contrast of the face's samples to the proxy's, clamped to [0.5, 2]."""
     S = C.shape[1]
-    if face_mean == 0:
+    if face_model == 0:
         return 1.0, 0.0
     a = 1.0
-    if face_mean == 2:
+    if face_model == 2:
         xm = 0.0
         ym = 0.0
         for s in range(S):
@@ -402,9 +403,10 @@ def _face_fit(C, q, f, g, proxy, face_mean):
 
 @njit(cache=True, nogil=True, parallel=True)
 def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary, proxy, C, qs,
-               edge_w, edge_vec, clamp, face_mean, step):
+               edge_w, edge_vec, clamp, face_model, step):
     """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed); the
-    photometric residuals g_k·C_k(p) − P of face f at frame k are weighted by omega[k, f].
+    photometric residuals g_k·C_k(p) − P of face f at frame k (with ``face_model`` > 0, the
+    face's fitted residuals, :func:`_face_fit`) are weighted by omega[k, f].
     C (Q, S): the samples at ``xi`` of the visible pairs, frame-major (:func:`_sample_kernel`),
     frame k's pairs at qs[k]..qs[k + 1] in face order."""
     K, V = xi.shape[0], xi.shape[1]
@@ -413,6 +415,7 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
     for k in prange(K):
         A = np.zeros((V, 3))   # a11, a12, a22
         g = np.zeros((V, 2))
+        M = np.zeros((3, 2))   # a face's mean corner Jacobians (face_model > 0)
         o = off[k]
         h = hh[k]
         w = ww[k]
@@ -423,11 +426,12 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
                 continue
             q += 1
             om = omega[k, f]
-            if face_mean:
-                # residuals r_s − mean_s r: exact Gauss-Newton blocks of the corners, whose
-                # Jacobians are β_sj ∇C_s − M_j with M_j = mean_s β_sj ∇C_s
-                a, m = _face_fit(C, q, f, gk, proxy, face_mean)
-                M = np.zeros((3, 2))
+            if face_model:
+                # residuals a·g·C_s − P_s − m (:func:`_face_fit`): exact Gauss-Newton blocks of
+                # the corners, whose Jacobians are a β_sj ∇C_s − M_j, M_j = mean_s a β_sj ∇C_s
+                # (a held fixed for the step)
+                a, m = _face_fit(C, q, f, gk, proxy, face_model)
+                M[...] = 0.0
                 for s in range(S):
                     u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
                     gx, gy = _grad(buf, o, h, w, u, v, a * gk)
@@ -447,22 +451,21 @@ def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary
                     A[vi, 0] -= om * S * M[j, 0] * M[j, 0]
                     A[vi, 1] -= om * S * M[j, 0] * M[j, 1]
                     A[vi, 2] -= om * S * M[j, 1] * M[j, 1]
-            for s in range(S):
-                if face_mean:
-                    break
-                u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                r = gk * C[q, s] - proxy[f, s]
-                gx, gy = _grad(buf, o, h, w, u, v, gk)
-                for j in range(3):
-                    bj = om * bary[s, j]
-                    if bj <= 0.0:
-                        continue
-                    vi = faces[f, j]
-                    A[vi, 0] += bj * gx * gx
-                    A[vi, 1] += bj * gx * gy
-                    A[vi, 2] += bj * gy * gy
-                    g[vi, 0] += bj * gx * r
-                    g[vi, 1] += bj * gy * r
+            else:
+                for s in range(S):
+                    u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
+                    r = gk * C[q, s] - proxy[f, s]
+                    gx, gy = _grad(buf, o, h, w, u, v, gk)
+                    for j in range(3):
+                        bj = om * bary[s, j]
+                        if bj <= 0.0:
+                            continue
+                        vi = faces[f, j]
+                        A[vi, 0] += bj * gx * gx
+                        A[vi, 1] += bj * gx * gy
+                        A[vi, 2] += bj * gy * gy
+                        g[vi, 0] += bj * gx * r
+                        g[vi, 1] += bj * gy * r
             if edge_w > 0.0:
                 for j in range(3):
                     vi = faces[f, j]
@@ -714,7 +717,7 @@ class _Photometric:
         c = float(params.get("robust_grey", 0.0))
         self.c2 = c * c * bary.shape[0]
         self.gain_mode = params.get("gain", "none")
-        self.face_mean = FACE_PHOTOMETRIC.index(params.get("face_photometric", "none"))
+        self.face_model = FACE_PHOTOMETRIC.index(params.get("face_photometric", "none"))
         self.gain = np.ones(fvis.shape[0])
         # visible (frame, face) pairs, frame-major; and the same pairs grouped by face
         self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))
@@ -745,7 +748,7 @@ class _Photometric:
     def face_err(self, C, P) -> np.ndarray:
         e = np.zeros(len(self.pk))
         if len(self.pk):
-            _face_err_kernel(C, self.pk, self.pf, self.gain, P, self.face_mean, e)
+            _face_err_kernel(C, self.pk, self.pf, self.gain, P, self.face_model, e)
         return e
 
     def weights(self, e) -> np.ndarray:
@@ -1035,7 +1038,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
         else:
             _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
                        faces, fvis, omega, photo.gain, bary, P, C, photo.qs, edge_w, edge_vec, clamp,
-                       photo.face_mean, step)
+                       photo.face_model, step)
             # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
             for _b in range(int(p["backtracks"]) + 1):
                 cand = finish(xi + alpha * step)
