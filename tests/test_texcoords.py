@@ -153,6 +153,21 @@ def test_gauge_holds_the_mean_displacement():
         texcoords_params({"gauge": "median"})
 
 
+def test_weighted_gauge_trusts_the_frontal_frame():
+    """gauge 'weighted': the mean of ξ − Φ weighted by the proxy weights (face cosines) stays 0,
+    so the frame seen frontally (cos 0.8) keeps its Φ more than the grazing one (cos 0.2): the
+    relative shift is split 0.2 / 0.8 instead of 0.5 / 0.5."""
+    load, phi, valid, fvis, fcos, F = _toy((2.5, -1.5))
+    fcos = np.stack([np.full(len(F), 0.8), np.full(len(F), 0.2)])
+    r = optimize_texcoords(load, phi, valid, fvis, fcos, F, (160, 120),
+                           dict(FAST, keyframe_step=1, iterations=60, refine_iterations=10,
+                                gauge="weighted", edge_mode="vector", edge_weight=3.0), progress=False)
+    d = r["xi"].astype(np.float64) - phi
+    np.testing.assert_allclose(0.8 * d[0].mean(0) + 0.2 * d[1].mean(0), 0.0, atol=1e-3)
+    np.testing.assert_allclose(d[1].mean(0), [2.0, -1.2], atol=0.1)
+    np.testing.assert_allclose(d[0].mean(0), [-0.5, 0.3], atol=0.1)
+
+
 def _shift_error(r, shift):
     """Median over the vertices of |ξ_1 − ξ_0 − shift| (px): only the relative shift is observable."""
     rel = (r["xi"][1] - r["xi"][0]).astype(np.float64)
