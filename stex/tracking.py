@@ -3,7 +3,10 @@
 Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo et al. (2015):
 
 - A deformation graph of nodes sampled over the template with geodesic spacing; each vertex is
-  bound to its k geodesically nearest nodes with weights (1 - d/d_max)^2, normalised.
+  bound to its k geodesically nearest nodes with weights (1 - d/d_max)^2, normalised. Nodes are
+  linked to their geodesic neighbours and, on a closed template, also through the solid (ours:
+  links whose midpoint is inside the mesh), so the side the camera does not see follows the
+  side it sees.
 - Each frame solves for an **incremental** warp from the previous frame's mesh (as Guo et al.):
   per node an affine A_j and translation t_j, x'_i = sum_j w_ij (A_j (x_i - g_j) + g_j + t_j).
 - Energy: projective point-to-plane data term against the frame's foreground depth (Huber
@@ -77,13 +80,15 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
 
 
 def build_graph(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, k: int = 4,
-                node_neighbours: int = 6) -> DeformationGraph:
+                node_neighbours: int = 6, volume_links: int = 0,
+                volume_range: float = 7.0) -> DeformationGraph:
     """Sample nodes with geodesic spacing ``spacing_m`` and bind each vertex to ``k`` nodes.
 
     Greedy covering in vertex order (deterministic): a vertex not within ``spacing_m`` (geodesic,
     along mesh edges) of an existing node becomes a node. Vertices are bound to their k
     geodesically nearest nodes within 2.5 spacings (Euclidean nearest if none, e.g. on a tiny
-    island); nodes are linked to up to ``node_neighbours`` nearest nodes within that range.
+    island); nodes are linked to up to ``node_neighbours`` nearest nodes within that range, and,
+    with ``volume_links`` > 0 on a closed mesh, through the solid (:func:`volume_links_through_solid`).
     """
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -139,7 +144,45 @@ def build_graph(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, k: in
                 if np.isfinite(DN[j, kq]):
                     pairs.append((min(j, kq), max(j, kq)))
     edges = np.unique(np.asarray(pairs, np.int32).reshape(-1, 2), axis=0)
+    if volume_links > 0:
+        edges = volume_links_through_solid(V, F, nodes, edges, volume_links, volume_range * spacing_m)
     return DeformationGraph(nodes, vn.astype(np.int32), w, edges)
+
+
+def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: np.ndarray,
+                               edges: np.ndarray, k: int, max_distance_m: float) -> np.ndarray:
+    """``edges`` (E, 2) int32 plus links from every node to its ``k`` Euclidean nearest nodes
+    within ``max_distance_m`` whose midpoint lies inside the closed mesh.
+
+    Why: along the surface, a closed body's far side is linked to the side the camera sees only
+    around the silhouette, so while it is unseen the regularisers carry the seen side's bend and
+    twist over to it late and weakly; a link through the solid ties the two sides directly (the
+    volumetric idea of VolumeDeform / DynamicFusion's Euclidean graph). A link whose midpoint is
+    outside (between two legs, across a concavity) is not made, and neither is any on an open
+    mesh (a template from one depth frame has no inside): (E', 2) is then ``edges`` unchanged.
+    """
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    if not mesh.is_watertight or len(nodes) < 2:
+        log.info("deformation graph: mesh not closed, no links through the solid")
+        return edges
+    P = mesh.vertices[nodes]
+    d, idx = cKDTree(P).query(P, k=min(k + 1, len(P)))
+    j = np.repeat(np.arange(len(P)), idx.shape[1] - 1)
+    q = idx[:, 1:].ravel()
+    near = d[:, 1:].ravel() <= max_distance_m
+    cand = np.unique(np.sort(np.stack([j[near], q[near]], 1), axis=1), axis=0)
+    if len(edges):
+        known = set(map(tuple, np.asarray(edges).tolist()))
+        cand = cand[[tuple(c) not in known for c in cand.tolist()]]
+    if not len(cand):
+        return edges
+    inside = mesh.contains(0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))  # ray parity: any winding
+    log.info("deformation graph: %d links through the solid (of %d candidates)", int(inside.sum()), len(cand))
+    out = np.concatenate([np.asarray(edges, np.int32).reshape(-1, 2), cand[inside].astype(np.int32)])
+    return np.unique(out, axis=0)
 
 
 # -- deformation ----------------------------------------------------------------------------------
@@ -227,6 +270,8 @@ class TrackParams:
 
     node_spacing_m: float = 0.05
     k_nodes: int = 4
+    volume_links: int = 20
+    volume_link_range: float = 9.0
     w_rot: float = 10.0
     w_reg: float = 1.0
     l0_lambda: float = 1e-4
@@ -737,7 +782,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     """
     V0 = np.asarray(template_vertices, np.float64)
     F = np.asarray(faces, np.int64)
-    graph = build_graph(V0, F, params.node_spacing_m, params.k_nodes)
+    graph = build_graph(V0, F, params.node_spacing_m, params.k_nodes,
+                        volume_links=params.volume_links, volume_range=params.volume_link_range)
     log.info("tracking: %d vertices, %d nodes, %d node edges", len(V0), len(graph.nodes), len(graph.edges))
     # The rigid stage is the same solve with one node that carries every vertex.
     centre = int(np.argmin(np.linalg.norm(V0 - V0.mean(0), axis=1)))

@@ -144,6 +144,39 @@ def test_real_pairs_fit_better_than_rigid():
         assert res["ed"] < res["rigid"] <= before + 1e-4, (before, res)
 
 
+def test_volume_links_run_through_the_solid_only():
+    """Two closed balls side by side: links cross each ball's inside but never the air between
+    the balls; an open mesh (a hemisphere) gets none."""
+    import trimesh
+
+    from stex.tracking import build_graph
+    a = trimesh.creation.icosphere(3, radius=0.1)
+    b = a.copy()
+    b.apply_translation([0.23, 0, 0])
+    both = trimesh.util.concatenate([a, b])
+    V, F = np.asarray(both.vertices), np.asarray(both.faces)
+    plain = build_graph(V, F, 0.03)
+    g = build_graph(V, F, 0.03, volume_links=16, volume_range=8.0)
+    P = V[g.nodes]
+    side = P[:, 0] > 0.115
+    extra = {tuple(e) for e in g.edges.tolist()} - {tuple(e) for e in plain.edges.tolist()}
+    assert len(extra) > 20
+    extra = np.array(sorted(extra))
+    assert not np.any(side[extra[:, 0]] != side[extra[:, 1]])          # none across the gap
+    mid = 0.5 * (P[extra[:, 0]] + P[extra[:, 1]])
+    centre = np.where(side[extra[:, 0]], 0.23, 0.0)[:, None] * np.array([[1.0, 0, 0]])
+    assert np.all(np.linalg.norm(mid - centre, axis=1) < 0.1)           # midpoints inside a ball
+    # the Euclidean neighbours across the gap exist: they were refused, not out of range
+    from scipy.spatial import cKDTree
+    d, idx = cKDTree(P).query(P, k=17)
+    assert np.any((side[idx[:, 1:]] != side[:, None]) & (d[:, 1:] <= 8 * 0.03))
+    keep = a.vertices[:, 2] > 0.0
+    hemi = a.submesh([np.flatnonzero(keep[a.faces].all(1))], append=True)
+    open_plain = build_graph(np.asarray(hemi.vertices), np.asarray(hemi.faces), 0.03)
+    open_vol = build_graph(np.asarray(hemi.vertices), np.asarray(hemi.faces), 0.03, volume_links=16)
+    np.testing.assert_array_equal(open_plain.edges, open_vol.edges)
+
+
 def test_track_params_defaults_match_the_schema():
     from dataclasses import asdict
 
