@@ -81,14 +81,15 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
 
 def build_graph(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, k: int = 4,
                 node_neighbours: int = 6, volume_links: int = 0,
-                volume_range: float = 7.0) -> DeformationGraph:
+                volume_range: float = 9.0) -> DeformationGraph:
     """Sample nodes with geodesic spacing ``spacing_m`` and bind each vertex to ``k`` nodes.
 
     Greedy covering in vertex order (deterministic): a vertex not within ``spacing_m`` (geodesic,
     along mesh edges) of an existing node becomes a node. Vertices are bound to their k
     geodesically nearest nodes within 2.5 spacings (Euclidean nearest if none, e.g. on a tiny
     island); nodes are linked to up to ``node_neighbours`` nearest nodes within that range, and,
-    with ``volume_links`` > 0 on a closed mesh, through the solid (:func:`volume_links_through_solid`).
+    with ``volume_links`` > 0 on a closed mesh, through the solid to up to that many nodes within
+    ``volume_range`` spacings (:func:`volume_links_through_solid`).
     """
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -165,7 +166,9 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
     from scipy.spatial import cKDTree
 
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
-    if not mesh.is_watertight or len(nodes) < 2:
+    if len(nodes) < 2:
+        return edges
+    if not mesh.is_watertight:
         log.info("deformation graph: mesh not closed, no links through the solid")
         return edges
     P = mesh.vertices[nodes]
