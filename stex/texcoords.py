@@ -873,19 +873,21 @@ def _vertex_used(fvis, faces, n_vertices):
     return used
 
 
-def _gauge_weights(fvis, fw, faces, n_vertices: int, gauge: str) -> np.ndarray:
+def _gauge_weights(fvis, fw, faces, used, gauge: str) -> np.ndarray:
     """(K, V) float64 weight of each (frame, vertex) in the gauge's mean displacement: 1 where
-    the vertex is a corner of a visible face ('mean'), or the mean proxy weight (cosine) of its
-    visible faces ('weighted'); 0 elsewhere."""
-    K = fvis.shape[0]
-    num = np.zeros((K, n_vertices))
-    cnt = np.zeros((K, n_vertices))
-    w = np.where(fvis, fw, 0.0) if gauge == "weighted" else fvis.astype(np.float64)
+    the vertex is ``used`` (a corner of a visible face; 'mean'), or the mean proxy weight (cosine)
+    of its visible faces ('weighted'); 0 elsewhere."""
+    if gauge != "weighted":
+        return used.astype(np.float64)
+    K, V = used.shape
+    num = np.zeros((K, V))
+    cnt = np.zeros((K, V))
+    w = np.where(fvis, fw, 0.0)
     for j in range(3):
         for k in range(K):
-            num[k] += np.bincount(faces[:, j], w[k], n_vertices)
-            cnt[k] += np.bincount(faces[:, j], fvis[k], n_vertices)
-    return np.where(cnt > 0, num / np.maximum(cnt, 1), 0.0)
+            num[k] += np.bincount(faces[:, j], w[k], V)
+            cnt[k] += np.bincount(faces[:, j], fvis[k], V)
+    return num / np.maximum(cnt, 1)
 
 
 def _edge_energy(xi, phi, faces, fvis, edge_w, edge_vec) -> float:
@@ -998,7 +1000,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     clamp = float(p["step_clamp_px"])
     sparse = p.get("solver", "jacobi") == "sparse"
     used = _vertex_used(fvis, faces, xi.shape[1])
-    gauge_w = _gauge_weights(fvis, fw, faces, xi.shape[1], p["gauge"])
+    gauge_w = _gauge_weights(fvis, fw, faces, used, p["gauge"])
     gauge_norm = np.maximum(gauge_w.sum(0), 1e-12)[:, None]
 
     def finish(step_xi):
