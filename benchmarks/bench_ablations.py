@@ -1,7 +1,8 @@
 """The paper's ablations, scored end to end by the evaluation code (issue 7, protocol 3).
 
 On a finished synthetic run (``snakemake --cores 2`` → results/demo) every variant re-runs the
-stages it changes into a scratch folder — tables (similarity global-only / local-only),
+stages it changes into a scratch folder — tables (similarity global-only / local-only, the
+strain term E_str off),
 labeling (temporal off / constant / selective, spatial selective weighting on), then the volume
 of every frame — and is scored by :func:`stex.evaluation.write_evaluation` on every
 ``--stride``-th frame, exactly as the workflow scores ``ours_uncorrected``: the variant's volume
@@ -50,6 +51,7 @@ from stex.volume import write_volume  # noqa: E402
 # name -> (tables overrides, labeling overrides); the first is the main run's configuration
 VARIANTS = {
     "ours (selective temporal, both similarities)": ({}, {}),
+    "without E_str (the paper's data term)": ({"omega_str": 0.0}, {}),
     "temporal off": ({}, {"temporal": "off"}),
     "temporal constant": ({}, {"temporal": "constant"}),
     "spatial selective on": ({}, {"spatial_selective": True}),

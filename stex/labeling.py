@@ -353,7 +353,9 @@ def labeling_inputs(observations_path, tables_paths, template_path, params: dict
     tp = blocks[0].attrs["params"]            # the data term is weighted as it was ranked
     cand = np.concatenate([b["candidates"][...] for b in blocks])
     unary = np.concatenate([unary_terms(b["e_qual"][...], b["e_glo"][...], b["e_loc"][...],
-                                        tp["omega_g"], tp["similarity"]) for b in blocks])
+                                        tp["omega_g"], tp["similarity"],
+                                        b["e_str"][...] if "e_str" in b else None,
+                                        tp.get("omega_str", 0.0)) for b in blocks])
     unary = unary.astype(np.float32)
     face_visible = np.asarray(obs["face_visible"][...], bool)
     has_dyn = "dynamism" in obs

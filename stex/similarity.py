@@ -69,6 +69,20 @@ non-negative and unit length); −1 means identical local shape.
   memory is (target_chunk + 1) × V × D × 4 bytes (+ the caller's table) whatever T is. The
   workflow calls them per block of target frames.
 
+E_str — local strain (:func:`face_strain`, :func:`strain_similarity`; not in the paper)
+------------------------------------------------------------------------------------------
+E_str(t, f, l) = min(1, ‖s_f(t) − s_f(l)‖₁ / clip) ∈ [0, 1], where s_f(t) is the log stretch of
+face f's three edges at frame t relative to the template (ln |e_k(t)| − ln |e_k(rest)|), averaged
+``rings`` times over the faces sharing a vertex. The paper's premise is "similar shape, similar
+texture"; SHOT describes the *orientation* of the surface around a vertex (normals), which a
+bend changes little on the convex side and a compression not at all, while folds and wrinkles
+of cloth and skin follow how the surface is *compressed or stretched*. Only differences
+s_f(t) − s_f(l) enter, so the rest shape cancels; the smoothing averages the tracking noise of
+single edges out. The tracked mesh gives s_f(t) also where the camera does not see f at t,
+which is where the data term matters most (the source of a face unseen at t is chosen by shape
+alone). On the demo ground truth it is what picks unwrinkled sources for an unwrinkled target
+(``benchmarks/bench_labeling.py``; the tables config documents the measured effect).
+
 Conventions: vertices in metres in depth-camera coordinates; poses 4x4 float64 with
 poses[t, l] mapping frame t's vertices onto frame l (x' = R x + t, :mod:`stex.poses`).
 """
@@ -98,6 +112,8 @@ __all__ = [
     "median_filter_vertices",
     "local_similarity_faces",
     "local_similarity_triples",
+    "face_strain",
+    "strain_similarity",
 ]
 
 #: SHOT length: 32 volumes (8 azimuth × 2 elevation × 2 radial) × 11 cosine bins
@@ -1054,3 +1070,77 @@ def local_similarity_triples(descriptors, faces, targets, face_ids, sources, med
 
     _stream(descriptors, nv, t, l, target_chunk, run)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# E_str: local strain
+# --------------------------------------------------------------------------------------------
+
+def face_strain(vertices, rest_vertices, faces, rings: int = 3) -> np.ndarray:
+    """Smoothed log stretch of every face's edges at every frame (module docstring, E_str).
+
+    Args:
+        vertices: (T, V, 3) float tracked vertices (m; numpy or zarr, read whole).
+        rest_vertices: (V, 3) float template vertices (m): the reference lengths.
+        faces: (F, 3) int.
+        rings: passes of averaging over the faces that share a vertex with the face (0 = none).
+
+    Returns:
+        (T, F, 3) float32: ln(|e_k(t)| / |e_k(rest)|) for the edges k = (v0 v1, v1 v2, v2 v0),
+        smoothed. A degenerate edge (zero length in the rest shape or at a frame) raises.
+    """
+    X = _check_frames_vertices(vertices)
+    R = _check_vertices(rest_vertices, "rest_vertices")
+    if R.shape[0] != X.shape[1]:
+        raise ValueError(f"rest_vertices has {R.shape[0]} vertices, vertices {X.shape[1]}")
+    Fc = _check_faces(faces, R.shape[0])
+    if int(rings) < 0:
+        raise ValueError(f"rings must be >= 0, got {rings}")
+    nF = Fc.shape[0]
+
+    def lengths(P):  # (..., V, 3) -> (..., F, 3)
+        return np.stack([np.linalg.norm(P[..., Fc[:, (k + 1) % 3], :] - P[..., Fc[:, k], :], axis=-1)
+                         for k in range(3)], axis=-1)
+
+    rest = lengths(R)
+    if not (rest > 0).all():
+        raise ValueError(f"face {int(np.argwhere(~(rest > 0))[0, 0])} has a zero-length edge in the rest shape")
+    out = np.empty((X.shape[0], nF, 3), np.float32)
+    # faces sharing a vertex, row-normalised: the averaging operator
+    inc = sp.csr_matrix((np.ones(Fc.size), (np.repeat(np.arange(nF), 3), Fc.ravel())),
+                        shape=(nF, R.shape[0]))
+    A = (inc @ inc.T).tocsr()
+    A.data[:] = 1.0
+    A = sp.diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
+    for t in range(X.shape[0]):
+        cur = lengths(X[t])
+        if not (cur > 0).all():
+            raise ValueError(f"frame {t}: face {int(np.argwhere(~(cur > 0))[0, 0])} has a zero-length edge")
+        s = np.log(cur / rest)
+        for _ in range(int(rings)):
+            s = A @ s
+        out[t] = s
+    return out
+
+
+def strain_similarity(strain, target: int, clip: float = 0.1) -> np.ndarray:
+    """E_str(target, f, l) for every source frame l and face f (module docstring).
+
+    Args:
+        strain: (T, F, 3) float from :func:`face_strain`.
+        target: sequence position t of the target frame.
+        clip: strain difference (sum over the 3 edges of |Δ ln length|) that counts as fully
+            dissimilar (1).
+
+    Returns:
+        (T, F) float32 in [0, 1]; row ``target`` is 0.
+    """
+    S = np.asarray(strain)
+    if S.ndim != 3 or S.shape[2] != 3:
+        raise ValueError(f"strain must be (T, F, 3), got {S.shape}")
+    t = int(target)
+    if not 0 <= t < S.shape[0]:
+        raise ValueError(f"target {t} outside 0..{S.shape[0] - 1}")
+    c = _positive(clip, "clip")
+    d = np.abs(S - S[t][None]).sum(axis=2, dtype=np.float32)
+    return np.minimum(d / np.float32(c), np.float32(1.0))

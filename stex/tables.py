@@ -3,7 +3,7 @@
 For a block of target frames t and every face f, the candidates are the frames l in which f is
 visible (``observations`` face_visible), scored by the data term of the paper's Eq. 2
 
-    U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l)
+    U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l) + ω_str E_str(t, f, l)
 
 - E_qual(f, l) = blurred + slanted (``observations``; 0, 1 or 2).
 - E_glo(t, l) ∈ [0, 1]: the clipped depth difference of K_{t→l}(M_t) and M_l over the union of
@@ -13,10 +13,14 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
   ω_g = 0.9 implies.
 - E_loc(t, f, l) = −(1/3) Σ_j τ_j(t)·τ_j(l) ∈ [−1, 0] over the face's three vertices, SHOT
   descriptors of the tracked meshes (``observations`` descriptors).
+- E_str(t, f, l) ∈ [0, 1]: the difference of the local strain (smoothed log edge stretch) of f
+  at t and at l on the tracked meshes (:func:`stex.similarity.strain_similarity`). Not in the
+  paper (ω_str = 0 is the paper's data term): SHOT sees the surface's orientation, the strain
+  sees whether it is compressed (folds, wrinkles) or stretched.
 
 Pruning, as the authors' top-20 (``sel_label``): the full E_loc table is V·T² (2.8 GB at 10k
 vertices and 265 frames), so E_loc is computed only for the ``prefilter`` best frames by the
-other two terms, and the ``candidates`` best of those by the full U are kept. E_loc ≥ −1, so a
+other terms (E_qual, E_glo, E_str), and the ``candidates`` best of those by the full U are kept. E_loc ≥ −1, so a
 frame left out by the prefilter (pre-score ≥ P, the worst pre-score kept) scores at least
 P − (1 − ω_g); when the K-th best full score is below that, the pruning is provably exact for the
 face. The stage records the fraction of (target, face) pairs where this holds (attr
@@ -24,7 +28,8 @@ face. The stage records the fraction of (target, face) pairs where this holds (a
 tables give the same labeling as unpruned ones.
 
 ``similarity: global | local`` keeps only one geometric term (the paper's ablation): U = E_qual
-+ E_glo, or U = E_qual + (1 + E_loc) (shifted to [0, 1] so its scale matches E_glo's).
++ E_glo, or U = E_qual + (1 + E_loc) (shifted to [0, 1] so its scale matches E_glo's). E_str is a
+local term: 'local' keeps it, 'global' drops it.
 """
 
 from __future__ import annotations
@@ -68,7 +73,7 @@ def select_candidates(score, k: int) -> np.ndarray:
 
 
 def prefilter_candidates(glo_row, face_visible, e_qual, omega_g: float, similarity: str,
-                         prefilter: int):
+                         prefilter: int, str_row=None, omega_str: float = 0.0):
     """First cut of the candidates of one target frame, before E_loc is known.
 
     Args:
@@ -92,33 +97,40 @@ def prefilter_candidates(glo_row, face_visible, e_qual, omega_g: float, similari
         pre = q.copy()
     else:
         raise ValueError(f"similarity must be one of {SIMILARITY_MODES}, got {similarity!r}")
+    if str_row is not None and omega_str and similarity != "global":
+        pre = pre + omega_str * np.asarray(str_row, np.float64).T
     pre = np.where(vis, pre, np.inf)
     return select_candidates(pre, prefilter), pre
 
 
-def unary_terms(e_qual, e_glo, e_loc, omega_g: float, similarity: str) -> np.ndarray:
-    """U = E_qual + ω_g E_glo + (1 − ω_g) E_loc (or one geometric term: module docstring)."""
+def unary_terms(e_qual, e_glo, e_loc, omega_g: float, similarity: str, e_str=None,
+                omega_str: float = 0.0) -> np.ndarray:
+    """U = E_qual + ω_g E_glo + (1 − ω_g) E_loc + ω_str E_str (or one geometric term: module
+    docstring). ``e_str`` None (tables written without it) counts as 0."""
+    strain = 0.0 if e_str is None or not omega_str else omega_str * e_str
     if similarity == "both":
-        return e_qual + omega_g * e_glo + (1.0 - omega_g) * e_loc
+        return e_qual + omega_g * e_glo + (1.0 - omega_g) * e_loc + strain
     if similarity == "global":
         return e_qual + e_glo
     if similarity == "local":
-        return e_qual + (1.0 + e_loc)
+        return e_qual + (1.0 + e_loc) + strain
     raise ValueError(f"similarity must be one of {SIMILARITY_MODES}, got {similarity!r}")
 
 
 def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: float,
-                      similarity: str, n_candidates: int):
+                      similarity: str, n_candidates: int, str_row=None, omega_str: float = 0.0):
     """The final candidates of one target frame from its prefilter and the E_loc of those frames.
 
     Args:
         pre_c, pre: :func:`prefilter_candidates` of the target ((F, P) frames, (F, T) pre-score).
         glo_row: (T,) E_glo(t, ·). face_visible: (T, F) bool. e_qual: (T, F) float32.
         loc: (F, P) float32 E_loc(t, f, pre_c[f, k]) (ignored for ``similarity='global'``).
+        str_row: (T, F) E_str(t, ·, ·) or None (0); omega_str: its weight.
 
     Returns:
         dict of (F, K) arrays ``candidates`` int16 (ascending, -1 padding), ``e_glo``,
-        ``e_loc``, ``e_qual`` float32, and ``exact`` (F,) bool (the pruning bound holds).
+        ``e_loc``, ``e_qual``, ``e_str`` float32, and ``exact`` (F,) bool (the pruning bound
+        holds).
     """
     ok = pre_c >= 0
     safe = np.where(ok, pre_c, 0)
@@ -126,7 +138,9 @@ def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: f
     q = np.asarray(e_qual, np.float32).T[rows, safe]
     g = np.asarray(glo_row, np.float32)[safe]
     loc = np.zeros(pre_c.shape, np.float32) if similarity == "global" else np.asarray(loc, np.float32)
-    u = np.where(ok, unary_terms(q, g, loc, omega_g, similarity), np.inf)
+    st = (np.zeros(pre_c.shape, np.float32) if str_row is None else
+          np.asarray(str_row, np.float32).T[rows, safe])
+    u = np.where(ok, unary_terms(q, g, loc, omega_g, similarity, st, omega_str), np.inf)
     pick = select_candidates(u, n_candidates)                    # columns into pre_c, ascending
     okp = pick >= 0
     sp = np.where(okp, pick, 0)
@@ -143,12 +157,13 @@ def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: f
         return np.where(okp, a[rows, sp], 0).astype(np.float32)
 
     return {"candidates": cand.astype(np.int16), "e_glo": take(g), "e_loc": take(loc),
-            "e_qual": take(q), "exact": exact}
+            "e_qual": take(q), "e_str": take(st), "exact": exact}
 
 
 def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, omega_g: float,
                      similarity: str, n_candidates: int, prefilter: int, median_hops: int = 2,
-                     target_group: int = 4):
+                     target_group: int = 4, strain=None, omega_str: float = 0.0,
+                     str_clip: float = 0.1):
     """Candidates of a block of target frames (E_loc for the prefiltered frames of
     ``target_group`` targets at once: the descriptors stream through memory once per group, and
     the (target, face, source) triples of a group — F · prefilter per target, 0.8 M at paper
@@ -159,14 +174,19 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
         face_visible: (T, F) bool; e_qual: (T, F) float32.
         descriptors: (T, V, D) SHOT descriptors (numpy or zarr; unused for 'global').
         faces: (F, 3) int. median_hops: median filter of the vertex similarities.
+        strain: (T, F, 3) :func:`stex.similarity.face_strain` of the tracked meshes, or None
+            (E_str = 0); omega_str, str_clip: its weight and clip.
 
     Returns:
         list of :func:`finish_candidates` dicts, one per target.
     """
-    from stex.similarity import local_similarity_triples, vertex_rings
+    from stex.similarity import local_similarity_triples, strain_similarity, vertex_rings
 
+    use_str = strain is not None and omega_str > 0 and similarity != "global"
+    strs = [strain_similarity(strain, t, str_clip) if use_str else None for t in targets]
     pres = [prefilter_candidates(glo[k], face_visible, e_qual, omega_g, similarity,
-                                 max(prefilter, n_candidates)) for k in range(len(targets))]
+                                 max(prefilter, n_candidates), strs[k], omega_str)
+            for k in range(len(targets))]
     locs = [None] * len(targets)
     if similarity != "global":
         rings = vertex_rings(faces, descriptors.shape[1], median_hops)
@@ -189,7 +209,8 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                 n0 += f.size
                 locs[k] = loc
     return [finish_candidates(pres[k][0], pres[k][1], glo[k], face_visible, e_qual, locs[k],
-                              omega_g, similarity, n_candidates) for k in range(len(targets))]
+                              omega_g, similarity, n_candidates, strs[k], omega_str)
+            for k in range(len(targets))]
 
 
 def source_mask(n_frames: int, stride: int) -> np.ndarray:
@@ -242,6 +263,11 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     e_qual = (np.asarray(obs["blurred"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))
     descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
+    strain = None
+    if p["omega_str"] > 0 and p["similarity"] != "global":
+        from stex.similarity import face_strain
+        strain = face_strain(vertices, np.asarray(template["vertices"][...], np.float64), faces,
+                             int(p["str_rings"]))
     if p["similarity"] != "global" and descriptors is None:
         raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
                          f"tables.similarity={p['similarity']!r}")
@@ -259,10 +285,11 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     with create_store(out, "tables", attrs=attrs, params=p) as store:
         store.write("glo", glo.astype(np.float32))
         arrays = {name: store.create(name, (nT, nF, K))
-                  for name in ("candidates", "e_glo", "e_loc", "e_qual")}
+                  for name in ("candidates", "e_glo", "e_loc", "e_qual", "e_str")}
         results = block_candidates(targets, glo, face_visible, e_qual, descriptors, faces,
                                    p["omega_g"], p["similarity"], K, int(p["prefilter"]),
-                                   int(p["median_hops"]))
+                                   int(p["median_hops"]), strain=strain,
+                                   omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]))
         for k, res in enumerate(results):
             for name, arr in arrays.items():
                 arr[k] = res[name]
