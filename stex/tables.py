@@ -183,9 +183,12 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
     from stex.similarity import local_similarity_triples, strain_similarity, vertex_rings
 
     use_str = strain is not None and omega_str > 0 and similarity != "global"
-    strs = [strain_similarity(strain, t, str_clip) if use_str else None for t in targets]
+
+    def str_row(k):  # (T, F) per target, made twice rather than held for the block (21 MB each at paper scale)
+        return strain_similarity(strain, targets[k], str_clip) if use_str else None
+
     pres = [prefilter_candidates(glo[k], face_visible, e_qual, omega_g, similarity,
-                                 max(prefilter, n_candidates), strs[k], omega_str)
+                                 max(prefilter, n_candidates), str_row(k), omega_str)
             for k in range(len(targets))]
     locs = [None] * len(targets)
     if similarity != "global":
@@ -209,7 +212,7 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                 n0 += f.size
                 locs[k] = loc
     return [finish_candidates(pres[k][0], pres[k][1], glo[k], face_visible, e_qual, locs[k],
-                              omega_g, similarity, n_candidates, strs[k], omega_str)
+                              omega_g, similarity, n_candidates, str_row(k), omega_str)
             for k in range(len(targets))]
 
 
