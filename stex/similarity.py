@@ -1091,7 +1091,9 @@ def face_strain(vertices, rest_vertices, faces, rings: int = 3) -> np.ndarray:
 
     Returns:
         (T, F, 3) float32: ln(|e_k(t)| / |e_k(rest)|) for the edges k = (v0 v1, v1 v2, v2 v0),
-        smoothed. A degenerate edge (zero length in the rest shape or at a frame) raises.
+        smoothed. A zero-length edge in the rest shape raises; one at a frame (a collapsed
+        face of a tracked or given mesh) counts as 1e-6 of its rest length, so that face is
+        dissimilar to every normal frame (E_str clipped to 1) instead of NaN.
     """
     X = _check_frames_vertices(vertices)
     R = _check_vertices(rest_vertices, "rest_vertices")
@@ -1117,10 +1119,7 @@ def face_strain(vertices, rest_vertices, faces, rings: int = 3) -> np.ndarray:
     A.data[:] = 1.0
     A = sp.diags(1.0 / np.asarray(A.sum(axis=1)).ravel()) @ A
     for t in range(X.shape[0]):
-        cur = lengths(X[t])
-        if not (cur > 0).all():
-            raise ValueError(f"frame {t}: face {int(np.argwhere(~(cur > 0))[0, 0])} has a zero-length edge")
-        s = np.log(cur / rest)
+        s = np.log(np.maximum(lengths(X[t]) / rest, 1e-6))
         for _ in range(int(rings)):
             s = A @ s
         out[t] = s

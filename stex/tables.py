@@ -3,7 +3,8 @@
 For a block of target frames t and every face f, the candidates are the frames l in which f is
 visible (``observations`` face_visible), scored by the data term of the paper's Eq. 2
 
-    U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l) + ω_str E_str(t, f, l)
+    U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l)
+                 + ω_str E_str(t, f, l)
 
 - E_qual(f, l) = blurred + slanted (``observations``; 0, 1 or 2).
 - E_glo(t, l) ∈ [0, 1]: the clipped depth difference of K_{t→l}(M_t) and M_l over the union of
@@ -20,10 +21,10 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
 
 Pruning, as the authors' top-20 (``sel_label``): the full E_loc table is V·T² (2.8 GB at 10k
 vertices and 265 frames), so E_loc is computed only for the ``prefilter`` best frames by the
-other terms (E_qual, E_glo, E_str), and the ``candidates`` best of those by the full U are kept. E_loc ≥ −1, so a
-frame left out by the prefilter (pre-score ≥ P, the worst pre-score kept) scores at least
-P − (1 − ω_g); when the K-th best full score is below that, the pruning is provably exact for the
-face. The stage records the fraction of (target, face) pairs where this holds (attr
+other terms (E_qual, E_glo, E_str), and the ``candidates`` best of those by the full U are kept.
+E_loc ≥ −1, so a frame left out by the prefilter (pre-score ≥ P, the worst pre-score kept) scores
+at least P − (1 − ω_g); when the K-th best full score is below that, the pruning is provably exact
+for the face. The stage records the fraction of (target, face) pairs where this holds (attr
 ``prefilter_exact``), and ``tests/test_labeling.py`` checks on a small scene that the pruned
 tables give the same labeling as unpruned ones.
 
@@ -184,7 +185,7 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
 
     use_str = strain is not None and omega_str > 0 and similarity != "global"
 
-    def str_row(k):  # (T, F) per target, made twice rather than held for the block (21 MB each at paper scale)
+    def str_row(k):  # (T, F), made twice per target rather than held for the block (21 MB each)
         return strain_similarity(strain, targets[k], str_clip) if use_str else None
 
     pres = [prefilter_candidates(glo[k], face_visible, e_qual, omega_g, similarity,

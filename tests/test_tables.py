@@ -111,7 +111,10 @@ def test_face_strain_measures_stretch_not_rigid_motion():
     assert E[0].max() == 0 and (E[1] > 0.2).all()
     assert strain_similarity(S, 0, clip=0.1)[1].max() == 1.0  # clipped
     with pytest.raises(ValueError, match="zero-length edge"):
-        face_strain(np.stack([V * [0, 1, 1]]), V, F)
+        face_strain(frames, V * [0, 1, 1], F)
+    collapsed = face_strain(np.stack([V, V * [0, 1, 1]]), V, F, rings=0)
+    assert np.isfinite(collapsed).all()
+    assert strain_similarity(collapsed, 0)[1].min() == 1.0
 
 
 def test_strain_term_prefers_the_source_with_the_targets_compression():
