@@ -14,9 +14,11 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
 6. ``stex.projection`` — Φ: the tracked mesh in every colour image, visibility and cosines.
 7. ``stex.texcoords`` — ξ: texture coordinates optimised so all frames agree (Kim et al. 2019).
 8. ``stex.observations`` — one pass over the frames: grey samples per face and shared edge,
-   E_qual flags, SSIM dynamism (``stex.dynamism``), SHOT descriptors (``stex.similarity``).
+   E_qual flags, SSIM dynamism (``stex.dynamism``), SHOT descriptors and face strain
+   (``stex.similarity``).
 9. ``stex.tables``   — per target frame and face the candidate source frames and the data term
-   (E_qual + ω_g E_glo + (1 − ω_g) E_loc; E_glo and E_loc from ``stex.similarity``).
+   (E_qual + ω_g E_glo + (1 − ω_g) E_loc + ω_str E_str; the similarities from
+   ``stex.similarity``).
 10. ``stex.labeling`` — the spatiotemporal MRF: α-expansion per frame (``stex.mrf``), block
     coordinate descent over even/odd frames, selective weighting.
 11. ``stex.volume``  — one atlas slice per frame from the labelled source frames; never-seen

@@ -252,6 +252,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "slanted": ArraySpec(("T", "F"), "bool", "1", "E_qual view-angle step (attr params.angle_rule)", (1, "F")),
             "dynamism": ArraySpec(("T", "F"), "float32", "1", "S(f, t): mean SSIM of face f between the partial textures of frames t-1 and t (row 0 = row 1); NaN where not seen in both", (1, "F"), required=False),
             "descriptors": ArraySpec(("T", "V", 352), "float16", "1", "SHOT descriptor of every vertex of the tracked mesh (unit L2 norm, geodesic neighbourhoods)", (1, "V", 352), required=False),
+            "strain": ArraySpec(("T", "F", 3), "float32", "1", "log stretch ln(|e_k(t)| / |e_k(rest)|) of each face's edges k = (v0 v1, v1 v2, v2 v0) on the tracked mesh, averaged strain_rings times over the faces sharing a vertex (E_str)", (1, "F", 3), required=False),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each row",

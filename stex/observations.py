@@ -19,6 +19,9 @@ touch an image again:
 - **Dynamism** S(f, t) (selective weighting): mean SSIM of face f between the partial texture
   maps of frames t-1 and t (:mod:`stex.dynamism`).
 - **SHOT descriptors** of every vertex of the tracked mesh (E_loc; :mod:`stex.similarity`).
+- **Strain** of every face of the tracked mesh: smoothed log stretch of its edges against the
+  template (E_str; :func:`stex.similarity.face_strain`), once for all frames here rather than in
+  every tables block.
 
 Texture coordinates are the optimised ξ of the ``texcoords`` store when the workflow runs that
 stage, or Φ of the ``projection`` store otherwise (:func:`open_coordinates`).
@@ -231,7 +234,8 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
 
     Args:
         template_path: ``template`` store (faces, adjacency, atlas).
-        tracking_path: ``tracking`` store (vertices [T, V, 3], for the SHOT descriptors).
+        tracking_path: ``tracking`` store (vertices [T, V, 3], for the SHOT descriptors and the
+            strain).
         projection_path: ``projection`` store (face visibility and cosines).
         coords_path: ``texcoords`` store (ξ) or the ``projection`` store itself (Φ).
         frames_paths: ``frames`` block stores (colour images, read one frame at a time).
@@ -241,7 +245,7 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
     from stex.config import section_params
     from stex.dynamism import face_ssim, partial_texture
     from stex.io import FrameSequence, create_store, open_store
-    from stex.similarity import geodesic_neighbourhoods, mesh_resolution, shot_descriptors
+    from stex.similarity import face_strain, geodesic_neighbourhoods, mesh_resolution, shot_descriptors
     from stex.template import texel_map
     from stex.volume import TexelSampler
 
@@ -303,6 +307,7 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
                          (k + 1) / (time.perf_counter() - t0))
         blurred = blurred_faces(centroids, face_visible, p["theta_b_px"])
         slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
+        store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))
         store.write("face_visible", face_visible)
         store.write("blurred", blurred)
         store.write("slanted", slanted)

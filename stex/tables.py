@@ -15,8 +15,9 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
 - E_loc(t, f, l) = −(1/3) Σ_j τ_j(t)·τ_j(l) ∈ [−1, 0] over the face's three vertices, SHOT
   descriptors of the tracked meshes (``observations`` descriptors).
 - E_str(t, f, l) ∈ [0, 1]: the difference of the local strain (smoothed log edge stretch) of f
-  at t and at l on the tracked meshes (:func:`stex.similarity.strain_similarity`). Not in the
-  paper (ω_str = 0 is the paper's data term): SHOT sees the surface's orientation, the strain
+  at t and at l on the tracked meshes (``observations`` strain,
+  :func:`stex.similarity.strain_similarity`). Not in the paper (ω_str = 0 is the paper's data
+  term): SHOT sees the surface's orientation, the strain
   sees whether it is compressed (folds, wrinkles) or stretched.
 
 Pruning, as the authors' top-20 (``sel_label``): the full E_loc table is V·T² (2.8 GB at 10k
@@ -269,9 +270,10 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
     strain = None
     if p["omega_str"] > 0 and p["similarity"] != "global":
-        from stex.similarity import face_strain
-        strain = face_strain(vertices, np.asarray(template["vertices"][...], np.float64), faces,
-                             int(p["str_rings"]))
+        if "strain" not in obs:
+            raise ValueError(f"{observations_path}: no strain table, needed by tables.omega_str > 0 "
+                             f"(re-run the observations stage)")
+        strain = np.asarray(obs["strain"][...], np.float32)
     if p["similarity"] != "global" and descriptors is None:
         raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
                          f"tables.similarity={p['similarity']!r}")

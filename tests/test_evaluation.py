@@ -258,3 +258,25 @@ def test_rst_tables_over_two_scenes():
     row = next(l for l in lines if "| Ours " in l)
     assert "30.00" in row and "25.50" in row
     assert "2.00" in rst and "Coverage" in rst and "Ground truth" not in rst
+
+
+def test_pipeline_tables_rank_with_the_observed_strain(pipe):
+    """The observations stage stores the tracked meshes' strain once (E_str), and every tables
+    block ranks with it: the stored e_str of each kept candidate is E_str(t, f, l) of that strain."""
+    from stex.similarity import face_strain, strain_similarity
+
+    obs = open_store(pipe["observations"], "observations")
+    template = open_store(pipe["template"], "template")
+    strain = np.asarray(obs["strain"][...])
+    expected = face_strain(open_store(pipe["tracking"], "tracking")["vertices"][...],
+                           template["vertices"][...], template["faces"][...],
+                           obs.attrs["params"]["strain_rings"])
+    np.testing.assert_allclose(strain, expected, atol=1e-6)
+    tables = open_store(pipe["tables"][0], "tables")
+    assert tables.attrs["params"]["omega_str"] > 0
+    t = 0
+    cand = np.asarray(tables["candidates"][t], np.int64)
+    ok = cand >= 0
+    E = strain_similarity(strain, t, tables.attrs["params"]["str_clip"])
+    f = np.nonzero(ok)[0]
+    np.testing.assert_allclose(tables["e_str"][t][ok], E[cand[ok], f], atol=1e-6)
