@@ -17,6 +17,7 @@ change away from boundaries (> 16 texels), and for factor > 1 the mean |differen
 factor-1 result when that was run.
 
     python benchmarks/bench_volume.py [--size 4096] [--runs 3] [--factors 4,2] [--tol 1e-4]
+                                      [--interpolation bicubic|bilinear]
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def run_volume(args):
     rng = np.random.default_rng(0)
     images, coords = _sources(d["V"], args.frames, rng)
     t0 = time.perf_counter()
-    sampler = TexelSampler(d["face"], d["bary"], d["F"])
+    sampler = TexelSampler(d["face"], d["bary"], d["F"], args.interpolation)
     t_pre = time.perf_counter() - t0
     labels = [_labels(d["V"], d["F"], args.patches, args.frames, rng) for _ in range(args.runs + 1)]
     sampler.slice(labels[-1], coords, images, args.gutter)  # warm-up (numba cache)
@@ -109,7 +110,7 @@ def run_volume(args):
     t_once = time.perf_counter() - t0
     CACHE.mkdir(exist_ok=True)
     np.savez(CACHE / f"slice_{args.size}.npz", slice=sl, label_map=lm)
-    return {"stage": "volume", "size": args.size, "faces": int(len(d["F"])),
+    return {"stage": "volume", "interpolation": args.interpolation, "size": args.size, "faces": int(len(d["F"])),
             "covered_texels": int((d["face"] >= 0).sum()), "labels_in_slice": int(len(np.unique(lab))),
             "sampler_precompute_s": t_pre, "slice_median_s": float(np.median(times)),
             "slice_times_s": times, "volume_slice_oneshot_s": t_once, "peak_rss_gb": _rss_gb()}
@@ -155,6 +156,8 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--patches", type=int, default=60)
     ap.add_argument("--factors", default="4,2")
+    ap.add_argument("--interpolation", choices=["bicubic", "bilinear"], default="bicubic",
+                    help="the volume's image lookup (volume.interpolation)")
     ap.add_argument("--tol", type=float, default=1e-4, help="relative residual of the correction solve")
     ap.add_argument("--only", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -163,7 +166,8 @@ def main(argv=None):
         print("RESULT " + json.dumps(res))
         return 0
     base = [sys.executable, __file__, "--size", str(args.size), "--gutter", str(args.gutter),
-            "--runs", str(args.runs), "--frames", str(args.frames), "--patches", str(args.patches), "--tol", str(args.tol)]
+            "--runs", str(args.runs), "--frames", str(args.frames), "--patches", str(args.patches), "--tol", str(args.tol),
+            "--interpolation", args.interpolation]
     _atlas(args.size, args.gutter)  # build (and cache) the atlas outside the measured jobs
     ok = True
     for job in ["volume"] + [f for f in args.factors.split(",") if f]:

@@ -257,6 +257,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each row",
             "coordinates": "'texcoords' (ξ) or 'projection' (Φ): the texture coordinates sampled",
+            "theta_b_px": "float: the θ_b applied (px per frame; params.theta_b_px, or the paper's 20 px scaled to the colour width when that is null)",
             "fractions": "dict: blurred and slanted fractions of the visible (frame, face) pairs",
         },
     ),

@@ -47,8 +47,8 @@ from stex.texcoords import SAMPLE_BARY
 
 log = logging.getLogger("stex.observations")
 
-__all__ = ["EDGE_SAMPLES", "grey", "face_samples", "edge_samples", "blurred_faces", "slanted_faces",
-           "open_coordinates", "write_observations"]
+__all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "theta_b_for_width", "grey", "face_samples",
+           "edge_samples", "blurred_faces", "slanted_faces", "open_coordinates", "write_observations"]
 
 #: samples along a shared edge (the authors' e_samnum = 9, at s/8)
 EDGE_SAMPLES = 9
@@ -165,6 +165,19 @@ def face_centroids(coords, faces) -> np.ndarray:
     c = np.asarray(coords, dtype=np.float64)
     F = np.asarray(faces, dtype=np.int64)
     return c[..., F, :].mean(axis=-2)
+
+
+PAPER_COLOR_WIDTH = 4096
+"""Width (px) of the colour images behind the paper's θ_b = 20 px (Azure Kinect, 3072p)."""
+
+
+def theta_b_for_width(theta_b_px, width: int) -> float:
+    """θ_b in px per frame for colour images ``width`` px wide: ``theta_b_px`` itself, or, when it
+    is None, the paper's 20 px at its 4096-px-wide images scaled to ``width`` (3.125 px at 640):
+    the same motion blur as a fraction of the picture."""
+    if theta_b_px is not None:
+        return float(theta_b_px)
+    return 20.0 * float(width) / PAPER_COLOR_WIDTH
 
 
 def blurred_faces(centroids, face_visible, theta_b_px: float) -> np.ndarray:
@@ -289,6 +302,7 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
             xy = np.asarray(coords[k], np.float64)
             ok = np.asarray(valid[k], bool)
             color = frames.read("color", fid)
+            width = color.shape[1]
             g = grey(color)
             a_face[k] = face_samples(g, xy, faces, face_visible[k])
             a_edge[k] = edge_samples(g, xy, edges, ok)
@@ -305,12 +319,14 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
             if (k + 1) % 20 == 0 or k + 1 == T:
                 log.info("observations: frame %d (%d/%d, %.1f frames/s)", fid, k + 1, T,
                          (k + 1) / (time.perf_counter() - t0))
-        blurred = blurred_faces(centroids, face_visible, p["theta_b_px"])
+        theta_b = theta_b_for_width(p["theta_b_px"], width)
+        blurred = blurred_faces(centroids, face_visible, theta_b)
         slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
         store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))
         store.write("face_visible", face_visible)
         store.write("blurred", blurred)
         store.write("slanted", slanted)
         n_vis = max(int(face_visible.sum()), 1)
+        store.attrs["theta_b_px"] = theta_b
         store.attrs["fractions"] = {"blurred": round(float(blurred.sum()) / n_vis, 5),
                                     "slanted": round(float(slanted.sum()) / n_vis, 5)}

@@ -6,9 +6,11 @@ What it computes
   covered texel of the atlas (``texel/face_id`` >= 0 of the template store): its face f, the label
   l = ``labels_t[f]`` (the source frame chosen for f at t, -1 = none), the position of the texel on
   frame l's colour image, ``x = sum_k bary_k * xi_l[faces[f, k]]`` (barycentric interpolation of
-  the face corners' texture coordinates ξ_l, colour pixels, integer = pixel centre), and a bilinear
-  lookup of frame l's colour image there (clamp-to-edge, exactly as
-  :func:`stex.render.sample_bilinear`), rounded to uint8.
+  the face corners' texture coordinates ξ_l, colour pixels, integer = pixel centre), and a bicubic
+  lookup of frame l's colour image there (OpenCV ``remap`` INTER_CUBIC, clamp-to-edge), saturated
+  to uint8; or, with ``interpolation="bilinear"``, a bilinear lookup exactly as
+  :func:`stex.render.sample_bilinear`, rounded to uint8. Bicubic, because a slice is read again
+  between its texels when rendered, and two bilinear resamplings visibly soften the photo.
 - Gutter filling (:func:`fill_gutter`): covered texels left without colour (face unlabelled, or a
   non-finite ξ) are filled first, from their coloured neighbours, ring by ring without a distance
   limit (inside charts only); then ``gutter_px`` rings of empty texels around the charts are
@@ -80,21 +82,25 @@ def _group_by_label(tex_face, labels, n_labels):
 
 
 @njit(cache=True, nogil=True)
+def _texel_position(i, tex_face, tex_bary, faces, xi):
+    """Image position (u, v) of covered texel ``i``: its barycentrics applied to ξ of its face."""
+    f = tex_face[i]
+    b0 = np.float64(tex_bary[i, 0])
+    b1 = np.float64(tex_bary[i, 1])
+    b2 = np.float64(tex_bary[i, 2])
+    a0, a1, a2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    return (b0 * xi[a0, 0] + b1 * xi[a1, 0] + b2 * xi[a2, 0],
+            b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1])
+
+
+@njit(cache=True, nogil=True)
 def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
     """Sample image ``img`` at the ξ-interpolated positions of the texels ``sel`` (positions in the
     compact covered-texel arrays); writes ``out`` (W*W, 3) uint8 and ``ok`` (W*W,) bool."""
     H, Wd, C = img.shape
     for j in range(sel.shape[0]):
         i = sel[j]
-        f = tex_face[i]
-        a0 = faces[f, 0]
-        a1 = faces[f, 1]
-        a2 = faces[f, 2]
-        b0 = np.float64(tex_bary[i, 0])
-        b1 = np.float64(tex_bary[i, 1])
-        b2 = np.float64(tex_bary[i, 2])
-        u = b0 * xi[a0, 0] + b1 * xi[a1, 0] + b2 * xi[a2, 0]
-        v = b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1]
+        u, v = _texel_position(i, tex_face, tex_bary, faces, xi)
         if not (np.isfinite(u) and np.isfinite(v)):
             continue
         r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(u, v, Wd, H)
@@ -105,6 +111,41 @@ def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
             x = np.floor(val + np.float32(0.5))
             out[t, k] = np.uint8(min(max(x, 0.0), 255.0))
         ok[t] = True
+
+
+@njit(cache=True, nogil=True)
+def _group_positions(sel, tex_index, tex_face, tex_bary, faces, xi, pos, target):
+    """The ξ-interpolated image positions of the texels ``sel``: ``pos`` (n, 2) float32 (u, v),
+    NaN where ξ is not finite; ``target`` (n,) their flat atlas index."""
+    for j in range(sel.shape[0]):
+        i = sel[j]
+        pos[j, 0], pos[j, 1] = _texel_position(i, tex_face, tex_bary, faces, xi)
+        target[j] = tex_index[i]
+
+
+def _sample_group_cubic(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
+    """Bicubic variant of :func:`_sample_group`: OpenCV's ``remap`` (INTER_CUBIC, a = -0.75,
+    BORDER_REPLICATE: clamp-to-edge like the bilinear lookup; saturated to uint8)."""
+    n = sel.shape[0]
+    pos = np.empty((n, 2), np.float32)
+    target = np.empty(n, np.int64)
+    _group_positions(sel, tex_index, tex_face, tex_bary, faces, xi, pos, target)
+    good = np.isfinite(pos).all(axis=1)
+    if not good.any():
+        return
+    pos, target = pos[good], target[good]
+    H, W = img.shape[:2]
+    # clamp first, as the bilinear lookup does: remap's replicated border then only pads taps
+    m = len(target)
+    rows = -(-m // 1024)                 # remap's maps are 2-D, each side below 32768
+    u = np.zeros(rows * 1024, np.float32)
+    v = np.zeros(rows * 1024, np.float32)
+    u[:m] = np.clip(pos[:, 0], 0, W - 1)
+    v[:m] = np.clip(pos[:, 1], 0, H - 1)
+    vals = cv2.remap(img, u.reshape(rows, 1024), v.reshape(rows, 1024), cv2.INTER_CUBIC,
+                     borderMode=cv2.BORDER_REPLICATE)
+    out[target] = vals.reshape(-1, 3)[:m]
+    ok[target] = True
 
 
 @njit(cache=True, nogil=True)
@@ -237,9 +278,20 @@ class TexelSampler:
         texel_face: (W, W) int face id per texel, -1 = empty (template ``texel/face_id``).
         texel_bary: (W, W, 3) float barycentrics (template ``texel/bary``).
         faces: (F, 3) int vertex indices (template ``faces``): ξ arrays are indexed by vertex.
+        interpolation: how a source image is read at a texel's position: ``"bicubic"`` (OpenCV
+            INTER_CUBIC) or ``"bilinear"``. A texel's position falls between pixel centres, and a
+            render reads the slice again between texels: bilinear interpolation at half a pixel
+            averages two pixels, so an image textured and rendered that way is blurrier than the
+            photo it came from (demo, Crete blur of a photo resampled at ±0.5 px offsets: bilinear
+            +0.025, bicubic +0.004; benchmarks/bench_volume.py --interpolation).
     """
 
-    def __init__(self, texel_face, texel_bary, faces):
+    INTERPOLATIONS = ("bicubic", "bilinear")
+
+    def __init__(self, texel_face, texel_bary, faces, interpolation: str = "bicubic"):
+        if interpolation not in self.INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {self.INTERPOLATIONS}, got {interpolation!r}")
+        self.interpolation = interpolation
         tf = np.asarray(texel_face)
         if tf.ndim != 2 or tf.shape[0] != tf.shape[1]:
             raise ValueError(f"texel_face must be (W, W), got {tf.shape}")
@@ -278,7 +330,8 @@ class TexelSampler:
             img = np.ascontiguousarray(_get(images, l))
             if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
                 raise ValueError(f"images[{l}] must be (Hc, Wc, 3) uint8, got {img.shape} {img.dtype}")
-            _sample_group(order[a:b], self.index, self.face, self.bary, self.faces, xi, img, out, ok)
+            sample = _sample_group_cubic if self.interpolation == "bicubic" else _sample_group
+            sample(order[a:b], self.index, self.face, self.bary, self.faces, xi, img, out, ok)
         label_map = np.full(W * W, -1, np.int32)
         sampled = ok[self.index]
         label_map[self.index[sampled]] = lab[sampled]
@@ -288,7 +341,8 @@ class TexelSampler:
         return image, label_map.reshape(W, W)
 
 
-def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter_px: int = 4):
+def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter_px: int = 4,
+                 interpolation: str = "bicubic"):
     """The texture-volume slice of one target frame.
 
     Args:
@@ -302,13 +356,15 @@ def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter
         images: source frame s -> (Hc, Wc, 3) uint8 RGB colour image, likewise indexable or
             callable. Only the frames that occur in ``labels_t`` are read, each once.
         gutter_px: rings of empty texels around the charts to fill (see :func:`fill_gutter`).
+        interpolation: "bicubic" or "bilinear" (see :class:`TexelSampler`).
 
     Returns:
         (slice (W, W, 3) uint8, label_map (W, W) int32; -1 where the colour is not sampled).
 
     For many slices of one atlas, build a :class:`TexelSampler` once and call its ``slice``.
     """
-    return TexelSampler(texel_face, texel_bary, faces).slice(labels_t, coords, images, gutter_px)
+    return TexelSampler(texel_face, texel_bary, faces, interpolation).slice(labels_t, coords, images,
+                                                                          gutter_px)
 
 
 def label_colors(label_map) -> np.ndarray:
@@ -391,7 +447,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
         coords_path: ``texcoords`` store (ξ) or ``projection`` store (Φ), as the observations.
         frames_paths: ``frames`` block stores (colour images).
         positions: [start, stop) sequence positions of the slices to write.
-        params: the ``volume`` config section (gutter_px, image_cache).
+        params: the ``volume`` config section (gutter_px, image_cache, interpolation).
         out: path of the store.
     """
     import functools
@@ -416,7 +472,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     frames = FrameSequence(list(frames_paths), "frames")
     tf = template["texel/face_id"][...]
     tb = template["texel/bary"][...]
-    sampler = TexelSampler(tf, tb, faces)
+    sampler = TexelSampler(tf, tb, faces, p["interpolation"])
     never = np.asarray(labels_store["never_seen"][...], bool)
     dst, src, weight = nearest_seen_texels(tf, tb, template["vertices"][...], faces, never)
     gutter = int(p["gutter_px"])

@@ -183,6 +183,28 @@ def test_blur_orders_sharp_and_blurred():
     assert ev.blur(white, mask, fill="none")["blur"] != pytest.approx(b_sharp["blur"], abs=1e-3)
 
 
+def test_noise_sigma_recovers_gaussian_noise_and_ignores_shading():
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)
+    shading = 80 + 0.3 * xx + 0.2 * yy + 10 * np.sin(xx / 40)      # smooth: no fine-scale response
+    clean = np.repeat(shading[..., None], 3, axis=-1)
+    assert ev.noise_sigma(clean, flat_fraction=1.0)["sigma"] < 0.05
+    noisy = clean + rng.normal(0, 3.0, clean.shape[:2])[..., None]  # the same noise in every channel
+    assert ev.noise_sigma(noisy, flat_fraction=1.0)["sigma"] == pytest.approx(3.0, rel=0.05)
+    # noise independent per channel is partly averaged out by the luma the blur metric sees
+    independent = clean + rng.normal(0, 3.0, clean.shape)
+    expected = 3.0 * np.sqrt(0.2125**2 + 0.7154**2 + 0.0721**2)
+    assert ev.noise_sigma(independent, flat_fraction=1.0)["sigma"] == pytest.approx(expected, rel=0.05)
+    # the flattest pixels of a picture with sharp edges (big squares): the edges are left out
+    squares = np.repeat((60.0 + 120.0 * (((yy // 20) + (xx // 20)) % 2))[..., None], 3, axis=-1)
+    assert ev.noise_sigma(squares, flat_fraction=1.0)["sigma"] > 0.3
+    assert ev.noise_sigma(squares)["sigma"] < 0.01
+    mask = np.zeros(clean.shape[:2], bool)
+    assert np.isnan(ev.noise_sigma(noisy, mask)["sigma"]) and ev.noise_sigma(noisy, mask)["n_pixels"] == 0
+    with pytest.raises(ValueError, match="flat_fraction"):
+        ev.noise_sigma(noisy, flat_fraction=0.0)
+
+
 # ------------------------------------------------------------------------------------ coverage
 
 def test_coverage_helpers():

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stex.observations import (blurred_faces, edge_samples, face_centroids, face_samples, grey,
-                               slanted_faces)
+                               slanted_faces, theta_b_for_width)
 from stex.texcoords import SAMPLE_BARY
 
 
@@ -50,6 +50,17 @@ def test_blur_step_and_missing_neighbours():
     assert not b[1, 0] and b[3, 0]                # mean move 5 px vs 30 px
     assert b[2, 1] and b[4, 1] and not b[1, 1]    # neighbours of the unseen frame
     assert not b[3, 1]                            # not visible: not a candidate, not flagged
+
+
+def test_theta_b_scales_the_papers_threshold_to_the_colour_width():
+    assert theta_b_for_width(None, 4096) == pytest.approx(20.0)     # the paper's images
+    assert theta_b_for_width(None, 640) == pytest.approx(3.125)
+    assert theta_b_for_width(7.5, 640) == 7.5                      # an explicit value wins
+    c = np.zeros((3, 1, 2))
+    c[:, 0, 0] = [0, 4, 8]                                          # 4 px per frame
+    vis = np.ones((3, 1), bool)
+    assert blurred_faces(c, vis, theta_b_for_width(None, 640))[1, 0]
+    assert not blurred_faces(c, vis, theta_b_for_width(None, 2048))[1, 0]
 
 
 def test_angle_rules():

@@ -82,7 +82,26 @@ def test_unlabelled_faces_are_filled_inside_charts(plane):
     assert (sl[cov].sum(1) > 0).all()
 
 
-def test_grouping_by_label_equals_naive_reference(plane):
+def _keys_cubic(img, x):
+    """Reference bicubic lookup (Keys, a = -0.75 as OpenCV), clamp-to-edge, at x = (u, v)."""
+    H, Wd = img.shape[:2]
+    u, v = min(max(x[0], 0.0), Wd - 1.0), min(max(x[1], 0.0), H - 1.0)
+    c0, r0 = int(np.floor(u)), int(np.floor(v))
+
+    def w(d):
+        a, d = -0.75, abs(d)
+        return ((a + 2) * d - (a + 3)) * d * d + 1 if d <= 1 else ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
+
+    acc = np.zeros(img.shape[2])
+    for i in range(-1, 3):
+        for j in range(-1, 3):
+            r, c = min(max(r0 + i, 0), H - 1), min(max(c0 + j, 0), Wd - 1)
+            acc += w(v - (r0 + i)) * w(u - (c0 + j)) * img[r, c]
+    return acc
+
+
+@pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
+def test_grouping_by_label_equals_naive_reference(plane, interpolation):
     V, F, tc, tf, face, bary = plane
     rng = np.random.default_rng(3)
     T = 4
@@ -96,7 +115,7 @@ def test_grouping_by_label_equals_naive_reference(plane):
         reads.append(s)
         return images[s]
 
-    sl, lm = volume_slice(face, bary, F, labels, coords, image_of, gutter_px=0)
+    sl, lm = volume_slice(face, bary, F, labels, coords, image_of, gutter_px=0, interpolation=interpolation)
     assert sorted(reads) == sorted(set(int(x) for x in labels if x >= 0)), "each source image read once"
     ref = np.zeros_like(sl)
     ref_lab = np.full((W, W), -1, np.int32)
@@ -108,11 +127,18 @@ def test_grouping_by_label_equals_naive_reference(plane):
         x = (bary[r, c, :, None].astype(np.float64) * coords[l][F[f]]).sum(0)
         if not np.isfinite(x).all():
             continue
-        ref[r, c] = np.clip(np.floor(sample_bilinear(images[l], x) + np.float32(0.5)), 0, 255)
+        if interpolation == "bilinear":
+            ref[r, c] = np.clip(np.floor(sample_bilinear(images[l], x) + np.float32(0.5)), 0, 255)
+        else:
+            ref[r, c] = np.clip(np.round(_keys_cubic(images[l].astype(np.float64), x)), 0, 255)
         ref_lab[r, c] = l
     np.testing.assert_array_equal(lm, ref_lab)
     m = ref_lab >= 0
-    np.testing.assert_array_equal(sl[m], ref[m])
+    if interpolation == "bilinear":
+        np.testing.assert_array_equal(sl[m], ref[m])
+    else:  # OpenCV's fixed-point weights (1/32 px, 1/1024) round a little differently
+        diff = np.abs(sl[m].astype(int) - ref[m].astype(int))
+        assert diff.max() <= 1 and diff.mean() < 0.01, (diff.max(), diff.mean())
     assert (lm[face >= 0] == -1).sum() > (labels == -1).sum()  # NaN vertex faces dropped too
 
 
