@@ -82,7 +82,8 @@ single edges out. The tracked mesh gives s_f(t) also where the camera does not s
 which is where the data term matters most (the source of a face unseen at t is chosen by shape
 alone). On the demo, without it, the back of frame 12 (smooth at t, unseen) was textured from
 frames 60-89, where the bent body compresses it into wrinkles: E_glo and E_loc rank those frames
-first. On the demo ground truth (``benchmarks/bench_labeling.py``) the labels' error on faces
+first. On the demo ground truth (its former inputs: colour noise σ 2, no motion blur;
+``benchmarks/bench_labeling.py``) the labels' error on faces
 unseen at t drops from 4.82 to 4.28 grey levels with ω_str = 1 (labels chosen by E_qual
 alone: 4.72), and the novel-view PSNR of the region unseen at t rises from 20.61 to 21.29 dB (the
 sweep is in ``config/schema.yaml``).
