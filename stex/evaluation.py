@@ -158,7 +158,8 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         mask composited over ``reference`` outside it, so windows crossing the mask's edge see
         the photo's own background on both sides), ``blur`` (of
         ``test``, 0 sharp .. 1 blurry), ``blur_input`` (of ``reference``, same mask and code),
-        ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
+        ``noise_input`` (:func:`stex.evaluate.noise_sigma` of ``reference`` inside the mask,
+        grey levels: the metric reads noise as sharpness), ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
     """
     ref = np.asarray(reference)
     tst = np.asarray(test)
@@ -176,6 +177,7 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
         "blur": ev.blur(tst, m, h_size=h_size)["blur"],
         "blur_input": ev.blur(ref, m, h_size=h_size)["blur"],
+        "noise_input": ev.noise_sigma(ref, m)["sigma"],
         "mean_shift_px": ps["mean_shift_px"],
         "n_patches": ps["n_patches"],
         "n_pixels": int(m.sum()),
@@ -403,6 +405,7 @@ def vertex_motion(prev_vertices, vertices) -> float:
 
 #: Per-frame scores summarised (and plotted) by :func:`write_evaluation`.
 SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input", "blur_truth",
+                   "noise_input",
                    "mask_iou", "coverage_faces", "coverage_area", "coverage_seen",
                    "gt_novel_psnr_all", "gt_novel_psnr_seen", "gt_novel_psnr_unseen",
                    "gt_novel_psnr_borrowed", "gt_novel_psnr_never_seen",
@@ -496,6 +499,9 @@ def table_rows(summaries: dict) -> dict:
         name="true appearance, rendered")
     for m in ("global", "ours", "ours_uncorrected", "projection"):
         add(rec, "Blurriness (Crete et al.)", m, "all", "blur", digits=4)
+    # the blur metric reads noise as sharpness: how noisy the inputs are belongs beside it
+    add(rec, "Noise, grey levels (Immerkær)", "ours", "all", "noise_input", digits=2,
+        name=METHOD_NAMES["input"])
 
     cov = [["Coverage (mean over frames)", "Method"] + scenes]
     for metric, label in (("coverage_faces", "faces, %"), ("coverage_area", "surface area, %"),

@@ -190,6 +190,9 @@ def test_outputs_are_written(evaluation):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 2000, name
     rst = (out / "tables.rst").read_text()
     assert "Kim et al. 2019 (global)" in rst and "Blurriness" in rst and "+====" in rst
+    # the inputs' noise beside the blur (the tiny scene: schema default σ 2 per channel)
+    assert "Noise, grey levels (Immerkær)" in rst
+    assert 0.8 < saved["summary"]["all"]["ours"]["noise_input"]["mean"] < 2.5
     assert "<" not in rst                                   # no HTML
     assert "1.50" in rst                                    # labeling 90 s = 1.50 min
     with open(out / "table_reconstruction.csv") as f:
