@@ -8,6 +8,10 @@ and that same render with the scene's sensor noise added (Gaussian, the scene's 
 the last equals the photo, the photo is "sharper" than the truth only by its noise, which the
 Crete metric (a ratio of neighbour differences before / after re-blurring) reads as detail.
 
+It also resamples the photo at a smooth field of sub-pixel offsets (±0.5 px), as a texture does
+that is sampled from the photo and rendered again, with bilinear and with bicubic interpolation
+(the volume's ``interpolation``): how much softer a texture gets from its lookups alone.
+
     python benchmarks/bench_blur_noise.py results/demo [--stride 12] [--seed 0]
 """
 
@@ -54,18 +58,32 @@ def main() -> int:
     rng = np.random.default_rng(a.seed)
     rows = []
     print(f"{R}: sensor noise σ {sigma} grey levels, blur h_size {h_size}")
-    print("frame  photo   truth   truth+noise")
+    print("frame  photo   truth   truth+noise  photo resampled: bilinear  bicubic")
     for t in range(0, len(ids), a.stride):
         img, tmask = truth_views(scene["truth/vertices"][t], atlas, truth.read("appearance", ids[t]), cal)["input"]
         m = np.asarray(masks.read("mask", ids[t]), bool) & tmask
         noisy = np.clip(img + rng.normal(0.0, sigma, img.shape), 0, 255) if sigma > 0 else img
-        row = [ev.blur(photos.read("color", ids[t]).astype(np.float32), m, h_size=h_size)["blur"],
-               ev.blur(img, m, h_size=h_size)["blur"], ev.blur(noisy, m, h_size=h_size)["blur"]]
+        photo = photos.read("color", ids[t]).astype(np.float32)
+        row = [ev.blur(photo, m, h_size=h_size)["blur"], ev.blur(img, m, h_size=h_size)["blur"],
+               ev.blur(noisy, m, h_size=h_size)["blur"]]
+        row += [ev.blur(r, m, h_size=h_size)["blur"] for r in resampled(photo, t)]
         rows.append(row)
         print(f"{ids[t]:5d}  " + "  ".join(f"{x:.4f}" for x in row))
     mean = np.mean(rows, axis=0)
-    print(f"mean   {mean[0]:.4f}  {mean[1]:.4f}  {mean[2]:.4f}   ({len(rows)} frames)")
+    print("mean   " + "  ".join(f"{x:.4f}" for x in mean) + f"   ({len(rows)} frames)")
     return 0
+
+
+def resampled(photo, seed):
+    """``photo`` read at a smooth field of offsets within ±0.5 px, bilinearly and bicubically."""
+    import cv2
+
+    H, W = photo.shape[:2]
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    dx = 0.5 * np.sin(xx / 37 + seed) * np.cos(yy / 23)
+    dy = 0.5 * np.cos(xx / 29) * np.sin(yy / 41 + seed)
+    return [np.clip(cv2.remap(photo, xx + dx, yy + dy, f, borderMode=cv2.BORDER_REPLICATE), 0, 255)
+            for f in (cv2.INTER_LINEAR, cv2.INTER_CUBIC)]
 
 
 if __name__ == "__main__":

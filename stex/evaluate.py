@@ -449,14 +449,18 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
     import cv2
 
     img = _image(image, "image")
-    grey = img @ np.array([0.2125, 0.7154, 0.0721]) if img.shape[2] == 3 else img.mean(axis=-1)
-    H, W = grey.shape
+    H, W = img.shape[:2]
     m = _mask(mask, (H, W)).copy()
     if not 0 < flat_fraction <= 1:
         raise ValueError(f"flat_fraction must be in (0, 1], got {flat_fraction}")
     m[:2], m[-2:], m[:, :2], m[:, -2:] = False, False, False, False
     if not m.any():
         return {"sigma": np.nan, "n_pixels": 0}
+    # only the mask's bounding box (+ the filters' 1-px reach, inside the image) is filtered
+    r0, r1, c0, c1 = _bbox(m)
+    r0, r1, c0, c1 = r0 - 1, r1 + 1, c0 - 1, c1 + 1
+    img, m = img[r0:r1, c0:c1], m[r0:r1, c0:c1]
+    grey = img @ np.array([0.2125, 0.7154, 0.0721]) if img.shape[2] == 3 else img.mean(axis=-1)
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
     response = np.abs(cv2.filter2D(grey, cv2.CV_64F, kernel))[m]
     gradient = np.hypot(cv2.Sobel(grey, cv2.CV_64F, 1, 0), cv2.Sobel(grey, cv2.CV_64F, 0, 1))[m]

@@ -158,8 +158,7 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         mask composited over ``reference`` outside it, so windows crossing the mask's edge see
         the photo's own background on both sides), ``blur`` (of
         ``test``, 0 sharp .. 1 blurry), ``blur_input`` (of ``reference``, same mask and code),
-        ``noise_input`` (:func:`stex.evaluate.noise_sigma` of ``reference`` inside the mask,
-        grey levels: the metric reads noise as sharpness), ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
+        ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
     """
     ref = np.asarray(reference)
     tst = np.asarray(test)
@@ -177,7 +176,6 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
         "blur": ev.blur(tst, m, h_size=h_size)["blur"],
         "blur_input": ev.blur(ref, m, h_size=h_size)["blur"],
-        "noise_input": ev.noise_sigma(ref, m)["sigma"],
         "mean_shift_px": ps["mean_shift_px"],
         "n_patches": ps["n_patches"],
         "n_pixels": int(m.sum()),
@@ -821,6 +819,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         rec = {"frame": fid, "position": t, "held_out": bool(not is_source[t]),
                "motion_mm": motion[t], "methods": {}}
         novel_now = {}
+        # a property of the photo, not of a method: once per frame, stored with every method
+        noise = ev.noise_sigma(image, mask)["sigma"]
         for m in METHODS:
             s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
                             seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
@@ -829,6 +829,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             if tv is not None:
                 v = s.pop("views")
                 novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+            s["noise_input"] = noise
             rec["methods"][m] = s
         if tv is not None and t > 0:
             novel_now["truth"] = tv["novel"]
