@@ -131,7 +131,7 @@ def main(argv=None):
     args.scratch.mkdir(parents=True, exist_ok=True)
     obs = open_store(R / "observations.zarr", "observations")
     vis = np.asarray(obs["face_visible"][...], bool)
-    e_qual = np.asarray(obs["blurred"][...], np.float32) + np.asarray(obs["slanted"][...], np.float32)
+    e_qual = np.asarray(obs["blur_cost"][...], np.float32) + np.asarray(obs["slanted"][...], np.float32)
     colours = true_face_colours(R)
     labels = open_store(R / "labels.zarr", "labels")
     L = labels["labels"][...]

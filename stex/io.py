@@ -249,6 +249,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "edge_samples": ArraySpec(("T", "E", 9), "uint8", "grey", "grey value at 9 evenly spaced points along each shared edge (both ends included); 0 unless both edge vertices are visible", (1, "E", 9)),
             "face_visible": ArraySpec(("T", "F"), "bool", "1", "face visible in the frame (projection face_visible): the frame is a label candidate for the face", (1, "F")),
             "blurred": ArraySpec(("T", "F"), "bool", "1", "E_qual blur step: the face's texture coordinates move more than theta_b_px per frame, or a neighbouring frame does not see it", (1, "F")),
+            "motion": ArraySpec(("T", "F"), "float32", "px", "mean move of the face's texture-coordinate centroid to frames l-1 and l+1 (px per frame); NaN where unknown: the face not visible at l, l-1 or l+1, or l the first/last frame", (1, "F")),
+            "blur_cost": ArraySpec(("T", "F"), "float32", "1", "blur part of E_qual (attr params.blur_rule): step = blurred; graded = min(motion / theta_b_px, params.blur_cap); 0 where not visible", (1, "F")),
             "slanted": ArraySpec(("T", "F"), "bool", "1", "E_qual view-angle step (attr params.angle_rule)", (1, "F")),
             "dynamism": ArraySpec(("T", "F"), "float32", "1", "S(f, t): mean SSIM of face f between the partial textures of frames t-1 and t (row 0 = row 1); NaN where not seen in both", (1, "F"), required=False),
             "descriptors": ArraySpec(("T", "V", 352), "float16", "1", "SHOT descriptor of every vertex of the tracked mesh (unit L2 norm, geodesic neighbourhoods)", (1, "V", 352), required=False),
@@ -273,7 +275,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
             "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
             "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
-            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: blurred + slanted (0, 1 or 2)", (1, "F", "K")),
+            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step)", (1, "F", "K")),
             "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes, clipped (0..1; 0 when tables.omega_str = 0)", (1, "F", "K")),
         },
         attrs={

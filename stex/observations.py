@@ -14,8 +14,10 @@ touch an image again:
 - **Quality flags** (E_qual, Eq. quality term): ``blurred`` — the face's texture coordinates
   move by more than θ_b px between consecutive frames (mean of the moves to frame l-1 and l+1
   of the centroid of its three coordinates, as the authors' ``Selector.cpp``); a neighbouring
-  frame in which the face is not visible (or the sequence end) counts as blurred. ``slanted`` —
-  the view angle is too oblique (rule ``angle_rule``, below).
+  frame in which the face is not visible (or the sequence end) counts as blurred. ``blur_cost``
+  — the blur part of E_qual the tables use: that step, or with ``blur_rule: graded`` the motion
+  itself in units of θ_b (:func:`blur_cost`). ``slanted`` — the view angle is too oblique (rule
+  ``angle_rule``, below).
 - **Dynamism** S(f, t) (selective weighting): mean SSIM of face f between the partial texture
   maps of frames t-1 and t (:mod:`stex.dynamism`).
 - **SHOT descriptors** of every vertex of the tracked mesh (E_loc; :mod:`stex.similarity`).
@@ -47,8 +49,9 @@ from stex.texcoords import SAMPLE_BARY
 
 log = logging.getLogger("stex.observations")
 
-__all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "theta_b_for_width", "grey", "face_samples",
-           "edge_samples", "blurred_faces", "slanted_faces", "open_coordinates", "write_observations"]
+__all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "BLUR_RULES", "theta_b_for_width", "grey",
+           "face_samples", "edge_samples", "face_motion", "blurred_faces", "blur_cost",
+           "slanted_faces", "open_coordinates", "write_observations"]
 
 #: samples along a shared edge (the authors' e_samnum = 9, at s/8)
 EDGE_SAMPLES = 9
@@ -180,6 +183,31 @@ def theta_b_for_width(theta_b_px, width: int) -> float:
     return 20.0 * float(width) / PAPER_COLOR_WIDTH
 
 
+def face_motion(centroids, face_visible) -> np.ndarray:
+    """How far each face's texture coordinates move per frame, the measure behind E_qual's blur.
+
+    Args:
+        centroids: (T, F, 2) centroid of each face's texture coordinates per frame (px).
+        face_visible: (T, F) bool.
+
+    Returns:
+        (T, F) float32 px per frame: the mean of |c̄(l−1) − c̄(l)| and |c̄(l+1) − c̄(l)|, as the
+        authors' ``Selector.cpp``; NaN where it is unknown: the face is not visible at l or at a
+        neighbouring frame, or l is the first/last frame.
+    """
+    c = np.asarray(centroids, dtype=np.float64)
+    vis = np.asarray(face_visible, dtype=bool)
+    if c.ndim != 3 or c.shape[2] != 2 or vis.shape != c.shape[:2]:
+        raise ValueError(f"centroids (T, F, 2) and face_visible (T, F) disagree: {c.shape}, {vis.shape}")
+    out = np.full(vis.shape, np.nan)
+    if c.shape[0] >= 3:
+        prev = np.linalg.norm(c[:-2] - c[1:-1], axis=-1)
+        nxt = np.linalg.norm(c[2:] - c[1:-1], axis=-1)
+        known = vis[:-2] & vis[1:-1] & vis[2:]
+        out[1:-1] = np.where(known, 0.5 * (prev + nxt), np.nan)
+    return out.astype(np.float32)
+
+
 def blurred_faces(centroids, face_visible, theta_b_px: float) -> np.ndarray:
     """The blur step of E_qual for every (frame, face).
 
@@ -189,22 +217,43 @@ def blurred_faces(centroids, face_visible, theta_b_px: float) -> np.ndarray:
         theta_b_px: motion threshold θ_b (px per frame; the paper: 20).
 
     Returns:
-        (T, F) bool: the mean of |c̄(l−1) − c̄(l)| and |c̄(l+1) − c̄(l)| exceeds θ_b, or the face is
-        not visible at l−1 or l+1 (or l is the first/last frame): a missing neighbour counts as
-        blurred, as in the authors' code. False where the face is not visible at l.
+        (T, F) bool: :func:`face_motion` exceeds θ_b, or a neighbouring frame does not see the
+        face (or l is the first/last frame): a missing neighbour counts as blurred, as in the
+        authors' code. False where the face is not visible at l.
     """
-    c = np.asarray(centroids, dtype=np.float64)
+    return blur_cost(face_motion(centroids, face_visible), face_visible, theta_b_px, "step") > 0
+
+
+BLUR_RULES = ("step", "graded")
+
+
+def blur_cost(motion, face_visible, theta_b_px: float, rule: str = "step",
+              cap: float = 2.0) -> np.ndarray:
+    """The blur part of E_qual: (T, F) float32, from :func:`face_motion` (px per frame; NaN =
+    unknown) and face_visible (T, F) bool.
+
+    ``rule='step'`` (the paper): 1 where the motion exceeds θ_b or is unknown (a missing
+    neighbour counts as blurred, as in the authors' code), else 0.
+    ``rule='graded'`` (ours): motion / θ_b, capped at ``cap``; unknown motion costs ``cap``. It
+    is 1 at θ_b like the step, but also ranks the frames on either side: when most frames move
+    faster than θ_b (a walk that never pauses) the step makes them all equally bad and cannot
+    prefer the sharpest.
+    0 where the face is not visible (not a candidate).
+    """
+    m = np.asarray(motion, dtype=np.float64)
     vis = np.asarray(face_visible, dtype=bool)
-    if c.ndim != 3 or c.shape[2] != 2 or vis.shape != c.shape[:2]:
-        raise ValueError(f"centroids (T, F, 2) and face_visible (T, F) disagree: {c.shape}, {vis.shape}")
-    T = c.shape[0]
-    out = np.ones(vis.shape, bool)
-    if T >= 3:
-        prev = np.linalg.norm(c[:-2] - c[1:-1], axis=-1)
-        nxt = np.linalg.norm(c[2:] - c[1:-1], axis=-1)
-        both = vis[:-2] & vis[2:]
-        out[1:-1] = ~both | (0.5 * (prev + nxt) > theta_b_px)
-    return out & vis
+    if vis.shape != m.shape:
+        raise ValueError(f"motion {m.shape} and face_visible {vis.shape} disagree")
+    unknown = np.isnan(m)
+    if rule == "step":
+        out = (m > theta_b_px) | unknown
+    elif rule == "graded":
+        if not theta_b_px > 0 or not cap > 0:
+            raise ValueError(f"graded blur cost needs θ_b > 0 and cap > 0, got {theta_b_px}, {cap}")
+        out = np.where(unknown, cap, np.minimum(m / theta_b_px, cap))
+    else:
+        raise ValueError(f"blur_rule must be one of {BLUR_RULES}, got {rule!r}")
+    return np.where(vis, out, 0).astype(np.float32)
 
 
 def slanted_faces(face_cos, theta_n: float = 0.3, rule: str = "paper") -> np.ndarray:
@@ -320,11 +369,15 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
                 log.info("observations: frame %d (%d/%d, %.1f frames/s)", fid, k + 1, T,
                          (k + 1) / (time.perf_counter() - t0))
         theta_b = theta_b_for_width(p["theta_b_px"], width)
-        blurred = blurred_faces(centroids, face_visible, theta_b)
+        motion = face_motion(centroids, face_visible)
+        blurred = blur_cost(motion, face_visible, theta_b, "step") > 0
         slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
         store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))
         store.write("face_visible", face_visible)
         store.write("blurred", blurred)
+        store.create("motion", motion.shape)[...] = motion      # NaN = unknown, by design
+        store.write("blur_cost", blur_cost(motion, face_visible, theta_b, p["blur_rule"],
+                                           p["blur_cap"]))
         store.write("slanted", slanted)
         n_vis = max(int(face_visible.sum()), 1)
         store.attrs["theta_b_px"] = theta_b

@@ -6,7 +6,7 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
     U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l)
                  + ω_str E_str(t, f, l)
 
-- E_qual(f, l) = blurred + slanted (``observations``; 0, 1 or 2).
+- E_qual(f, l) = blur_cost + slanted (``observations``; with the paper's blur step 0, 1 or 2).
 - E_glo(t, l) ∈ [0, 1]: the clipped depth difference of K_{t→l}(M_t) and M_l over the union of
   their silhouettes, divided by the clip (:func:`stex.similarity.global_similarity`). The authors'
   table is in metres with a 0.1 m clip, so 0.9·E_glo ≤ 0.09 never competes with the 0/1 quality
@@ -265,7 +265,10 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
     sources = source_mask(len(ids), p["source_stride"])
     face_visible = face_visible & sources[:, None]
-    e_qual = (np.asarray(obs["blurred"][...], np.float32)
+    if "blur_cost" not in obs:
+        raise ValueError(f"{observations_path}: no blur_cost table (written by the observations "
+                         f"stage since it offers blur_rule; re-run the observations stage)")
+    e_qual = (np.asarray(obs["blur_cost"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))
     descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
     strain = None

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from stex.observations import (blurred_faces, edge_samples, face_centroids, face_samples, grey,
-                               slanted_faces, theta_b_for_width)
+from stex.observations import (blur_cost, blurred_faces, edge_samples, face_centroids, face_motion,
+                               face_samples, grey, slanted_faces, theta_b_for_width)
 from stex.texcoords import SAMPLE_BARY
 
 
@@ -50,6 +50,28 @@ def test_blur_step_and_missing_neighbours():
     assert not b[1, 0] and b[3, 0]                # mean move 5 px vs 30 px
     assert b[2, 1] and b[4, 1] and not b[1, 1]    # neighbours of the unseen frame
     assert not b[3, 1]                            # not visible: not a candidate, not flagged
+
+
+def test_graded_blur_cost_ranks_frames_the_step_cannot():
+    T, F = 5, 1
+    c = np.zeros((T, F, 2))
+    c[:, 0, 0] = [0, 4, 12, 20, 40]               # moves 4, 8, 8, 20 px between frames
+    vis = np.ones((T, F), bool)
+    m = face_motion(c, vis)
+    assert np.isnan(m[0, 0]) and np.isnan(m[-1, 0])
+    assert m[1:4, 0].tolist() == pytest.approx([6.0, 8.0, 14.0])
+    step = blur_cost(m, vis, 5.0, "step")
+    assert step[:, 0].tolist() == [1, 1, 1, 1, 1]  # all above θ_b or unknown: the step cannot choose
+    graded = blur_cost(m, vis, 5.0, "graded", cap=2.0)
+    assert graded[:, 0].tolist() == pytest.approx([2.0, 1.2, 1.6, 2.0, 2.0])  # 14/5 capped; unknown = cap
+    vis[2, 0] = False
+    m = face_motion(c, vis)
+    assert np.isnan(m[1:4, 0]).all()              # the unseen frame and both its neighbours
+    assert blur_cost(m, vis, 5.0, "graded")[:, 0].tolist() == [2, 2, 0, 2, 2]
+    assert blur_cost(m, vis, 5.0, "step")[2, 0] == 0
+    assert (blurred_faces(c, vis, 5.0) == (blur_cost(m, vis, 5.0, "step") > 0)).all()
+    with pytest.raises(ValueError, match="blur_rule"):
+        blur_cost(m, vis, 5.0, "smooth")
 
 
 def test_theta_b_scales_the_papers_threshold_to_the_colour_width():
