@@ -249,7 +249,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "edge_samples": ArraySpec(("T", "E", 9), "uint8", "grey", "grey value at 9 evenly spaced points along each shared edge (both ends included); 0 unless both edge vertices are visible", (1, "E", 9)),
             "face_visible": ArraySpec(("T", "F"), "bool", "1", "face visible in the frame (projection face_visible): the frame is a label candidate for the face", (1, "F")),
             "blurred": ArraySpec(("T", "F"), "bool", "1", "E_qual blur step: the face's texture coordinates move more than theta_b_px per frame, or a neighbouring frame does not see it", (1, "F")),
-            "motion": ArraySpec(("T", "F"), "float32", "px", "mean move of the face's texture-coordinate centroid to frames l-1 and l+1 (px per frame); NaN where unknown: the face not visible at l, l-1 or l+1, or l the first/last frame", (1, "F")),
+            "motion": ArraySpec(("T", "F"), "float32", "px", "mean move of the face's texture-coordinate centroid to frames l-1 and l+1 (px per frame); NaN where unknown: the face not visible at l, or (params.unseen_neighbours 'unknown', the authors' rule) not visible at l-1 or l+1, or l the first/last frame", (1, "F")),
             "blur_cost": ArraySpec(("T", "F"), "float32", "1", "blur part of E_qual (attr params.blur_rule): step = blurred; graded = min(motion / theta_b_px, params.blur_cap); 0 where not visible", (1, "F")),
             "slanted": ArraySpec(("T", "F"), "bool", "1", "E_qual view-angle step (attr params.angle_rule)", (1, "F")),
             "dynamism": ArraySpec(("T", "F"), "float32", "1", "S(f, t): mean SSIM of face f between the partial textures of frames t-1 and t (row 0 = row 1); NaN where not seen in both", (1, "F"), required=False),

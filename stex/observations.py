@@ -49,8 +49,9 @@ from stex.texcoords import SAMPLE_BARY
 
 log = logging.getLogger("stex.observations")
 
-__all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "BLUR_RULES", "theta_b_for_width", "grey",
-           "face_samples", "edge_samples", "face_motion", "blurred_faces", "blur_cost",
+__all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "BLUR_RULES", "UNSEEN_NEIGHBOURS",
+           "theta_b_for_width", "grey", "face_samples", "edge_samples", "face_motion",
+           "blurred_faces", "blur_cost",
            "slanted_faces", "open_coordinates", "write_observations"]
 
 #: samples along a shared edge (the authors' e_samnum = 9, at s/8)
@@ -183,28 +184,44 @@ def theta_b_for_width(theta_b_px, width: int) -> float:
     return 20.0 * float(width) / PAPER_COLOR_WIDTH
 
 
-def face_motion(centroids, face_visible) -> np.ndarray:
+BLUR_RULES = ("step", "graded")
+UNSEEN_NEIGHBOURS = ("unknown", "measured")
+
+
+def face_motion(centroids, face_visible, unseen_neighbours: str = "unknown") -> np.ndarray:
     """How far each face's texture coordinates move per frame, the measure behind E_qual's blur.
 
     Args:
-        centroids: (T, F, 2) centroid of each face's texture coordinates per frame (px).
+        centroids: (T, F, 2) centroid of each face's texture coordinates per frame (px); defined
+            in every frame, seen or not (the projection of the tracked mesh).
         face_visible: (T, F) bool.
+        unseen_neighbours: ``'unknown'`` (the authors' ``Selector.cpp``): the motion needs the
+            face visible at l−1, l and l+1 and is NaN otherwise, and at the first/last frame.
+            ``'measured'`` (ours): the image motion of a surface point, and so its motion blur,
+            does not depend on whether the neighbouring frames see it: the moves to l−1 and
+            l+1 are measured from the centroids whatever their visibility, and the first/last
+            frame uses its one neighbour.
 
     Returns:
-        (T, F) float32 px per frame: the mean of |c̄(l−1) − c̄(l)| and |c̄(l+1) − c̄(l)|, as the
-        authors' ``Selector.cpp``; NaN where it is unknown: the face is not visible at l or at a
-        neighbouring frame, or l is the first/last frame.
+        (T, F) float32 px per frame: the mean of |c̄(l−1) − c̄(l)| and |c̄(l+1) − c̄(l)|; NaN where
+        unknown, and always where the face is not visible at l.
     """
     c = np.asarray(centroids, dtype=np.float64)
     vis = np.asarray(face_visible, dtype=bool)
     if c.ndim != 3 or c.shape[2] != 2 or vis.shape != c.shape[:2]:
         raise ValueError(f"centroids (T, F, 2) and face_visible (T, F) disagree: {c.shape}, {vis.shape}")
+    if unseen_neighbours not in UNSEEN_NEIGHBOURS:
+        raise ValueError(f"unseen_neighbours must be one of {UNSEEN_NEIGHBOURS}, got {unseen_neighbours!r}")
+    T = c.shape[0]
     out = np.full(vis.shape, np.nan)
-    if c.shape[0] >= 3:
-        prev = np.linalg.norm(c[:-2] - c[1:-1], axis=-1)
-        nxt = np.linalg.norm(c[2:] - c[1:-1], axis=-1)
+    moves = np.linalg.norm(np.diff(c, axis=0), axis=-1)        # (T-1, F): |c̄(l+1) − c̄(l)|
+    if unseen_neighbours == "measured" and T >= 2:
+        out[1:-1] = 0.5 * (moves[:-1] + moves[1:])
+        out[0], out[-1] = moves[0], moves[-1]
+    elif T >= 3:
         known = vis[:-2] & vis[1:-1] & vis[2:]
-        out[1:-1] = np.where(known, 0.5 * (prev + nxt), np.nan)
+        out[1:-1] = np.where(known, 0.5 * (moves[:-1] + moves[1:]), np.nan)
+    out[~vis] = np.nan
     return out.astype(np.float32)
 
 
@@ -224,7 +241,6 @@ def blurred_faces(centroids, face_visible, theta_b_px: float) -> np.ndarray:
     return blur_cost(face_motion(centroids, face_visible), face_visible, theta_b_px, "step") > 0
 
 
-BLUR_RULES = ("step", "graded")
 
 
 def blur_cost(motion, face_visible, theta_b_px: float, rule: str = "step",
@@ -369,7 +385,7 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
                 log.info("observations: frame %d (%d/%d, %.1f frames/s)", fid, k + 1, T,
                          (k + 1) / (time.perf_counter() - t0))
         theta_b = theta_b_for_width(p["theta_b_px"], width)
-        motion = face_motion(centroids, face_visible)
+        motion = face_motion(centroids, face_visible, p["unseen_neighbours"])
         blurred = blur_cost(motion, face_visible, theta_b, "step") > 0
         slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
         store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))

@@ -74,6 +74,23 @@ def test_graded_blur_cost_ranks_frames_the_step_cannot():
         blur_cost(m, vis, 5.0, "smooth")
 
 
+def test_measured_motion_ignores_the_neighbours_visibility():
+    c = np.zeros((5, 1, 2))
+    c[:, 0, 1] = [0, 2, 4, 10, 16]                # moves 2, 2, 6, 6 px between frames
+    vis = np.ones((5, 1), bool)
+    vis[3, 0] = False
+    authors = face_motion(c, vis, "unknown")
+    ours = face_motion(c, vis, "measured")
+    assert np.isnan(authors[[0, 2, 4], 0]).all() and authors[1, 0] == pytest.approx(2.0)
+    assert ours[:, 0][[0, 1, 2, 4]].tolist() == pytest.approx([2.0, 2.0, 4.0, 6.0])  # ends: one side
+    assert np.isnan(ours[3, 0])                   # not visible: never a candidate
+    step = blur_cost(ours, vis, 3.0, "step")[:, 0].tolist()
+    assert step == [0, 0, 1, 0, 1]                # frame 2 (4 px) blurred by its motion, not its neighbour
+    assert blur_cost(authors, vis, 3.0, "step")[:, 0].tolist() == [1, 0, 1, 0, 1]
+    with pytest.raises(ValueError, match="unseen_neighbours"):
+        face_motion(c, vis, "guess")
+
+
 def test_theta_b_scales_the_papers_threshold_to_the_colour_width():
     assert theta_b_for_width(None, 4096) == pytest.approx(20.0)     # the paper's images
     assert theta_b_for_width(None, 640) == pytest.approx(3.125)
