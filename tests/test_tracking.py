@@ -282,3 +282,21 @@ def test_normal_equations_match_the_jacobian_by_finite_differences():
     assert np.abs(JtJ.toarray() - ref).max() < 1e-6 * np.abs(ref).max()
     assert np.allclose(grad, J.T @ r0, rtol=1e-6, atol=1e-9 * np.abs(J.T @ r0).max())
     assert np.allclose(diag, np.stack([ref[12 * n:12 * n + 12, 12 * n:12 * n + 12] for n in range(N)]))
+
+
+def test_step_guard_keeps_a_thin_limb_on_its_depth():
+    """A leg-like cylinder (2 cm radius) moved sideways by half its radius: nodes strung along
+    its axis are free to turn about it to first order (the rotation term is flat there), and the
+    undamped Gauss-Newton steps twist them (measured without the guard: 6.8 mm mean, 9.3 mm max
+    error); with steps accepted only when they lower the energy the solve lands on the truth."""
+    import trimesh
+
+    m = trimesh.creation.cylinder(radius=0.02, height=0.4, sections=16).subdivide().subdivide()
+    V = m.vertices @ Rotation.from_euler("y", 90, degrees=True).as_matrix().T + [0.0, 0.0, 0.8]
+    F = np.asarray(m.faces, np.int64)
+    V1 = V + [0.0, 0.01, 0.0]
+    g = build_graph(V, F, 0.05, volume_links=20)
+    x, stats = _solve_frame(V, F, V[g.nodes], g, _target(V1, F), TrackParams(), identity_params(len(g.nodes)))
+    err = np.linalg.norm(deform(V, V[g.nodes], g, x) - V1, axis=1)
+    assert stats["lm_rejected"] >= 1 and stats["lm_failed"] == 0   # the guard did trigger
+    assert err.max() < 0.002, (err.mean(), err.max())
