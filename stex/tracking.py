@@ -20,7 +20,9 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   matrix first; :func:`_normal_equations`), not as a sparse Jacobian times its transpose, and
   the mesh is rasterised for visibility every ``VISIBILITY_EVERY`` steps, not every step.
   A step is kept only if it lowers the energy (robust costs at the step's correspondences);
-  otherwise it is solved again with Levenberg-Marquardt damping (:func:`_solve_frame`).
+  otherwise it is solved again with Levenberg-Marquardt damping (:func:`_solve_frame`). And a
+  frame keeps the best, by the clipped rendered-vs-observed depth difference
+  (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
   as a reprojection term; and optionally a silhouette term (:func:`silhouette_field`): rim
@@ -50,6 +52,8 @@ log = logging.getLogger("stex.tracking")
 PARAMS_PER_NODE = 12  # A (3x3, row-major) then t (3)
 SILHOUETTE_MAX_PX = 20.0  # farther from the mask's boundary, a vertex is not on the rim it sees
 VISIBILITY_EVERY = 4  # Gauss-Newton steps per rasterisation of the mesh for visibility
+FRAME_GUARD_CLIP_M = 0.05  # depth differences clipped here when judging a frame's solve (m)
+FRAME_GUARD_MARGIN = 1.05  # a solve fitting the depth this much worse than the prediction or rigid fit is dropped
 
 
 # -- deformation graph -------------------------------------------------------------------------
@@ -536,11 +540,16 @@ def _huber_cost(r, delta):
     return np.where(a <= delta, r * r, 2.0 * delta * a - delta * delta)
 
 
-def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=True):
+def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=True, px_scale=None):
     """The data-like residuals of one Gauss-Newton step at vertices ``Vd`` (V, 3), for fixed
     correspondences: ``depth`` = (vertex ids (n,), target points (n, 3), target normals (n, 3)),
     ``flow`` = (ids, target colour px (n, 2), colour K, depth_to_color, weights (n,)),
     ``silhouette`` = (ids, signed distance (Hc, Wc), gradient (Hc, Wc, 2), colour K, depth_to_color).
+    The colour terms' pixel residuals are turned into metres with ``px_scale`` (V,), each
+    vertex's metres per colour pixel fixed for the solve (at the vertices it starts from): with
+    the current z / fx instead, moving a vertex towards the camera would shrink its cost, and a
+    solve whose depth data has run out slides the mesh at the camera (measured on the fox: the
+    whole mesh ~1 m off in one frame).
 
     Returns (robust cost, float: sum of the Huber costs times the terms' weights, and, with
     ``rows``, lists of vertex ids, weighted rows d r / d x'_i (n, 3) and weighted residuals (n,)
@@ -572,7 +581,9 @@ def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=
     if flow is not None and len(flow[0]):
         fid, u_t, Kc, Tdc, fw = flow
         proj, scale, Dm = _colour_projection(Vd[fid], Kc, Tdc)
-        rf = (proj - u_t) * scale[:, None]                  # (n, 2)
+        s0 = px_scale[fid]
+        rf = (proj - u_t) * s0[:, None]                      # (n, 2)
+        Dm = Dm * (s0 / np.maximum(scale, 1e-9))[:, None, None]
         for m in range(2):
             add(fid, rf[:, m], Dm[:, m], p.w_flow * fw)
     # silhouette: sdf(pi(T_dc x'_i)) * z / fx
@@ -580,6 +591,8 @@ def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=
         sid, sdf, sdf_grad, Kc, Tdc = silhouette
         proj, scale, Dm = _colour_projection(Vd[sid], Kc, Tdc)
         front = (scale > 1e-6) & np.isfinite(proj).all(1)
+        Dm = Dm * (px_scale[sid] / np.maximum(scale, 1e-9))[:, None, None]
+        scale = px_scale[sid]
         proj = np.where(front[:, None], proj, 0.0)
         d_px = np.where(front, sample_bilinear(sdf, proj), SILHOUETTE_MAX_PX)  # behind the camera: far off
         grad = sample_bilinear(sdf_grad, proj)              # (n, 2) px per px
@@ -640,6 +653,10 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     max_dist = p.max_distance_m
     sr = np.sqrt(p.w_rot)
     mu, nu = 0.0, 2.0
+    # metres per colour pixel at each vertex, fixed for the solve (see _data_rows); flow and
+    # silhouette both carry (colour K, depth_to_color) at positions 2, 3
+    colour = flow if flow is not None else silhouette
+    px_scale = _colour_projection(V0, colour[2], colour[3])[1] if colour is not None else None
 
     def smooth_res(x):
         A = x[:, :9].reshape(N, 3, 3)
@@ -666,7 +683,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 sid = _silhouette_rim(Vd, vis, cos, silhouette, p)
                 sil = (sid, *silhouette)
                 stats["n_silhouette"] = len(sid)
-            cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil)
+            cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
             energy = cost + prior_cost(x)
             rr, Jr = _rot_terms(x)
             vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
@@ -687,7 +704,8 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 lhs = JtJ if mu == 0 else JtJ + sp.diags(mu * diag)
                 delta, _ = cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=precond)
                 x_new = x + delta.reshape(N, 12)
-                new_cost = _data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False)[0]
+                new_cost = _data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False,
+                                      px_scale=px_scale)[0]
                 new_energy = new_cost + prior_cost(x_new)
                 # the weighted squares majorise the robust costs: a true descent step lowers both
                 # (a converged step may change the energy by round-off only)
@@ -899,6 +917,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         # Each pass re-measures the flow from the model rendered at the latest estimate: DIS
         # under-estimates motion by a few per cent, and new model texels would inherit that lag.
         guard = {"lm_rejected": 0, "lm_failed": 0}
+        pred0 = pred
         for npass in range(max(1, params.flow_passes) if use_flow and model is not None else 1):
             flow = None
             if use_flow and model is not None:
@@ -917,7 +936,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 U, _, Vt = np.linalg.svd(xr[0, :9].reshape(3, 3))
                 R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
                 c = pred[centre]
-                rigid = (pred - c) @ R.T + c + xr[0, 9:]
+                rigid = rigid0 = (pred - c) @ R.T + c + xr[0, 9:]
                 for key in guard:
                     guard[key] += rstats[key]
             else:
@@ -937,6 +956,20 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         if not np.isfinite(cur).all():
             raise ValueError(f"tracking diverged at frame position {pos}: non-finite vertices "
                              f"({stats.get('n_corr', 0)} depth correspondences in the last solve)")
+        # Frame-level guard: the step guard holds the correspondences fixed, so a solve can still
+        # walk off with its own associations (losing pairs lowers the cost). Judged by how well each
+        # mesh explains the whole depth frame (rendered vs observed, silhouette included), the
+        # frame keeps the best of the prediction, the rigid fit and the full solve.
+        fits = {name: depth_residual(V, F, obs.target, FRAME_GUARD_CLIP_M)
+                for name, V in (("solve", cur), ("rigid", rigid0), ("prediction", pred0))}
+        stats["depth_residual_m"] = fits["solve"]
+        if fits["solve"] > FRAME_GUARD_MARGIN * min(fits.values()):
+            best = min(fits, key=fits.get)
+            log.warning("tracking: frame %d: guard: the solve explains the depth worse (mean clipped depth "
+                        "difference %.1f mm) than the %s (%.1f mm): keeping the %s",
+                        pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
+            cur = {"rigid": rigid0, "prediction": pred0}[best]
+            guard["frame_fallback"] = 1
         stats["seconds"] = time.perf_counter() - tf
         # Overshooting steps are routine on thin parts (see _solve_frame): info; a round that found
         # no descent step at all stopped early: warning.
@@ -945,6 +978,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 "tracking: frame %d: guard: %d Gauss-Newton steps raised the energy and were re-solved with more "
                 "damping; %d rounds stopped with no descent step", pos, guard["lm_rejected"], guard["lm_failed"])
         stats.update(guard)
+        stats.setdefault("frame_fallback", 0)
         if progress:
             log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s)",
                      pos, stats["n_corr"], 1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0))

@@ -300,3 +300,38 @@ def test_step_guard_keeps_a_thin_limb_on_its_depth():
     err = np.linalg.norm(deform(V, V[g.nodes], g, x) - V1, axis=1)
     assert stats["lm_rejected"] >= 1 and stats["lm_failed"] == 0   # the guard did trigger
     assert err.max() < 0.002, (err.mean(), err.max())
+
+
+def test_frame_guard_drops_a_solve_that_fits_the_depth_worse(tiny_config, monkeypatch):
+    """A non-rigid solve that flings the mesh 0.3 m (stand-in for one that walked off with its
+    own correspondences) explains the depth frame worse than the rigid fit: the frame keeps the
+    rigid fit, says so in its stats, and stays on the truth."""
+    import cv2
+
+    import stex.tracking as tracking
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import mask_in_depth
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    solve = tracking._solve_frame
+
+    def flinging_solve(V0, faces, node_pos, graph, *args, **kwargs):
+        x, stats = solve(V0, faces, node_pos, graph, *args, **kwargs)
+        if len(node_pos) > 1:   # the non-rigid stage only
+            x = x.copy()
+            x[:, 9:] += [0.3, 0.0, 0.0]
+        return x, stats
+
+    monkeypatch.setattr(tracking, "_solve_frame", flinging_solve)
+
+    def obs():
+        for t in range(3):
+            r = s.render_frame(t)
+            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
+            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
+                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+
+    for pos, V, st in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(), progress=False,
+                                     texcoords=s.texcoords, texcoord_faces=s.texcoord_faces):
+        assert st["frame_fallback"] == 1
+        assert np.linalg.norm(V - s.true_vertices(pos), axis=1).mean() < 0.02
