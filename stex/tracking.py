@@ -295,8 +295,8 @@ class TrackParams:
     rigid_iterations: int = 12
     rigid_w_flow: float = 0.25
     w_point: float = 0.0
-    w_silhouette: float = 0.0
-    silhouette_rim_cos: float = 0.2
+    w_silhouette: float = 4.0
+    silhouette_rim_cos: float = 0.05
     w_flow: float = 0.25
     flow_consistency_px: float = 1.0
     flow_min_cos: float = 0.15
@@ -418,6 +418,28 @@ def silhouette_field(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sdf = np.where(m, 0.5 - inside, outside - 0.5).astype(np.float32)
     gv, gu = np.gradient(sdf)
     return sdf, np.stack([gu, gv], -1).astype(np.float32)
+
+
+def silhouette_crop(mask: np.ndarray, K: np.ndarray, margin_px: int = 64):
+    """:func:`silhouette_field` of ``mask`` (H, W) bool over its bounding box grown by
+    ``margin_px``: (signed distance (h, w) float32, gradient (h, w, 2), K (3, 3) float64 with the
+    principal point moved to the crop, so that projecting with it gives crop pixels).
+
+    Why: at 2048 x 1536 the field over the whole image takes 0.52 s, over the object's box 0.03 s.
+    It is exact wherever a vertex can count (|distance| < SILHOUETTE_MAX_PX < ``margin_px``):
+    the box holds the whole mask and background beyond it on every side (beyond the box,
+    sample_bilinear clamps to its edge, so a vertex there still sees a large distance).
+    """
+    m = np.asarray(mask, bool)
+    rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+    if not len(rows):
+        raise ValueError("silhouette_crop: the mask is empty")
+    y0, x0 = max(rows[0] - margin_px, 0), max(cols[0] - margin_px, 0)
+    y1, x1 = min(rows[-1] + margin_px + 1, m.shape[0]), min(cols[-1] + margin_px + 1, m.shape[1])
+    Kc = np.array(K, np.float64)
+    Kc[0, 2] -= x0
+    Kc[1, 2] -= y0
+    return (*silhouette_field(m[y0:y1, x0:x1]), Kc)
 
 
 # -- normal equations ---------------------------------------------------------------------------
@@ -913,7 +935,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         silhouette = None
         if params.w_silhouette > 0 and obs.mask is not None and obs.mask.any():
             cal = obs.calibration
-            silhouette = (*silhouette_field(obs.mask), cal.color.K, cal.depth_to_color)
+            silhouette = (*silhouette_crop(obs.mask, cal.color.K), cal.depth_to_color)
         # Each pass re-measures the flow from the model rendered at the latest estimate: DIS
         # under-estimates motion by a few per cent, and new model texels would inherit that lag.
         guard = {"lm_rejected": 0, "lm_failed": 0}

@@ -335,3 +335,21 @@ def test_frame_guard_drops_a_solve_that_fits_the_depth_worse(tiny_config, monkey
                                      texcoords=s.texcoords, texcoord_faces=s.texcoord_faces):
         assert st["frame_fallback"] == 1
         assert np.linalg.norm(V - s.true_vertices(pos), axis=1).mean() < 0.02
+
+
+def test_silhouette_crop_matches_the_whole_image_field():
+    """The field over the mask's box (with K's principal point moved) samples like the field over
+    the whole image wherever a vertex can count (|distance| below SILHOUETTE_MAX_PX)."""
+    from stex.camera import project_points
+    from stex.render import sample_bilinear
+    from stex.tracking import SILHOUETTE_MAX_PX, silhouette_crop, silhouette_field
+    V, F = _sphere()
+    mask = rasterize(V, F, K, 240, 180).depth > 0
+    full, _ = silhouette_field(mask)
+    crop, _, Kc = silhouette_crop(mask, K, margin_px=24)
+    assert crop.shape[0] < mask.shape[0] and crop.shape[1] < mask.shape[1]
+    pts = V + np.random.default_rng(1).normal(0, 0.02, V.shape)
+    a = sample_bilinear(full, project_points(pts, K)[0])
+    b = sample_bilinear(crop, project_points(pts, Kc)[0])
+    near = np.abs(a) < SILHOUETTE_MAX_PX
+    assert near.sum() > 100 and np.allclose(a[near], b[near], atol=1e-4)
