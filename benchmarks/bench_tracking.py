@@ -83,7 +83,8 @@ def main() -> int:
         depth = rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth
         vis, _ = vertex_visibility(Vt, F, cal.depth.K, depth)
         err = np.linalg.norm(V - Vt, axis=1)
-        rows.append((err[vis].mean(), err.mean(), st["seconds"]))
+        rows.append((err[vis].mean(), err.mean(), st["seconds"], st.get("lm_rejected", 0), st.get("lm_failed", 0),
+                     st.get("frame_fallback", 0)))
         if pos % args.every == 0:
             print(f"frame {t:4d}: visible {1000 * err[vis].mean():5.1f} mm  all {1000 * err.mean():5.1f} mm  "
                   f"max {1000 * err.max():6.1f} mm  {st['seconds']:.2f} s", flush=True)
@@ -91,7 +92,8 @@ def main() -> int:
     print(f"worst frame visible: {1000 * r[:, 0].max():.1f} mm (frame {frames[r[:, 0].argmax()]}); "
           f"worst frame all: {1000 * r[:, 1].max():.1f} mm (frame {frames[r[:, 1].argmax()]}); "
           f"frames within 5 / 15 mm: {(r[:, 0] <= 0.005).mean() * 100:.0f} % / {(r[:, 1] <= 0.015).mean() * 100:.0f} %; "
-          f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s)")
+          f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s); "
+          f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back")
     return 0
 
 
