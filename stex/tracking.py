@@ -993,17 +993,16 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             cur = {"rigid": rigid0, "prediction": pred0}[best]
             guard["frame_fallback"] = 1
         stats["seconds"] = time.perf_counter() - tf
-        # Overshooting steps are routine on thin parts (see _solve_frame), and a round near its
-        # minimum often finds no step that still descends: info. A frame that falls back warns above.
-        if guard["lm_rejected"]:
-            log.info("tracking: frame %d: guard: %d Gauss-Newton steps raised the energy and were re-solved "
-                     "with more damping; %d rounds stopped with no descent step", pos,
-                     guard["lm_rejected"], guard["lm_failed"])
         stats.update(guard)
         stats.setdefault("frame_fallback", 0)
         if progress:
-            log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s)",
-                     pos, stats["n_corr"], 1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0))
+            # Overshooting steps are routine on thin parts (see _solve_frame), and a round near its
+            # minimum often finds no step that still descends: counted on the progress line. A
+            # frame that falls back warns above.
+            log.info("tracking: frame %d done (%d correspondences, rms %.2f mm, %.2f s; %.2f frames/s; "
+                     "%d steps re-solved with damping, %d rounds stopped)", pos, stats["n_corr"],
+                     1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0),
+                     guard["lm_rejected"], guard["lm_failed"])
         before, prev = prev, cur
         if use_flow:
             if model is None:
