@@ -447,6 +447,7 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
         dict ``sigma`` (grey levels; NaN when nothing is selected), ``n_pixels`` (pixels used).
     """
     import cv2
+    from skimage.color import rgb2gray
 
     img = _image(image, "image")
     H, W = img.shape[:2]
@@ -460,7 +461,7 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
     r0, r1, c0, c1 = _bbox(m)
     r0, r1, c0, c1 = r0 - 1, r1 + 1, c0 - 1, c1 + 1
     img, m = img[r0:r1, c0:c1], m[r0:r1, c0:c1]
-    grey = img @ np.array([0.2125, 0.7154, 0.0721]) if img.shape[2] == 3 else img.mean(axis=-1)
+    grey = rgb2gray(img) if img.shape[2] == 3 else img.mean(axis=-1)
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
     response = np.abs(cv2.filter2D(grey, cv2.CV_64F, kernel))[m]
     gradient = np.hypot(cv2.Sobel(grey, cv2.CV_64F, 1, 0), cv2.Sobel(grey, cv2.CV_64F, 0, 1))[m]

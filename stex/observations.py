@@ -11,13 +11,13 @@ touch an image again:
   ``adjacency/edges[e, 0]`` to ``[e, 1]``, at s/8, s = 0..8). The texture coordinates are per
   vertex, so both faces of the edge see the same samples in one frame and the spatial cost
   between labels a and b of the two faces only needs the samples of frames a and b.
-- **Quality flags** (E_qual, Eq. quality term): ``blurred`` — the face's texture coordinates
-  move by more than θ_b px between consecutive frames (mean of the moves to frame l-1 and l+1
-  of the centroid of its three coordinates, as the authors' ``Selector.cpp``); a neighbouring
-  frame in which the face is not visible (or the sequence end) counts as blurred. ``blur_cost``
-  — the blur part of E_qual the tables use: that step, or with ``blur_rule: graded`` the motion
-  itself in units of θ_b (:func:`blur_cost`). ``slanted`` — the view angle is too oblique (rule
-  ``angle_rule``, below).
+- **Quality terms** (E_qual, Eq. quality term): ``motion`` — how far the face's texture
+  coordinates move per frame (mean of the moves to frame l-1 and l+1 of the centroid of its three
+  coordinates, as the authors' ``Selector.cpp``; :func:`face_motion`, with ``unseen_neighbours``
+  saying whether a neighbouring frame that does not see the face still gives a motion); and
+  ``blur_cost``, the blur part of E_qual the tables use (:func:`blur_cost`): the paper's step
+  (blurred when the motion exceeds θ_b or is unknown) or, with ``blur_rule: graded``, the motion
+  in units of θ_b. ``slanted`` — the view angle is too oblique (rule ``angle_rule``, below).
 - **Dynamism** S(f, t) (selective weighting): mean SSIM of face f between the partial texture
   maps of frames t-1 and t (:mod:`stex.dynamism`).
 - **SHOT descriptors** of every vertex of the tracked mesh (E_loc; :mod:`stex.similarity`).
@@ -241,8 +241,6 @@ def blurred_faces(centroids, face_visible, theta_b_px: float) -> np.ndarray:
     return blur_cost(face_motion(centroids, face_visible), face_visible, theta_b_px, "step") > 0
 
 
-
-
 def blur_cost(motion, face_visible, theta_b_px: float, rule: str = "step",
               cap: float = 2.0) -> np.ndarray:
     """The blur part of E_qual: (T, F) float32, from :func:`face_motion` (px per frame; NaN =
@@ -386,11 +384,10 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
                          (k + 1) / (time.perf_counter() - t0))
         theta_b = theta_b_for_width(p["theta_b_px"], width)
         motion = face_motion(centroids, face_visible, p["unseen_neighbours"])
-        blurred = blur_cost(motion, face_visible, theta_b, "step") > 0
+        blurred = blur_cost(motion, face_visible, theta_b, "step") > 0   # for its fraction only
         slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
         store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))
         store.write("face_visible", face_visible)
-        store.write("blurred", blurred)
         store.create("motion", motion.shape)[...] = motion      # NaN = unknown, by design
         store.write("blur_cost", blur_cost(motion, face_visible, theta_b, p["blur_rule"],
                                            p["blur_cap"]))

@@ -235,7 +235,7 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     Args:
         scene_path: ``scene`` store (depth intrinsics). template_path: ``template`` (faces).
         tracking_path: ``tracking`` (vertices [T, V, 3]). poses_path: ``poses`` (K_{t→l}).
-        observations_path: ``observations`` (face_visible, blurred, slanted, descriptors).
+        observations_path: ``observations`` (face_visible, blur_cost, slanted, descriptors, strain).
         positions: [start, stop) sequence positions of the target frames.
         params: the ``tables`` config section.
         out: path of the store.

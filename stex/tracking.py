@@ -684,8 +684,9 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
         A = x[:, :9].reshape(N, 3, 3)
         return np.einsum("eab,eb->ea", A[j_], d_jk) + node_pos[j_] + x[j_, 9:] - node_pos[k_] - x[k_, 9:]
 
-    def prior_cost(x):  # rotation and smoothness: sums of squares, as in the normal equations
-        return float(p.w_rot * (_rot_terms(x)[0] ** 2).sum() + p.w_reg * beta * ((smooth_res(x) - s) ** 2).sum())
+    def prior_cost(x, rot_res=None):  # rotation and smoothness: sums of squares, as in the normal equations
+        rot_res = _rot_terms(x)[0] if rot_res is None else rot_res
+        return float(p.w_rot * (rot_res ** 2).sum() + p.w_reg * beta * ((smooth_res(x) - s) ** 2).sum())
 
     for rnd in range(p.l0_rounds):
         for it in range(p.gn_iterations):
@@ -706,8 +707,8 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 sil = (sid, *silhouette)
                 stats["n_silhouette"] = len(sid)
             cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
-            energy = cost + prior_cost(x)
             rr, Jr = _rot_terms(x)
+            energy = cost + prior_cost(x, rr)
             vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
             Dws.append(np.zeros((0, 3)))
             rws.append(np.zeros(0))
@@ -982,19 +983,20 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         # walk off with its own associations (losing pairs lowers the cost). Judged by how well each
         # mesh explains the whole depth frame (rendered vs observed, silhouette included), the
         # frame keeps the best of the prediction, the rigid fit and the full solve.
-        fits = {name: depth_residual(V, F, obs.target, FRAME_GUARD_CLIP_M)
-                for name, V in (("solve", cur), ("rigid", rigid0), ("prediction", pred0))}
+        meshes = {"solve": cur, "rigid": rigid0, "prediction": pred0}
+        if cur is rigid0:                   # rigid_only: the solve is the rigid fit, render it once
+            del meshes["rigid"]
+        fits = {name: depth_residual(V, F, obs.target, FRAME_GUARD_CLIP_M) for name, V in meshes.items()}
         stats["depth_residual_m"] = fits["solve"]
-        if fits["solve"] > FRAME_GUARD_MARGIN * min(fits.values()):
+        fallback = fits["solve"] > FRAME_GUARD_MARGIN * min(fits.values())
+        if fallback:
             best = min(fits, key=fits.get)
             log.warning("tracking: frame %d: guard: the solve explains the depth worse (mean clipped depth "
                         "difference %.1f mm) than the %s (%.1f mm): keeping the %s",
                         pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
-            cur = {"rigid": rigid0, "prediction": pred0}[best]
-            guard["frame_fallback"] = 1
+            cur = meshes[best]
         stats["seconds"] = time.perf_counter() - tf
-        stats.update(guard)
-        stats.setdefault("frame_fallback", 0)
+        stats.update(guard, frame_fallback=int(fallback))
         if progress:
             # Overshooting steps are routine on thin parts (see _solve_frame), and a round near its
             # minimum often finds no step that still descends: counted on the progress line. A
