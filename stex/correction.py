@@ -13,8 +13,18 @@ a screened Poisson solve over the covered texels, per colour channel:
 - f0 is the slice, f the result.
 - (p, q) runs over two kinds of pairs:
   1. 4-neighbour texel pairs inside one chart, with g_pq = f0_p − f0_q when p and q have the same
-     source label (gradient copied) and g_pq = 0 across a label boundary or where a texel has no
-     label (gradient zeroed), as ``TextureStitching`` does (``official_code_notes.md`` §2.6);
+     source label (gradient copied). Across a label boundary or where a texel has no label,
+     ``boundary_gradient`` decides:
+     - ``'zero'``: g_pq = 0, as ``TextureStitching`` does (``official_code_notes.md`` §2.6). The
+       step between the two sources goes, but so does the texture's own slope there: a colour
+       ramp or an edge of the object's appearance that crosses the boundary is flattened on the
+       pair and, by the spread of the solve, around it.
+     - ``'one_sided'`` (default): g_pq = the mean of the same-label gradients along the same axis
+       just before p and just after q (those that exist and are not themselves across a
+       boundary), 0 if neither does. The ramp continues through the boundary and only the step
+       between the sources is removed. Measured on the Fox (every frame, factor 2): label-boundary
+       step after correction 1.8 → 1.3, blur of the renders 0.3647 → 0.3627, input-view
+       patch-shift PSNR 26.13 → 26.17 dB; see ``docs/metrics.md``;
   2. seam couplings: each 3-D edge shared by two faces whose UV edges differ is sampled at about
      one point per texel of its UV length; each sample gives a row (bilinear value of f at the
      point in chart 1) − (bilinear value at the same 3-D point in chart 2) with target 0
@@ -27,7 +37,7 @@ a screened Poisson solve over the covered texels, per colour channel:
   colours, so it is built and its pyamg smoothed-aggregation hierarchy set up **once per atlas**
   and reused for every channel and slice. Per slice only the right-hand side changes: the solve
   is for the correction c = f − f0, ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour
-  differences of pairs whose gradient is zeroed), warm-started at 0, CG-accelerated V-cycles to a
+  differences of boundary pairs minus their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a
   relative residual ``tol``.
 - Texels without a label (covered, but their face had no source frame) keep no gradients: they
   are screened towards their (filled) value and otherwise interpolated smoothly from their
@@ -81,6 +91,9 @@ log = logging.getLogger("stex.correction")
 
 __all__ = ["CorrectionSystem", "label_boundary_step", "interior_change", "seam_step",
            "write_corrected"]
+
+
+BOUNDARY_GRADIENTS = ("zero", "one_sided")
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,6 +155,17 @@ class _Graph:
         ps.append(idx[:-1, :][same_v]); qs.append(idx[1:, :][same_v])
         self.p = np.concatenate(ps).astype(np.int32)
         self.q = np.concatenate(qs).astype(np.int32)
+        # each pair's neighbours along its own axis: (p's predecessor, p) and (q, q's successor),
+        # -1 where there is none (chart edge); the one-sided gradients of a label boundary
+        nh = int(same_h.sum())
+        hid = np.full((W, W), -1, np.int64)
+        hid[:, :-1][same_h] = np.arange(nh)
+        vid = np.full((W, W), -1, np.int64)
+        vid[:-1, :][same_v] = nh + np.arange(int(same_v.sum()))
+        pad_h = np.pad(hid, ((0, 0), (1, 1)), constant_values=-1)
+        pad_v = np.pad(vid, ((1, 1), (0, 0)), constant_values=-1)
+        self.before = np.concatenate([pad_h[:, :-3][same_h], pad_v[:-3, :][same_v]])
+        self.after = np.concatenate([pad_h[:, 2:-1][same_h], pad_v[2:-1, :][same_v]])
 
         # seam rows
         self.S = self._seam_rows(texcoords, texcoord_faces, faces, pairs, edges, face_chart, chart_tex, idx)
@@ -210,15 +234,29 @@ class _Graph:
         keep = cols >= 0
         return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(R, n))
 
-    def solve(self, f0, lab, prev=None, borrowed=None, mu=0.0, tol=1e-4, maxiter=50):
+    def solve(self, f0, lab, prev=None, borrowed=None, mu=0.0, tol=1e-4, maxiter=50,
+              boundary_gradient="one_sided"):
         """Correction c (n, 3) for values f0 (n, 3) float64 and labels lab (n,)."""
         n = self.n
         lp, lq = lab[self.p], lab[self.q]
         cross = (lp != lq) | (lp < 0) | (lq < 0)
         pc, qc = self.p[cross], self.q[cross]
+        if boundary_gradient == "one_sided":
+            # the guidance across a label boundary continues the same-label gradients on either
+            # side (the mean of those that exist) instead of being 0: a colour ramp of the texture
+            # that crosses the boundary is kept, the step between the two sources still removed
+            sides = [k[cross] for k in (self.before, self.after)]
+            usable = [(k >= 0) & ~cross[np.maximum(k, 0)] for k in sides]
+            count = usable[0].astype(np.float64) + usable[1]
+        elif boundary_gradient != "zero":
+            raise ValueError(f"boundary_gradient must be one of {BOUNDARY_GRADIENTS}, got {boundary_gradient!r}")
         rhs = np.empty((n, 3))
         for ch in range(3):
             d = f0[pc, ch] - f0[qc, ch]
+            if boundary_gradient == "one_sided":
+                side = sum(np.where(u, f0[self.p[np.maximum(k, 0)], ch] - f0[self.q[np.maximum(k, 0)], ch], 0.0)
+                           for k, u in zip(sides, usable))
+                d = d - side / np.maximum(count, 1.0)
             rhs[:, ch] = np.bincount(qc, d, n) - np.bincount(pc, d, n)
         if self.S.shape[0]:
             rhs -= self.seam_weight * (self.S.T @ (self.S @ f0))
@@ -419,13 +457,17 @@ class CorrectionSystem:
         tol: relative residual of the solve; maxiter: iteration cap per channel.
         gutter_px: rings of gutter re-filled from the corrected texels.
         amg_kwargs: extra arguments for ``pyamg.smoothed_aggregation_solver``.
+        boundary_gradient: guidance of a texel pair across a label boundary: ``'one_sided'``
+            (ours, default) continues the same-label gradients on either side; ``'zero'`` (the
+            authors' ``TextureStitching``) flattens it.
     """
 
     def __init__(self, texel_face, texcoords, texcoord_faces, faces, adjacency_pairs=None,
                  adjacency_edges=None, face_chart=None, *, factor: int = 1,
                  screen_length: float = 1 / 64, seam_weight: float = 1.0,
                  temporal_length: float | None = 1 / 256, tol: float = 1e-4, maxiter: int = 50,
-                 gutter_px: int = 4, amg_kwargs: dict | None = None):
+                 gutter_px: int = 4, amg_kwargs: dict | None = None,
+                 boundary_gradient: str = "one_sided"):
         from stex.template import face_adjacency, texel_map, uv_charts
 
         tf = np.asarray(texel_face)
@@ -450,6 +492,9 @@ class CorrectionSystem:
         self.lam = 1.0 / (screen_length * W) ** 2 * factor ** 2
         self.mu = 0.0 if temporal_length is None else 1.0 / (temporal_length * W) ** 2 * factor ** 2
         self.tol, self.maxiter, self.gutter_px = float(tol), int(maxiter), int(gutter_px)
+        if boundary_gradient not in BOUNDARY_GRADIENTS:
+            raise ValueError(f"boundary_gradient must be one of {BOUNDARY_GRADIENTS}, got {boundary_gradient!r}")
+        self.boundary_gradient = boundary_gradient
         grid_face = tf if factor == 1 else texel_map(texcoords, tfaces, Wg)[0]
         self.graph = _Graph(grid_face, self.face_chart, texcoords, tfaces, faces, adjacency_pairs,
                             adjacency_edges, self.lam, seam_weight, amg_kwargs)
@@ -509,7 +554,8 @@ class CorrectionSystem:
         if use_prev:
             borrowed = (lab >= 0) & ((lab != frame) if frame is not None else True)
         t1 = time.perf_counter()
-        corr, iters = g.solve(f0, lab, pv, borrowed, self.mu, self.tol, self.maxiter)
+        corr, iters = g.solve(f0, lab, pv, borrowed, self.mu, self.tol, self.maxiter,
+                              self.boundary_gradient)
         t2 = time.perf_counter()
         out = np.array(img, dtype=np.uint8, order="C", copy=True)
         if self.factor == 1:
@@ -620,6 +666,7 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
         template["adjacency/pairs"][...], template["adjacency/edges"][...],
         template["face_chart"][...], factor=factor, screen_length=p["screen_length"],
         seam_weight=p["seam_weight"], temporal_length=temporal, tol=p["tol"],
+        boundary_gradient=p["boundary_gradient"],
         gutter_px=int(volume.attrs["gutter_px"]))
     log.info("correction: system of %d unknowns built in %.1f s", system.n_unknowns,
              time.perf_counter() - t0)

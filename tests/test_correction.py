@@ -42,6 +42,29 @@ def test_label_step_falls_and_interiors_stay(quad, factor):
     assert out.dtype == np.uint8 and out.shape == img.shape
 
 
+def test_ramp_across_a_label_boundary_keeps_its_slope(quad):
+    V, F, tc, tf, face = quad
+    cov = face >= 0
+    cc = np.mgrid[0:W, 0:W][1]
+    lm = np.where(cov, (cc >= W // 2).astype(np.int32), -1).astype(np.int32)
+    # a colour ramp of 1 grey level per texel along the columns; source 1 is 20 levels darker
+    img = np.clip(np.where(cov, cc - 5.0 - 20.0 * (lm == 1), 0), 0, 255)[..., None].repeat(3, 2).astype(np.uint8)
+    rows = np.flatnonzero(cov[:, W // 2 - 2] & cov[:, W // 2 + 1])
+    steps = {}
+    for rule in C.BOUNDARY_GRADIENTS:
+        cs = CorrectionSystem(face, tc, tf, F, screen_length=1 / 16, gutter_px=2, boundary_gradient=rule)
+        out = cs.correct(img, lm).astype(np.float64)[rows, :, 0]
+        h = W // 2
+        steps[rule] = (out[:, h] - out[:, h - 1]).mean()            # the pair across the boundary
+        # same label: the ramp stays a ramp (flatter near the boundary, where the removed step's
+        # correction spreads with its own slope)
+        assert 0.3 < ((out[:, h - 1] - out[:, h - 3]) + (out[:, h + 2] - out[:, h])).mean() / 4 < 1.1
+    assert abs(steps["one_sided"] - 1.0) < 0.25    # the 20-level step gone, the ramp's slope kept
+    assert steps["zero"] < 0.25                    # the slope lost with the step
+    with pytest.raises(ValueError, match="boundary_gradient"):
+        CorrectionSystem(face, tc, tf, F, boundary_gradient="mean")
+
+
 def test_single_label_uniform_slice_is_unchanged(quad):
     V, F, tc, tf, face = quad
     img, lm = _two_labels(face, offset=0.0)
