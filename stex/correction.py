@@ -158,9 +158,9 @@ class _Graph:
         # each pair's neighbours along its own axis: (p's predecessor, p) and (q, q's successor),
         # -1 where there is none (chart edge); the one-sided gradients of a label boundary
         nh = int(same_h.sum())
-        hid = np.full((W, W), -1, np.int64)
+        hid = np.full((W, W), -1, np.int32)
         hid[:, :-1][same_h] = np.arange(nh)
-        vid = np.full((W, W), -1, np.int64)
+        vid = np.full((W, W), -1, np.int32)
         vid[:-1, :][same_v] = nh + np.arange(int(same_v.sum()))
         pad_h = np.pad(hid, ((0, 0), (1, 1)), constant_values=-1)
         pad_v = np.pad(vid, ((1, 1), (0, 0)), constant_values=-1)
