@@ -15,6 +15,7 @@ and k after each boundary, the scale at which a render shows it.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -64,19 +65,17 @@ def wide_steps(image, label_map, chart, k):
         a, b = key[:, c], key[:, c + 1]
         d = np.abs(g[:, c + 1 + k] - g[:, c - k])
         sides = (a >= 0) & (b >= 0) & (run[:, c] >= k) & (run[:, c + 1 + k] >= k)
-        across.append(d[sides & (a != b) & (lm[:, c] != lm[:, c + 1]) & (ch[:, c] == ch[:, c + 1])])
+        across.append(d[sides & (lm[:, c] != lm[:, c + 1]) & (ch[:, c] == ch[:, c + 1])])
         same.append(d[(a >= 0) & (run[:, c + 1 + k] >= 2 * k + 1)])
     return float(np.concatenate(across).mean()), float(np.concatenate(same).mean())
 
 
 def main(argv=None):
-    args = list(argv or sys.argv[1:])
-    wide = 6
-    if "--wide" in args:
-        i = args.index("--wide")
-        wide = int(args[i + 1])
-        del args[i:i + 2]
-    R = Path(args[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("results", type=Path, help="a finished run, e.g. results/demo")
+    ap.add_argument("--wide", type=int, default=6, help="texels either side of a boundary (6: the Fox's texels per image pixel)")
+    args = ap.parse_args(argv)
+    R, wide = args.results, args.wide
     vol = FrameSequence(sorted((R / "volume").glob("block_*.zarr")), "volume")
     cor = FrameSequence(sorted((R / "corrected").glob("block_*.zarr")), "corrected")
     t = open_store(R / "template.zarr", "template")

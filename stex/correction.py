@@ -37,8 +37,8 @@ a screened Poisson solve over the covered texels, per colour channel:
   colours, so it is built and its pyamg smoothed-aggregation hierarchy set up **once per atlas**
   and reused for every channel and slice. Per slice only the right-hand side changes: the solve
   is for the correction c = f − f0, ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour
-  differences of boundary pairs minus their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a
-  relative residual ``tol``.
+  differences of boundary pairs minus their guidance g_pq), warm-started at 0, CG-accelerated
+  V-cycles to a relative residual ``tol``.
 - Texels without a label (covered, but their face had no source frame) keep no gradients: they
   are screened towards their (filled) value and otherwise interpolated smoothly from their
   surroundings.
@@ -241,23 +241,21 @@ class _Graph:
         lp, lq = lab[self.p], lab[self.q]
         cross = (lp != lq) | (lp < 0) | (lq < 0)
         pc, qc = self.p[cross], self.q[cross]
+        d = f0[pc] - f0[qc]                                   # (m, 3) differences to remove
         if boundary_gradient == "one_sided":
             # the guidance across a label boundary continues the same-label gradients on either
             # side (the mean of those that exist) instead of being 0: a colour ramp of the texture
             # that crosses the boundary is kept, the step between the two sources still removed
-            sides = [k[cross] for k in (self.before, self.after)]
-            usable = [(k >= 0) & ~cross[np.maximum(k, 0)] for k in sides]
-            count = usable[0].astype(np.float64) + usable[1]
-        elif boundary_gradient != "zero":
-            raise ValueError(f"boundary_gradient must be one of {BOUNDARY_GRADIENTS}, got {boundary_gradient!r}")
+            side, count = np.zeros_like(d), np.zeros(len(pc))
+            for nb in (self.before[cross], self.after[cross]):
+                at = np.flatnonzero(nb >= 0)
+                at = at[~cross[nb[at]]]                   # that neighbour lies inside one label
+                side[at] += f0[self.p[nb[at]]] - f0[self.q[nb[at]]]
+                count[at] += 1.0
+            d -= side / np.maximum(count, 1.0)[:, None]
         rhs = np.empty((n, 3))
         for ch in range(3):
-            d = f0[pc, ch] - f0[qc, ch]
-            if boundary_gradient == "one_sided":
-                side = sum(np.where(u, f0[self.p[np.maximum(k, 0)], ch] - f0[self.q[np.maximum(k, 0)], ch], 0.0)
-                           for k, u in zip(sides, usable))
-                d = d - side / np.maximum(count, 1.0)
-            rhs[:, ch] = np.bincount(qc, d, n) - np.bincount(pc, d, n)
+            rhs[:, ch] = np.bincount(qc, d[:, ch], n) - np.bincount(pc, d[:, ch], n)
         if self.S.shape[0]:
             rhs -= self.seam_weight * (self.S.T @ (self.S @ f0))
         c = np.zeros((n, 3))
