@@ -93,8 +93,6 @@ METHODS = ("ours", "ours_uncorrected", "global", "projection")
 METHOD_NAMES = {"input": "Input images", "ours": "Ours", "ours_uncorrected": "Ours, uncorrected",
                 "global": "Kim et al. 2019 (global)", "projection": "Per-frame projection"}
 
-#: Default parameters of the evaluation (the ``evaluation`` config section).
-
 
 class Atlas(NamedTuple):
     """The fixed topology and UV atlas of a mesh sequence.
@@ -143,7 +141,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAULT_RADIUS,
-                 h_size=ev.DEFAULT_H_SIZE) -> dict:
+                 h_size=ev.DEFAULT_H_SIZE, blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
     """The input-view scores of one render against one photo, inside ``mask``.
 
     Args:
@@ -151,6 +149,7 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         test: (H, W, 3) render of the same view, grey levels.
         mask: (H, W) bool, the scored pixels.
         patch, radius: patch-shift PSNR P and r (px). h_size: blur filter length (px).
+        blur_interior_px: the mask's erosion (px) for the ``*_interior`` blur scores.
 
     Returns:
         dict ``psnr`` (patch-shift, dB), ``psnr_unshifted`` (same patches, no shift, dB),
@@ -158,6 +157,9 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         mask composited over ``reference`` outside it, so windows crossing the mask's edge see
         the photo's own background on both sides), ``blur`` (of
         ``test``, 0 sharp .. 1 blurry), ``blur_input`` (of ``reference``, same mask and code),
+        ``blur_interior`` / ``blur_input_interior`` (the same inside the mask eroded by
+        ``blur_interior_px``: without the silhouette band where a photo mixes object and
+        background),
         ``mean_shift_px``, ``n_patches``, ``n_pixels`` (mask pixels).
     """
     ref = np.asarray(reference)
@@ -176,6 +178,8 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
         "blur": ev.blur(tst, m, h_size=h_size)["blur"],
         "blur_input": ev.blur(ref, m, h_size=h_size)["blur"],
+        "blur_interior": ev.blur(tst, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
+        "blur_input_interior": ev.blur(ref, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
         "mean_shift_px": ps["mean_shift_px"],
         "n_patches": ps["n_patches"],
         "n_pixels": int(m.sum()),
@@ -308,7 +312,8 @@ def _novel_scores(prefix, truth, views, vertices, a, calibration, seen_faces) ->
 def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_texture=None,
                 seen_faces=None, face_visible=None, truth=None,
                 novel_angle_deg=180.0, patch=ev.DEFAULT_PATCH,
-                radius=ev.DEFAULT_RADIUS, h_size=ev.DEFAULT_H_SIZE, return_views=False) -> dict:
+                radius=ev.DEFAULT_RADIUS, h_size=ev.DEFAULT_H_SIZE, return_views=False,
+                blur_interior_px=None) -> dict:
     """Score one method's texture slice at one frame.
 
     Args:
@@ -326,7 +331,8 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         truth: the output of :func:`truth_views` for this frame (synthetic scenes), or None.
         novel_angle_deg: only used to compute ``truth`` when a tuple (true_vertices, true_atlas,
             appearance) is passed instead.
-        patch, radius, h_size: metric parameters (px), see :func:`image_scores`.
+        patch, radius, h_size, blur_interior_px: metric parameters (px), see
+            :func:`image_scores` (None: its default).
         return_views: also return the renders (key ``views``, see :func:`method_views`).
 
     Returns:
@@ -355,7 +361,9 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
     views = method_views(texture, vertices, a, calibration,
                          None if truth is None else truth["novel_transform"], face_visible)
     rec, rmask = views["input"]
-    out = image_scores(img, rec, m & rmask, patch=patch, radius=radius, h_size=h_size)
+    interior = ev.DEFAULT_BLUR_INTERIOR_PX if blur_interior_px is None else blur_interior_px
+    out = image_scores(img, rec, m & rmask, patch=patch, radius=radius, h_size=h_size,
+                       blur_interior_px=interior)
     out["mask_iou"] = _iou(m, rmask)
     if face_has_texture is not None:
         area = ev.face_areas(vertices, a.faces)
@@ -370,6 +378,8 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         # in the same view (no sensor noise, which the Crete metric reads as sharpness)
         t_img, t_mask = truth["input"]
         out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
+        out["blur_truth_interior"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size,
+                                             erode_px=interior)["blur"]
         out.update(_novel_scores("gt_novel", truth, views, vertices, a, calibration, seen_faces))
         surface = truth.get("template_vertices")
         if surface is not None:
@@ -403,6 +413,7 @@ def vertex_motion(prev_vertices, vertices) -> float:
 
 #: Per-frame scores summarised (and plotted) by :func:`write_evaluation`.
 SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur_input", "blur_truth",
+                   "blur_interior", "blur_input_interior", "blur_truth_interior",
                    "noise_input",
                    "mask_iou", "coverage_faces", "coverage_area", "coverage_seen",
                    "gt_novel_psnr_all", "gt_novel_psnr_seen", "gt_novel_psnr_unseen",
@@ -464,7 +475,8 @@ def _mean(summary, subset, method, metric):
 
 def table_rows(summaries: dict) -> dict:
     """The paper-style tables as lists of rows (header first) over scenes ``{scene: summary}``,
-    where a summary is ``evaluation.json``'s ``summary`` (plus its ``held_out_label``).
+    where a summary is ``evaluation.json``'s ``summary`` (plus its ``held_out_label`` and
+    ``blur_interior_px``).
 
     Returns ``{table name: [header, row, ...]}`` for ``reconstruction``, ``coverage`` and
     ``ground_truth`` (the last only when some scene has ground truth).
@@ -497,6 +509,14 @@ def table_rows(summaries: dict) -> dict:
         name="true appearance, rendered")
     for m in ("global", "ours", "ours_uncorrected", "projection"):
         add(rec, "Blurriness (Crete et al.)", m, "all", "blur", digits=4)
+    # the same without the silhouette band, where a photo mixes object and background
+    bands = sorted({summaries[s].get("blur_interior_px") for s in scenes} - {None})
+    inner = ("Blurriness, object interior (mask eroded by "
+             + " / ".join(str(b) for b in bands) + " px)")
+    add(rec, inner, "ours", "all", "blur_input_interior", digits=4, name=METHOD_NAMES["input"])
+    add(rec, inner, "ours", "all", "blur_truth_interior", digits=4, name="true appearance, rendered")
+    for m in ("global", "ours", "ours_uncorrected", "projection"):
+        add(rec, inner, m, "all", "blur_interior", digits=4)
     # the blur metric reads noise as sharpness: how noisy the inputs are belongs beside it
     add(rec, "Noise, grey levels (Immerkær)", "ours", "all", "noise_input", digits=2,
         name=METHOD_NAMES["input"])
@@ -557,7 +577,9 @@ def rst_tables(summaries: dict, timing: dict | None = None) -> str:
         "reconstruction": "PSNR inside the object mask between input photos and renders of the "
                           "texture on the tracked mesh; the patch-shift PSNR translates 32 x 32 "
                           "patches by up to 4 px (docs/metrics.md). Blur: Crete et al. 2007 "
-                          "(skimage, h_size 11), smaller is sharper.",
+                          "(skimage, h_size 11), smaller is sharper; 'object interior' "
+                          "leaves out a band along the silhouette, where a photo's pixels mix "
+                          "the object with the background.",
         "coverage": "Faces (or area) with texture per frame, averaged over the scored frames.",
         "ground_truth": "Renders of the texture on our tracked mesh against the true appearance "
                         "on the true mesh, from the opposite side (novel view), split into the "
@@ -825,6 +847,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
                             seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
                             patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
+                            blur_interior_px=p["blur_interior_px"],
                             return_views=tv is not None)
             if tv is not None:
                 v = s.pop("views")
@@ -861,6 +884,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     summary["n_frames"] = len(records)
     summary["n_held_out"] = int(sum(r["held_out"] for r in records))
     summary["held_out_label"] = stride_label
+    summary["blur_interior_px"] = int(p["blur_interior_px"])
     scene_name = str(Path(scene_path).parent.name or "scene")
     tabs = table_rows({scene_name: summary})
     result = {

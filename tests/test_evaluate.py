@@ -183,6 +183,30 @@ def test_blur_orders_sharp_and_blurred():
     assert ev.blur(white, mask, fill="none")["blur"] != pytest.approx(b_sharp["blur"], abs=1e-3)
 
 
+def test_blur_erode_leaves_out_the_silhouette_band():
+    """A sharp ring just inside the silhouette (a photo's object/background mix) reads as
+    sharpness; the eroded mask leaves it out and scores the interior alone."""
+    smooth = ndi.gaussian_filter(textured_image(seed=5), (3, 3, 0))
+    mask = disk(*smooth.shape[:2], 70)
+    inner = ndi.binary_erosion(mask, np.ones((5, 5), bool))
+    ringed = smooth.copy()
+    ring = mask & ~inner                                    # 2 px wide
+    ringed[ring] = np.where(np.indices(mask.shape).sum(0)[ring, None] % 2, 20.0, 235.0)
+    plain, with_ring = ev.blur(smooth, mask), ev.blur(ringed, mask)
+    assert with_ring["blur"] < plain["blur"] - 0.05          # the band reads as sharp texture
+    e_plain, e_ring = ev.blur(smooth, mask, erode_px=3), ev.blur(ringed, mask, erode_px=3)
+    assert e_ring["blur"] == pytest.approx(e_plain["blur"], abs=1e-12)
+    assert e_ring["erode_px"] == 3 and e_ring["n_pixels"] < inner.sum() and plain["erode_px"] == 0
+    # the image border is not a silhouette: a mask filling the image is not eroded
+    full = ev.blur(smooth, np.ones(mask.shape, bool), erode_px=3)
+    assert full["n_pixels"] == mask.size and full["bbox"] == (0, mask.shape[0], 0, mask.shape[1])
+    assert np.isnan(ev.blur(smooth, disk(*mask.shape, 2), erode_px=3)["blur"])   # nothing left
+    with pytest.raises(ValueError, match="erode_px"):
+        ev.blur(smooth, mask, erode_px=-1)
+    with pytest.raises(ValueError, match="erode_px"):
+        ev.blur(smooth, mask, erode_px=1.5)
+
+
 def test_noise_sigma_recovers_gaussian_noise_and_ignores_shading():
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[0:200, 0:240].astype(np.float64)

@@ -67,6 +67,10 @@ def test_input_against_itself_is_perfect(frame):
     assert s["psnr"] == ev.PSNR_CAP and s["psnr_plain"] == ev.PSNR_CAP
     assert s["ssim"] == pytest.approx(1.0, abs=1e-12)
     assert s["blur"] == s["blur_input"] and 0 < s["blur"] < 1
+    assert s["blur_interior"] == s["blur_input_interior"] and 0 < s["blur_interior"] < 1
+    assert s["blur_interior"] != s["blur"]                  # a band was left out
+    narrow = image_scores(frame["image"], frame["image"], frame["mask"], blur_interior_px=0)
+    assert narrow["blur_interior"] == narrow["blur"]
     assert s["n_patches"] > 0 and s["mean_shift_px"] == 0
 
 
@@ -83,6 +87,7 @@ def test_truth_scored_by_the_ground_truth_path_is_perfect(frame):
         assert s[f"gt_{view}_iou"] == 1.0
     # the truth rendered as the method: the reference blur is the method's own blur
     assert s["blur_truth"] == pytest.approx(s["blur"], abs=1e-9)
+    assert s["blur_truth_interior"] == pytest.approx(s["blur_interior"], abs=1e-9)
     # the far side is unseen, the input view mostly seen
     assert s["gt_novel_n_seen"] < 0.02 * s["gt_novel_n_unseen"]
     assert s["gt_input_n_seen"] > 5 * s["gt_input_n_unseen"]
@@ -192,6 +197,8 @@ def test_outputs_are_written(evaluation):
     assert "Kim et al. 2019 (global)" in rst and "Blurriness" in rst and "+====" in rst
     # the inputs' noise beside the blur (the tiny scene: schema default σ 2 per channel)
     assert "Noise, grey levels (Immerkær)" in rst
+    assert "Blurriness, object interior (mask eroded by 3 px)" in rst
+    assert saved["summary"]["all"]["ours"]["blur_input_interior"]["n"] == 6
     assert 0.8 < saved["summary"]["all"]["ours"]["noise_input"]["mean"] < 2.5
     assert "<" not in rst                                   # no HTML
     assert "1.50" in rst                                    # labeling 90 s = 1.50 min

@@ -1,0 +1,84 @@
+"""Where the Crete blur of a photo and of a render differ: the mask eroded step by step.
+
+On a finished run (``snakemake --cores 2`` → results/demo; the Fox: results/fox) this scores, on
+every ``--stride``-th frame and with the evaluation's own blur code (``stex.evaluate.blur``, same
+h_size), the input photo, our corrected slice and the global texture rendered on the tracked mesh
+in the input view, and on synthetic scenes the true appearance rendered on the true mesh, all
+inside one mask: the photo's mask ∩ our render's silhouette (∩ the true silhouette), eroded by
+each of ``--erode`` pixels. What changes between erosion 0 and 1-3 px is the silhouette band,
+where a photo's pixels mix the object with the background (motion blur) and a render's do not
+(``evaluation.blur_interior_px``, docs/metrics.md).
+
+    python benchmarks/bench_blur_band.py results/fox [--stride 2] [--erode 0 1 2 3 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+try:
+    import stex  # noqa: F401
+except ImportError:  # run from a source checkout without installing the package
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stex import evaluate as ev
+from stex.camera import Calibration
+from stex.evaluation import Atlas, evaluation_params, method_views, truth_views
+from stex.io import FrameSequence, open_store
+
+
+def _atlas(store, prefix=""):
+    return Atlas(np.asarray(store[prefix + "faces"][...], np.int64), store[prefix + "texcoords"][...],
+                 np.asarray(store[prefix + "texcoord_faces"][...], np.int64))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("results", type=Path, help="results folder of a finished run (results/demo)")
+    ap.add_argument("--stride", type=int, default=2, help="score every n-th frame")
+    ap.add_argument("--erode", type=int, nargs="+", default=[0, 1, 2, 3, 5], help="erosions (px)")
+    a = ap.parse_args()
+    R = a.results
+    scene = open_store(R / "scene.zarr", "scene")
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    ids = [int(i) for i in scene.attrs["frame_ids"]]
+    atlas = _atlas(open_store(R / "template.zarr", "template"))
+    vertices = open_store(R / "tracking.zarr", "tracking")["vertices"]
+    photos = FrameSequence(sorted((R / "frames").glob("block_*.zarr")), "frames")
+    masks = FrameSequence(sorted((R / "masks").glob("block_*.zarr")), "masks")
+    corrected = FrameSequence(sorted((R / "corrected").glob("block_*.zarr")), "corrected")
+    global_tex = np.asarray(open_store(R / "global_texture.zarr", "global_texture")["texture"][...])
+    has_truth = "truth" in scene
+    if has_truth:
+        true_atlas = _atlas(scene, "template/")
+        truth = FrameSequence(sorted((R / "truth").glob("block_*.zarr")), "truth")
+    h_size = evaluation_params({})["h_size"]
+    names = ["photo", "ours", "global"] + (["truth"] if has_truth else [])
+    scores = {(e, n): [] for e in a.erode for n in names}
+    frames = range(0, len(ids), a.stride)
+    for t in frames:
+        V = np.asarray(vertices[t], np.float64)
+        ours, rmask = method_views(corrected.read("texture", ids[t]), V, atlas, cal)["input"]
+        images = {"photo": photos.read("color", ids[t]), "ours": ours,
+                  "global": method_views(global_tex, V, atlas, cal)["input"][0]}
+        m = np.asarray(masks.read("mask", ids[t]), bool) & rmask
+        if has_truth:
+            images["truth"], tmask = truth_views(scene["truth/vertices"][t], true_atlas,
+                                                 truth.read("appearance", ids[t]), cal)["input"]
+            m &= tmask
+        for e in a.erode:
+            for n in names:
+                scores[(e, n)].append(ev.blur(images[n], m, h_size=h_size, erode_px=e)["blur"])
+    print(f"{R}: {len(frames)} frames (every {a.stride}), blur h_size {h_size}, mean over frames")
+    print("erode px  " + "  ".join(f"{n:>7}" for n in names))
+    for e in a.erode:
+        print(f"{e:8d}  " + "  ".join(f"{np.nanmean(scores[(e, n)]):7.4f}" for n in names))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
