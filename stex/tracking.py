@@ -305,6 +305,7 @@ class TrackParams:
     rigid_only: bool = False
     model_size: int = 1024
     model_min_cos: float = 0.3
+    model_refresh_cos: float | None = 0.4
     min_normal_dot: float = 0.5
     cg_tol: float = 1e-6
     damping: float = 1e-6
@@ -785,7 +786,10 @@ class AppearanceModel:
 
     The tracker's flow term compares the current image with this model rendered at the
     predicted pose, so flow errors do not accumulate from frame to frame: a surface point's
-    appearance is fixed the first time it is seen at a good angle.
+    appearance is fixed the first time it is seen at a good angle, and replaced only when it is
+    later seen much more squarely (``refresh_margin`` of :meth:`capture`). A texel captured at
+    a grazing angle, just after it came into view, is captured where the mesh is least held
+    (no texel there yet to give it flow) and carries that mesh's drift into every later frame.
     """
 
     def __init__(self, texcoords, texcoord_faces, faces, size: int = 1024):
@@ -800,24 +804,46 @@ class AppearanceModel:
         self.texel_bary = bary.reshape(-1, 3)[self.texels].astype(np.float64)
         self.texture = np.zeros((size, size, 2), np.float32)  # grey, filled
         self.captured_at = np.full(size * size, -1, np.int32)  # frame position of each texel's capture
+        self.captured_cos = np.zeros(size * size, np.float32)   # its face's viewing cosine then
         self.size = size
         # one texcoord per vertex (any corner's): where a vertex sits in the atlas
         self.vertex_texel = np.zeros(int(self.faces.max()) + 1, np.int64)
         px = np.clip((self.texcoords[self.texcoord_faces.ravel()] * size).astype(np.int64), 0, size - 1)
         self.vertex_texel[self.faces.ravel()] = px[:, 1] * size + px[:, 0]
 
-    def capture(self, vertices, gray, calibration, min_cos: float = 0.5, frame: int = 0) -> int:
-        """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``gray``; returns how many."""
+    def capture(self, vertices, gray, calibration, min_cos: float = 0.5, frame: int = 0,
+                refresh_margin: float | None = None) -> tuple[int, int]:
+        """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``gray``, and with
+        ``refresh_margin`` also capture again the filled texels whose face is now seen at a
+        cosine more than ``refresh_margin`` above the one of their capture.
+
+        Args:
+            vertices: (V, 3) float mesh in the depth camera (m).
+            gray: (Hc, Wc) grey colour image, grey levels.
+            calibration: the rig (:class:`stex.camera.Calibration`).
+            min_cos: least viewing cosine of a captured face.
+            frame: frame position, recorded per texel (``captured_at``).
+            refresh_margin: cosine margin of a re-capture (None: a texel is never replaced).
+
+        Returns:
+            (texels filled for the first time, texels captured again).
+        """
         from stex.render import face_visibility, sample_bilinear
 
         c = calibration.color
         Vc = transform_points(calibration.depth_to_color, vertices)
         depth = rasterize(Vc, self.faces, c.K, c.width, c.height).depth
-        vis, _ = face_visibility(Vc, self.faces, c.K, depth, min_cos=min_cos)
+        vis, cos = face_visibility(Vc, self.faces, c.K, depth, min_cos=min_cos)
         flat = self.texture.reshape(-1, 2)
-        todo = vis[self.texel_face] & (flat[self.texels, 1] == 0)
+        seen = vis[self.texel_face]
+        filled = flat[self.texels, 1] > 0
+        new = seen & ~filled
+        todo = new.copy()
+        if refresh_margin is not None:
+            texel_cos = cos[self.texel_face]
+            todo |= seen & filled & (texel_cos > self.captured_cos[self.texels] + refresh_margin)
         if not todo.any():
-            return 0
+            return 0, 0
         f = self.faces[self.texel_face[todo]]
         X = (self.texel_bary[todo][:, :, None] * Vc[f]).sum(1)
         uv, _ = project_points(X, c.K)
@@ -825,7 +851,9 @@ class AppearanceModel:
         flat[idx, 0] = sample_bilinear(gray, uv)
         flat[idx, 1] = 1.0
         self.captured_at[idx] = frame
-        return int(todo.sum())
+        self.captured_cos[idx] = cos[self.texel_face[todo]]
+        n_new = int(new.sum())
+        return n_new, int(todo.sum()) - n_new
 
     def render(self, vertices, calibration):
         """The model at ``vertices`` in the colour camera: (grey (Hc, Wc) float32, valid bool)."""
@@ -1012,7 +1040,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                     from stex.template import build_atlas
                     texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
                 model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
-            stats["model_texels_added"] = model.capture(cur, obs.gray, obs.calibration, params.model_min_cos, pos)
+            stats["model_texels_added"], stats["model_texels_refreshed"] = model.capture(
+                cur, obs.gray, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
             prev_gray = obs.gray
         yield pos, cur, stats
 

@@ -198,12 +198,49 @@ def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):
     g0, g1 = (cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY) for r in (r0, r1))
     V0 = s.true_vertices(0)
     model = AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256)
-    assert model.capture(V0, g0, cal, 0.3) > 0
+    assert model.capture(V0, g0, cal, 0.3)[0] > 0
     ids_a, ua = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=16)
     ids_b, ub = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=10**6)
     common, ia, ib = np.intersect1d(ids_a, ids_b, return_indices=True)
     assert len(common) > 0.8 * max(len(ids_a), len(ids_b)) > 20
     assert np.abs(ua[ia] - ub[ib]).mean() < 0.15
+
+
+def test_appearance_model_recaptures_texels_seen_more_squarely(tiny_config):
+    """A texel first seen at a slant is captured again once seen much more squarely (and only
+    then); the others keep their first capture."""
+    import cv2
+
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import AppearanceModel
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    gray = cv2.cvtColor(s.render_frame(0).color, cv2.COLOR_RGB2GRAY)
+    V0 = s.true_vertices(0)
+    c = V0.mean(axis=0)
+    a = np.deg2rad(50.0)                                         # turned about the vertical axis
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    turned = (V0 - c) @ R.T + c
+    models = {m: AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256) for m in (None, 0.3)}
+    for margin, model in models.items():
+        added, refreshed = model.capture(turned, gray, cal, 0.3, frame=0, refresh_margin=margin)
+        assert added > 0 and refreshed == 0
+    first = {m: (model.texture.copy(), model.captured_cos.copy()) for m, model in models.items()}
+    never = models[None].capture(V0, gray, cal, 0.3, frame=1, refresh_margin=None)
+    added, refreshed = models[0.3].capture(V0, gray, cal, 0.3, frame=1, refresh_margin=0.3)
+    assert never[1] == 0 and added == never[0] and refreshed > 50
+    old_tex, old_cos = first[None]
+    filled_before = old_tex[..., 1].ravel() > 0
+    # without a margin, every texel filled at frame 0 keeps its value, cosine and frame
+    assert np.array_equal(models[None].texture.reshape(-1, 2)[filled_before], old_tex.reshape(-1, 2)[filled_before])
+    assert (models[None].captured_at[filled_before] == 0).all()
+    # with one, exactly the texels seen 0.3 more squarely moved to frame 1, with their new cosine
+    m = models[0.3]
+    again = filled_before & (m.captured_at == 1)
+    assert again.sum() == refreshed
+    assert (m.captured_cos[again] > first[0.3][1][again] + 0.3).all()
+    kept = filled_before & ~again
+    assert np.array_equal(m.texture.reshape(-1, 2)[kept], first[0.3][0].reshape(-1, 2)[kept])
 
 
 def test_silhouette_field_signs_and_gradient():
