@@ -313,7 +313,7 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
                 seen_faces=None, face_visible=None, truth=None,
                 novel_angle_deg=180.0, patch=ev.DEFAULT_PATCH,
                 radius=ev.DEFAULT_RADIUS, h_size=ev.DEFAULT_H_SIZE, return_views=False,
-                blur_interior_px=None) -> dict:
+                blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
     """Score one method's texture slice at one frame.
 
     Args:
@@ -332,7 +332,7 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         novel_angle_deg: only used to compute ``truth`` when a tuple (true_vertices, true_atlas,
             appearance) is passed instead.
         patch, radius, h_size, blur_interior_px: metric parameters (px), see
-            :func:`image_scores` (None: its default).
+            :func:`image_scores`.
         return_views: also return the renders (key ``views``, see :func:`method_views`).
 
     Returns:
@@ -361,9 +361,8 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
     views = method_views(texture, vertices, a, calibration,
                          None if truth is None else truth["novel_transform"], face_visible)
     rec, rmask = views["input"]
-    interior = ev.DEFAULT_BLUR_INTERIOR_PX if blur_interior_px is None else blur_interior_px
     out = image_scores(img, rec, m & rmask, patch=patch, radius=radius, h_size=h_size,
-                       blur_interior_px=interior)
+                       blur_interior_px=blur_interior_px)
     out["mask_iou"] = _iou(m, rmask)
     if face_has_texture is not None:
         area = ev.face_areas(vertices, a.faces)
@@ -377,9 +376,10 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         # the sharpness a texture can have through this renderer: the true appearance rendered
         # in the same view (no sensor noise, which the Crete metric reads as sharpness)
         t_img, t_mask = truth["input"]
-        out["blur_truth"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size)["blur"]
-        out["blur_truth_interior"] = ev.blur(t_img, m & rmask & t_mask, h_size=h_size,
-                                             erode_px=interior)["blur"]
+        t_scored = m & rmask & t_mask
+        out["blur_truth"] = ev.blur(t_img, t_scored, h_size=h_size)["blur"]
+        out["blur_truth_interior"] = ev.blur(t_img, t_scored, h_size=h_size,
+                                             erode_px=blur_interior_px)["blur"]
         out.update(_novel_scores("gt_novel", truth, views, vertices, a, calibration, seen_faces))
         surface = truth.get("template_vertices")
         if surface is not None:

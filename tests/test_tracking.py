@@ -229,7 +229,7 @@ def test_appearance_model_recaptures_texels_seen_more_squarely(tiny_config):
     never = models[None].capture(V0, gray, cal, 0.3, frame=1, refresh_margin=None)
     added, refreshed = models[0.3].capture(V0, gray, cal, 0.3, frame=1, refresh_margin=0.3)
     assert never[1] == 0 and added == never[0] and refreshed > 50
-    old_tex, old_cos = first[None]
+    old_tex = first[None][0]
     filled_before = old_tex[..., 1].ravel() > 0
     # without a margin, every texel filled at frame 0 keeps its value, cosine and frame
     assert np.array_equal(models[None].texture.reshape(-1, 2)[filled_before], old_tex.reshape(-1, 2)[filled_before])
