@@ -4,12 +4,26 @@
     python benchmarks/bench_tracking.py --scene fox
     python benchmarks/bench_tracking.py --scene paper --frames 12   # speed at paper scale
     python benchmarks/bench_tracking.py --start 60 --frames 40 --params '{"w_silhouette": 0.25}'
+    python benchmarks/bench_tracking.py --scene demo --ceiling model --capture-error   # where the error comes from
 
 Renders the scene's frames in memory (true masks, the scene's depth and colour degradations),
 runs the template stage on the true frame-0 mesh (as the workflow does), tracks it and prints,
 per frame, the mean vertex error against the truth carried to the template's topology (exact:
 template vertices lie on the true surface) over the vertices visible in the depth camera and
 over all vertices, and the solve time.
+
+``--ceiling`` replaces one input of the tracker by the truth, to measure how much of the error
+each one causes (diagnostics only: the tracker itself never sees the truth):
+
+- ``flow``: the flow term's targets are the true projections of the same vertices (its
+  vertex set unchanged): a perfect appearance model and a perfect optical flow;
+- ``flow-all``: the same, for every vertex visible in the depth camera at the predicted mesh;
+- ``model``: the appearance model captures each texel at the true mesh (the optical flow is
+  still DIS on the images): a model free of the mesh's drift at capture.
+
+``--capture-error`` prints, at each printed frame, the median misregistration (colour px) of the
+texels the appearance model captured then (new / captured again): where the texel's surface
+point truly projects minus where the tracked mesh put it.
 """
 
 from __future__ import annotations
@@ -45,6 +59,10 @@ def main() -> int:
                          "appearance model then start there too): short experiments on a late stretch")
     ap.add_argument("--every", type=int, default=1, help="print every k-th frame")
     ap.add_argument("--configfile", action="append", default=[], help="extra config files (applied last)")
+    ap.add_argument("--ceiling", choices=["flow", "flow-all", "model"], default=None,
+                    help="replace one input of the tracker by the truth (see the module docstring)")
+    ap.add_argument("--capture-error", action="store_true",
+                    help="print the appearance model's capture misregistration (px) per printed frame")
     args = ap.parse_args()
     overrides = json.loads(args.params)
     unknown = sorted(set(overrides) - set(TrackParams.__dataclass_fields__) - {"mode"})
@@ -63,8 +81,13 @@ def main() -> int:
     emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
     V_start = transfer_vertices(scene.true_vertices(args.start), scene.faces, *emb)
 
+    truth = {}          # the true mesh of the frame being tracked, for --ceiling / --capture-error
+    capture_log = {}    # frame position -> (new texels' median px, re-captured texels' median px)
+    _patch_tracker(args.ceiling, args.capture_error, truth, capture_log)
+
     def observations():
         for t in frames:
+            truth["V"] = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
             r = scene.render_frame(t)
             fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
             yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
@@ -79,22 +102,70 @@ def main() -> int:
     for pos, V, st in track_sequence(V_start, F, observations(), params, progress=False,
                                      texcoords=tmpl["texcoords"], texcoord_faces=tmpl["texcoord_faces"]):
         t = frames[pos]
-        Vt = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
+        Vt = truth["V"]   # frame t: the observations generator has just set it
         depth = rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth
         vis, _ = vertex_visibility(Vt, F, cal.depth.K, depth)
         err = np.linalg.norm(V - Vt, axis=1)
         rows.append((err[vis].mean(), err.mean(), st["seconds"], st.get("lm_rejected", 0), st.get("lm_failed", 0),
                      st.get("frame_fallback", 0)))
         if pos % args.every == 0:
+            cap = ""
+            if args.capture_error and pos in capture_log:
+                cap = "  captured texels off by {:.2f} px new / {:.2f} px again".format(*capture_log[pos])
             print(f"frame {t:4d}: visible {1000 * err[vis].mean():5.1f} mm  all {1000 * err.mean():5.1f} mm  "
-                  f"max {1000 * err.max():6.1f} mm  {st['seconds']:.2f} s", flush=True)
+                  f"max {1000 * err.max():6.1f} mm  {st['seconds']:.2f} s{cap}", flush=True)
     r = np.array(rows)
+    if args.ceiling:
+        print(f"ceiling: {args.ceiling} (truth in place of one input of the tracker)")
     print(f"worst frame visible: {1000 * r[:, 0].max():.1f} mm (frame {frames[r[:, 0].argmax()]}); "
           f"worst frame all: {1000 * r[:, 1].max():.1f} mm (frame {frames[r[:, 1].argmax()]}); "
           f"frames within 5 / 15 mm: {(r[:, 0] <= 0.005).mean() * 100:.0f} % / {(r[:, 1] <= 0.015).mean() * 100:.0f} %; "
           f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s); "
           f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back")
     return 0
+
+
+def _patch_tracker(ceiling, capture_error, truth, capture_log):
+    """Wrap stex.tracking's flow targets and the appearance model's capture for ``--ceiling`` and
+    ``--capture-error``; ``truth["V"]`` holds the current frame's true vertices (V, 3)."""
+    import stex.tracking as tracking
+
+    flow_constraints = tracking.flow_constraints
+    capture = tracking.AppearanceModel.capture
+
+    def true_px(V, calibration):
+        return tracking._colour_projection(V, calibration.color.K, calibration.depth_to_color)[0]
+
+    def oracle_flow(pred, faces, model, gray, mask, calibration, *a, **k):
+        if ceiling == "flow-all":
+            depth = rasterize(pred, faces, calibration.depth.K, *calibration.depth.size).depth
+            fid = np.flatnonzero(vertex_visibility(pred, faces, calibration.depth.K, depth)[0])
+        else:
+            fid, _ = flow_constraints(pred, faces, model, gray, mask, calibration, *a, **k)
+        return fid, true_px(truth["V"][fid], calibration)
+
+    def texel_px(model, texels, V, calibration):
+        sel = np.isin(model.texels, texels)
+        X = (model.texel_bary[sel][:, :, None] * V[model.faces[model.texel_face[sel]]]).sum(1)
+        return true_px(X, calibration)
+
+    def logged_capture(model, vertices, gray, calibration, min_cos=0.5, frame=0, refresh_margin=None):
+        before = model.captured_at.copy()
+        filled = model.texture.reshape(-1, 2)[:, 1] > 0
+        out = capture(model, truth["V"] if ceiling == "model" else vertices, gray, calibration, min_cos, frame,
+                      refresh_margin)
+        if capture_error:
+            texels = np.flatnonzero(model.captured_at != before)
+            off = np.linalg.norm(texel_px(model, texels, truth["V"], calibration)
+                                 - texel_px(model, texels, vertices, calibration), axis=1)
+            again = filled[model.texels[np.isin(model.texels, texels)]]
+            capture_log[frame] = tuple(float(np.median(off[m])) if m.any() else float("nan") for m in (~again, again))
+        return out
+
+    if ceiling in ("flow", "flow-all"):
+        tracking.flow_constraints = oracle_flow
+    if ceiling == "model" or capture_error:
+        tracking.AppearanceModel.capture = logged_capture
 
 
 if __name__ == "__main__":
