@@ -31,11 +31,6 @@ from stex.evaluation import Atlas, evaluation_params, method_views, truth_views
 from stex.io import FrameSequence, open_store
 
 
-def _atlas(store, prefix=""):
-    return Atlas(np.asarray(store[prefix + "faces"][...], np.int64), store[prefix + "texcoords"][...],
-                 np.asarray(store[prefix + "texcoord_faces"][...], np.int64))
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("results", type=Path, help="results folder of a finished run (results/demo)")
@@ -46,7 +41,7 @@ def main() -> int:
     scene = open_store(R / "scene.zarr", "scene")
     cal = Calibration.from_dict(scene.attrs["calibration"])
     ids = [int(i) for i in scene.attrs["frame_ids"]]
-    atlas = _atlas(open_store(R / "template.zarr", "template"))
+    atlas = Atlas.from_store(open_store(R / "template.zarr", "template"))
     vertices = open_store(R / "tracking.zarr", "tracking")["vertices"]
     photos = FrameSequence(sorted((R / "frames").glob("block_*.zarr")), "frames")
     masks = FrameSequence(sorted((R / "masks").glob("block_*.zarr")), "masks")
@@ -54,7 +49,7 @@ def main() -> int:
     global_tex = np.asarray(open_store(R / "global_texture.zarr", "global_texture")["texture"][...])
     has_truth = "truth" in scene
     if has_truth:
-        true_atlas = _atlas(scene, "template/")
+        true_atlas = Atlas.from_store(scene, "template/")
         truth = FrameSequence(sorted((R / "truth").glob("block_*.zarr")), "truth")
     h_size = evaluation_params({})["h_size"]
     names = ["photo", "ours", "global"] + (["truth"] if has_truth else [])

@@ -48,8 +48,7 @@ def main() -> int:
     noise = syn.get("degradations", {}).get("sensor_noise", {})
     sigma = float(noise.get("sigma", 0.0)) if noise.get("enabled", False) else 0.0
     cal = Calibration.from_dict(scene.attrs["calibration"])
-    atlas = Atlas(np.asarray(scene["template/faces"][...], np.int64), scene["template/texcoords"][...],
-                  np.asarray(scene["template/texcoord_faces"][...], np.int64))
+    atlas = Atlas.from_store(scene, "template/")
     truth = FrameSequence(sorted((R / "truth").glob("block_*.zarr")), "truth")
     photos = FrameSequence(sorted((R / "frames").glob("block_*.zarr")), "frames")
     masks = FrameSequence(sorted((R / "masks").glob("block_*.zarr")), "masks")

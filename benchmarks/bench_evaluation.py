@@ -53,7 +53,7 @@ def main(argv=None):
     V = open_store(R / "tracking.zarr", "tracking")["vertices"]
     proj = open_store(R / "projection.zarr", "projection")
     vis, cos, phi = proj["face_visible"], proj["face_cos"], proj["phi"]
-    atlas = Atlas(template["faces"][...], template["texcoords"][...], template["texcoord_faces"][...])
+    atlas = Atlas.from_store(template)
     sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], atlas.faces)
     src = list(range(0, len(ids), a.global_step))
 
@@ -65,8 +65,7 @@ def main(argv=None):
           f"atlas {sampler.W}; global texture from {len(src)} frames in {t_global:.2f} s "
           f"({t_global / len(src):.3f} s per frame)")
     if truth is not None:
-        true_atlas = Atlas(scene["template/faces"][...], scene["template/texcoords"][...],
-                           scene["template/texcoord_faces"][...])
+        true_atlas = Atlas.from_store(scene, "template/")
     seen = np.asarray(vis[...])[src].any(0)
     timings = {"truth_views": [], "global": [], "projection": []}
     for t in np.linspace(0, len(ids) - 1, a.frames).round().astype(int):

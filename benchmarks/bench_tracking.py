@@ -129,12 +129,13 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
     """Wrap stex.tracking's flow targets and the appearance model's capture for ``--ceiling`` and
     ``--capture-error``; ``truth["V"]`` holds the current frame's true vertices (V, 3)."""
     import stex.tracking as tracking
+    from stex.camera import project_points, transform_points
 
     flow_constraints = tracking.flow_constraints
     capture = tracking.AppearanceModel.capture
 
-    def true_px(V, calibration):
-        return tracking._colour_projection(V, calibration.color.K, calibration.depth_to_color)[0]
+    def colour_px(X, calibration):  # (n, 3) points in the depth camera -> (n, 2) colour pixels
+        return project_points(transform_points(calibration.depth_to_color, X), calibration.color.K)[0]
 
     def oracle_flow(pred, faces, model, gray, mask, calibration, *a, **k):
         if ceiling == "flow-all":
@@ -142,12 +143,7 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
             fid = np.flatnonzero(vertex_visibility(pred, faces, calibration.depth.K, depth)[0])
         else:
             fid, _ = flow_constraints(pred, faces, model, gray, mask, calibration, *a, **k)
-        return fid, true_px(truth["V"][fid], calibration)
-
-    def texel_px(model, texels, V, calibration):
-        sel = np.isin(model.texels, texels)
-        X = (model.texel_bary[sel][:, :, None] * V[model.faces[model.texel_face[sel]]]).sum(1)
-        return true_px(X, calibration)
+        return fid, colour_px(truth["V"][fid], calibration)
 
     def logged_capture(model, vertices, gray, calibration, min_cos=0.5, frame=0, refresh_margin=None):
         before = model.captured_at.copy()
@@ -155,10 +151,11 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
         out = capture(model, truth["V"] if ceiling == "model" else vertices, gray, calibration, min_cos, frame,
                       refresh_margin)
         if capture_error:
-            texels = np.flatnonzero(model.captured_at != before)
-            off = np.linalg.norm(texel_px(model, texels, truth["V"], calibration)
-                                 - texel_px(model, texels, vertices, calibration), axis=1)
-            again = filled[model.texels[np.isin(model.texels, texels)]]
+            sel = model.captured_at[model.texels] != before[model.texels]   # captured just now
+            corners, bary = model.faces[model.texel_face[sel]], model.texel_bary[sel][:, :, None]
+            off = np.linalg.norm(colour_px((bary * truth["V"][corners]).sum(1), calibration)
+                                 - colour_px((bary * vertices[corners]).sum(1), calibration), axis=1)
+            again = filled[model.texels[sel]]
             capture_log[frame] = tuple(float(np.median(off[m])) if m.any() else float("nan") for m in (~again, again))
         return out
 

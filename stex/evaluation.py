@@ -105,6 +105,13 @@ class Atlas(NamedTuple):
     texcoords: np.ndarray
     texcoord_faces: np.ndarray
 
+    @classmethod
+    def from_store(cls, store, prefix: str = "") -> "Atlas":
+        """The atlas held in a store's ``{prefix}faces``, ``texcoords``, ``texcoord_faces``: the
+        template store (prefix "") or a synthetic scene's true template (prefix "template/")."""
+        return cls(np.asarray(store[prefix + "faces"][...], np.int64), np.asarray(store[prefix + "texcoords"][...]),
+                   np.asarray(store[prefix + "texcoord_faces"][...], np.int64))
+
 
 def evaluation_params(params: dict | None = None) -> dict:
     """The evaluation settings: the schema's ``evaluation`` section (config/schema.yaml, the one
@@ -701,8 +708,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     for name, paths, seq in (("frames", frames_paths, photos), ("masks", masks_paths, masks),
                              ("volume", volume_paths, volume), ("corrected", corrected_paths, corrected)):
         _check_frames(name, ", ".join(str(x) for x in paths), seq.frame_ids, ids)
-    atlas = Atlas(np.asarray(template["faces"][...], np.int64), template["texcoords"][...],
-                  np.asarray(template["texcoord_faces"][...], np.int64))
+    atlas = Atlas.from_store(template)
     F = len(atlas.faces)
     if tracking["vertices"].shape[1] != template["vertices"].shape[0]:
         raise ValueError(f"tracking store {tracking_path} has {tracking['vertices'].shape[1]} "
@@ -768,9 +774,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             raise StoreError(f"{scene_path}: truth stores given but the scene has no truth/vertices")
         truth = FrameSequence(list(truth_paths), "truth")
         _check_frames("truth", ", ".join(str(x) for x in truth_paths), truth.frame_ids, ids)
-        true_atlas = Atlas(np.asarray(scene["template/faces"][...], np.int64),
-                           scene["template/texcoords"][...],
-                           np.asarray(scene["template/texcoord_faces"][...], np.int64))
+        true_atlas = Atlas.from_store(scene, "template/")
         true_vertices = scene["truth/vertices"]
         # the template's embedding in the scene's mesh carries the truth onto the template
         if "embedding" in template:
