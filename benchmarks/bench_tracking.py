@@ -5,6 +5,7 @@
     python benchmarks/bench_tracking.py --scene paper --frames 12   # speed at paper scale
     python benchmarks/bench_tracking.py --start 60 --frames 40 --params '{"w_silhouette": 0.25}'
     python benchmarks/bench_tracking.py --scene demo --ceiling model --capture-error   # where the error comes from
+    python benchmarks/bench_tracking.py --scene demo --ceiling rigid --lower-half
 
 Renders the scene's frames in memory (true masks, the scene's depth and colour degradations),
 runs the template stage on the true frame-0 mesh (as the workflow does), tracks it and prints,
@@ -19,7 +20,14 @@ each one causes (diagnostics only: the tracker itself never sees the truth):
   vertex set unchanged): a perfect appearance model and a perfect optical flow;
 - ``flow-all``: the same, for every vertex visible in the depth camera at the predicted mesh;
 - ``model``: the appearance model captures each texel at the true mesh (the optical flow is
-  still DIS on the images): a model free of the mesh's drift at capture.
+  still DIS on the images): a model free of the mesh's drift at capture;
+- ``rigid``: the rigid stage's motion is the scene's true object motion from the previous frame
+  (exact for the demo's rigid lower half; the non-rigid stage runs as usual on top).
+
+``--lower-half`` (procedural scenes) prints, per printed frame, the mean signed error along the
+body's turn about its vertical axis (mm; + = towards increasing yaw) of the body's lower half,
+which is rigid in the truth, over its vertices the depth camera sees and those it does not: how
+far the tracked body twists there although the true one does not.
 
 ``--capture-error`` prints, at each printed frame, the median misregistration (colour px) of the
 texels the appearance model captured then (new / captured again): where the texel's surface
@@ -59,8 +67,10 @@ def main() -> int:
                          "appearance model then start there too): short experiments on a late stretch")
     ap.add_argument("--every", type=int, default=1, help="print every k-th frame")
     ap.add_argument("--configfile", action="append", default=[], help="extra config files (applied last)")
-    ap.add_argument("--ceiling", choices=["flow", "flow-all", "model"], default=None,
+    ap.add_argument("--ceiling", choices=["flow", "flow-all", "model", "rigid"], default=None,
                     help="replace one input of the tracker by the truth (see the module docstring)")
+    ap.add_argument("--lower-half", action="store_true",
+                    help="procedural scenes: print the rigid lower half's error along the turn (mm), seen / unseen")
     ap.add_argument("--capture-error", action="store_true",
                     help="print the appearance model's capture misregistration (px) per printed frame")
     args = ap.parse_args()
@@ -81,6 +91,14 @@ def main() -> int:
     emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
     V_start = transfer_vertices(scene.true_vertices(args.start), scene.faces, *emb)
 
+    lower = None
+    if args.lower_half:
+        if not hasattr(scene.body, "vertex_h"):
+            raise SystemExit("--lower-half needs a procedural scene (its body's lower half is rigid)")
+        # height parameter of each template vertex on the source mesh; the lower half stays rigid
+        # below h = 0.5 (procedural.py), 0.45 keeps clear of the nose's and the belly's tails
+        h = (tmpl["embedding/bary"] * scene.body.vertex_h[scene.faces[tmpl["embedding/face"]]]).sum(1)
+        lower = h < 0.45
     truth = {}          # the true mesh of the frame being tracked, for --ceiling / --capture-error
     capture_log = {}    # frame position -> (new texels' median px, re-captured texels' median px)
     _patch_tracker(args.ceiling, args.capture_error, truth, capture_log)
@@ -88,6 +106,10 @@ def main() -> int:
     def observations():
         for t in frames:
             truth["V"] = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
+            # the object's true rigid motion since the previous tracked frame (--ceiling rigid)
+            truth["rigid_step"] = (np.eye(4) if t == frames.start else
+                                   scene.object_to_depth(scene.time_of(t))
+                                   @ np.linalg.inv(scene.object_to_depth(scene.time_of(t - 1))))
             r = scene.render_frame(t)
             fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
             yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
@@ -112,6 +134,9 @@ def main() -> int:
             cap = ""
             if args.capture_error and pos in capture_log:
                 cap = "  captured texels off by {:.2f} px new / {:.2f} px again".format(*capture_log[pos])
+            if lower is not None:
+                cap += "  lower half along the turn {:+.2f} mm seen / {:+.2f} mm unseen".format(
+                    *_along_turn(scene, t, V[lower], Vt[lower], vis[lower]))
             print(f"frame {t:4d}: visible {1000 * err[vis].mean():5.1f} mm  all {1000 * err.mean():5.1f} mm  "
                   f"max {1000 * err.max():6.1f} mm  {st['seconds']:.2f} s{cap}", flush=True)
     r = np.array(rows)
@@ -125,6 +150,17 @@ def main() -> int:
     return 0
 
 
+def _along_turn(scene, t, V, Vt, seen):
+    """Mean of (tracked - true) along the object's turn about its vertical axis at frame t, in mm,
+    over ``seen`` and the rest; + = towards increasing yaw (the turn's direction over frames 0-30
+    and 90-120 of the demo, against it over 30-90). V, Vt (n, 3) depth-camera metres, seen (n,)."""
+    M = scene.object_to_depth(scene.time_of(t))
+    tangent = np.cross(M[:3, 1], Vt - M[:3, 3])
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True) + 1e-12
+    along = 1000 * ((V - Vt) * tangent).sum(1)
+    return tuple(float(along[m].mean()) if m.any() else float("nan") for m in (seen, ~seen))
+
+
 def _patch_tracker(ceiling, capture_error, truth, capture_log):
     """Wrap stex.tracking's flow targets and the appearance model's capture for ``--ceiling`` and
     ``--capture-error``; ``truth["V"]`` holds the current frame's true vertices (V, 3)."""
@@ -133,6 +169,7 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
 
     flow_constraints = tracking.flow_constraints
     capture = tracking.AppearanceModel.capture
+    solve_frame = tracking._solve_frame
 
     def colour_px(X, calibration):  # (n, 3) points in the depth camera -> (n, 2) colour pixels
         return project_points(transform_points(calibration.depth_to_color, X), calibration.color.K)[0]
@@ -159,8 +196,19 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
             capture_log[frame] = tuple(float(np.median(off[m])) if m.any() else float("nan") for m in (~again, again))
         return out
 
+    def true_rigid_stage(V0, faces, node_pos, graph, *a, **k):
+        x, stats = solve_frame(V0, faces, node_pos, graph, *a, **k)
+        if len(graph.nodes) == 1:   # the rigid stage: x' = A (x - g) + g + t for its one node g
+            R, tr = truth["rigid_step"][:3, :3], truth["rigid_step"][:3, 3]
+            g = node_pos[0]
+            x = x.copy()
+            x[0, :9], x[0, 9:] = R.ravel(), R @ g + tr - g
+        return x, stats
+
     if ceiling in ("flow", "flow-all"):
         tracking.flow_constraints = oracle_flow
+    if ceiling == "rigid":
+        tracking._solve_frame = true_rigid_stage
     if ceiling == "model" or capture_error:
         tracking.AppearanceModel.capture = logged_capture
 
