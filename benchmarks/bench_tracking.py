@@ -142,8 +142,8 @@ def main() -> int:
     r = np.array(rows)
     if args.ceiling:
         print(f"ceiling: {args.ceiling} (truth in place of one input of the tracker)")
-    print(f"worst frame visible: {1000 * r[:, 0].max():.1f} mm (frame {frames[r[:, 0].argmax()]}); "
-          f"worst frame all: {1000 * r[:, 1].max():.1f} mm (frame {frames[r[:, 1].argmax()]}); "
+    print(f"worst frame visible: {1000 * r[:, 0].max():.2f} mm (frame {frames[r[:, 0].argmax()]}); "
+          f"worst frame all: {1000 * r[:, 1].max():.2f} mm (frame {frames[r[:, 1].argmax()]}); "
           f"frames within 5 / 15 mm: {(r[:, 0] <= 0.005).mean() * 100:.0f} % / {(r[:, 1] <= 0.015).mean() * 100:.0f} %; "
           f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s); "
           f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back")

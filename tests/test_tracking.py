@@ -390,3 +390,33 @@ def test_silhouette_crop_matches_the_whole_image_field():
     b = sample_bilinear(crop, project_points(pts, Kc)[0])
     near = np.abs(a) < SILHOUETTE_MAX_PX
     assert near.sum() > 100 and np.allclose(a[near], b[near], atol=1e-4)
+
+
+def test_link_weights_enter_the_normal_equations_per_link():
+    """A per-link smoothness weight (TrackParams.link_length_power) scales exactly that link's
+    part of J^T J and J^T r: weight 0 on some links equals a graph without them."""
+    from stex.tracking import DeformationGraph, _normal_equations, _NormalPattern
+
+    V, F = _sphere()
+    g = build_graph(V, F, 0.08)
+    rng = np.random.default_rng(0)
+    N, E = len(g.nodes), len(g.edges)
+    nodes = V[g.nodes]
+    d_jk = nodes[g.edges[:, 1]] - nodes[g.edges[:, 0]]
+    local = V[:, None, :] - nodes[g.vertex_nodes]
+    res = rng.normal(size=(E, 3))
+    rot_res, rot_jac = np.zeros((N, 6)), np.zeros((N, 6, 9))
+    none = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+
+    def normal(graph, r, w, d):
+        JtJ, grad, _ = _normal_equations(_NormalPattern(graph, N), graph, local, *none, rot_res, rot_jac, r, w, d)
+        return JtJ.toarray(), grad
+
+    keep = rng.random(E) < 0.5
+    sub = DeformationGraph(g.nodes, g.vertex_nodes, g.vertex_weights, g.edges[keep])
+    A, a = normal(g, res, np.where(keep, 2.5, 0.0), d_jk)
+    B, b = normal(sub, res[keep], 2.5, d_jk[keep])
+    assert np.allclose(A, B) and np.allclose(a, b)
+    C, c = normal(g, res, np.full(E, 2.5), d_jk)   # a uniform vector weight is the scalar one
+    D, dd = normal(g, res, 2.5, d_jk)
+    assert np.allclose(C, D) and np.allclose(c, dd) and not np.allclose(A, C)
