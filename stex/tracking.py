@@ -669,8 +669,9 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     e = graph.edges
     j_, k_ = e[:, 0], e[:, 1]
     d_jk = node_pos[k_] - node_pos[j_]                    # (E, 3)
-    # each link's weight: its length in node spacings to a power (see TrackParams.link_length_power)
-    w_link = np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** p.link_length_power
+    # each link's smoothness weight: w_reg times its length in node spacings to a power
+    # (TrackParams.link_length_power), the same in the cost, the normal equations and the L0 step
+    w_smooth = p.w_reg * np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** p.link_length_power
     beta = p.l0_beta0
     s = np.zeros((len(e), 3))
     # Constant Jacobian pieces of the data term: d x'_i / d(A_j, t_j).
@@ -693,8 +694,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
 
     def prior_cost(x, rot_res=None):  # rotation and smoothness: sums of squares, as in the normal equations
         rot_res = _rot_terms(x)[0] if rot_res is None else rot_res
-        return float(p.w_rot * (rot_res ** 2).sum()
-                     + p.w_reg * beta * (w_link[:, None] * (smooth_res(x) - s) ** 2).sum())
+        return float(p.w_rot * (rot_res ** 2).sum() + beta * (w_smooth[:, None] * (smooth_res(x) - s) ** 2).sum())
 
     for rnd in range(p.l0_rounds):
         for it in range(p.gn_iterations):
@@ -720,11 +720,10 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
             Dws.append(np.zeros((0, 3)))
             rws.append(np.zeros(0))
-            # smoothness with HQS: sqrt(w_reg * beta) * (r_jk - s_jk)
+            # smoothness with HQS: sqrt(w_smooth * beta) * (r_jk - s_jk)
             JtJ, g, diag_blocks = _normal_equations(
                 pattern, graph, local, np.concatenate(vids).astype(np.int64), np.concatenate(Dws),
-                np.concatenate(rws), rr * sr, Jr * sr, smooth_res(x) - s, p.w_reg * beta * w_link, d_jk,
-                p.damping)
+                np.concatenate(rws), rr * sr, Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk, p.damping)
             # CSR: scipy's CSR mat-vec is ~1.7x faster than its BSR one at 12x12 blocks
             JtJ = JtJ.tocsr()
             diag = JtJ.diagonal()
@@ -761,7 +760,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 break
         # s-step: hard threshold (L0): keep a motion difference only where it pays for itself
         r_jk = smooth_res(x)
-        keep = (r_jk**2).sum(1) * p.w_reg * w_link > p.l0_lambda / beta
+        keep = (r_jk**2).sum(1) * w_smooth > p.l0_lambda / beta
         s = np.where(keep[:, None], r_jk, 0.0)
         stats["l0_active"] = int(keep.sum())
         beta *= p.l0_beta_growth
