@@ -11,7 +11,9 @@ Renders the scene's frames in memory (true masks, the scene's depth and colour d
 runs the template stage on the true frame-0 mesh (as the workflow does), tracks it and prints,
 per frame, the mean vertex error against the truth carried to the template's topology (exact:
 template vertices lie on the true surface) over the vertices visible in the depth camera and
-over all vertices, and the solve time.
+over all vertices, and the solve time; beside them, what the tracking stage records without any
+truth (stex.tracking.silhouette_iou against the true mask, and the clipped depth fit), to see
+how well those track the true error.
 
 ``--ceiling`` replaces one input of the tracker by the truth, to measure how much of the error
 each one causes (diagnostics only: the tracker itself never sees the truth):
@@ -52,7 +54,8 @@ from stex.render import rasterize, vertex_visibility  # noqa: E402
 from stex.readers.meshes import Mesh  # noqa: E402
 from stex.synth.scene import SyntheticScene  # noqa: E402
 from stex.template import prepare_template, transfer_vertices  # noqa: E402
-from stex.tracking import Observation, TrackParams, depth_target, mask_in_depth, track_sequence  # noqa: E402
+from stex.tracking import (Observation, TrackParams, depth_target, mask_in_depth, silhouette_iou,  # noqa: E402
+                           track_sequence)
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "paper": ["config/scenes/paper.yaml"]}
 
@@ -111,6 +114,7 @@ def main() -> int:
                                    scene.object_to_depth(scene.time_of(t))
                                    @ np.linalg.inv(scene.object_to_depth(scene.time_of(t - 1))))
             r = scene.render_frame(t)
+            truth["mask"] = r.true_mask
             fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
             yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
                               cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
@@ -128,8 +132,9 @@ def main() -> int:
         depth = rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth
         vis, _ = vertex_visibility(Vt, F, cal.depth.K, depth)
         err = np.linalg.norm(V - Vt, axis=1)
+        iou = silhouette_iou(V, F, truth["mask"], cal)
         rows.append((err[vis].mean(), err.mean(), st["seconds"], st.get("lm_rejected", 0), st.get("lm_failed", 0),
-                     st.get("frame_fallback", 0)))
+                     st.get("frame_fallback", 0), iou, st.get("depth_residual_m", np.nan)))
         if pos % args.every == 0:
             cap = ""
             if args.capture_error and pos in capture_log:
@@ -138,7 +143,8 @@ def main() -> int:
                 cap += "  lower half along the turn {:+.2f} mm seen / {:+.2f} mm unseen".format(
                     *_along_turn(scene, t, V[lower], Vt[lower], vis[lower]))
             print(f"frame {t:4d}: visible {1000 * err[vis].mean():5.1f} mm  all {1000 * err.mean():5.1f} mm  "
-                  f"max {1000 * err.max():6.1f} mm  {st['seconds']:.2f} s{cap}", flush=True)
+                  f"max {1000 * err.max():6.1f} mm  silhouette IoU {iou:.3f}  depth fit {1000 * rows[-1][7]:5.1f} mm  "
+                  f"{st['seconds']:.2f} s{cap}", flush=True)
     r = np.array(rows)
     if args.ceiling:
         print(f"ceiling: {args.ceiling} (truth in place of one input of the tracker)")

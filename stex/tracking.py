@@ -1074,6 +1074,21 @@ def depth_residual(vertices, faces, target: DepthTarget, clip_m: float = 0.05, u
     return float(diff.mean())
 
 
+def silhouette_iou(vertices, faces, mask, calibration) -> float:
+    """Intersection over union of the mesh's silhouette in the colour camera and ``mask``.
+
+    vertices (V, 3) depth-camera metres, faces (F, 3), mask (Hc, Wc) bool foreground of the
+    colour image. How well a tracked mesh covers the object, without any ground truth: near 1
+    while the tracker follows, falling when it loses a part. NaN if both are empty.
+    """
+    c = calibration.color
+    if mask.shape != (c.height, c.width):
+        raise ValueError(f"mask is {mask.shape[1]}x{mask.shape[0]}, the colour camera {c.width}x{c.height}")
+    covered = rasterize(transform_points(calibration.depth_to_color, vertices), faces, c.K, c.width, c.height).depth > 0
+    union = int((covered | mask).sum())
+    return float((covered & mask).sum() / union) if union else float("nan")
+
+
 # -- the stage ------------------------------------------------------------------------------------
 
 def observations_from_stores(frames, masks, calibration, use_flow: bool = True):
@@ -1109,31 +1124,91 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     F = np.asarray(template["faces"][...], np.int64)
     T = len(frames)
     mode = params["mode"]
+    masks = FrameSequence(masks_paths, "masks")
+    last = []   # the observation of the frame being tracked (track_sequence consumes them)
+
+    def observed():
+        for ob in observations_from_stores(frames, masks, cal, use_flow=mode == "track" and params["w_flow"] > 0):
+            last[:] = [ob]
+            yield ob
+
     with create_store(out, "tracking", attrs={"frame_ids": frames.frame_ids, "mode": mode}, params=params) as store:
         verts = store.create("vertices", (T, len(V0), 3))
         residual = np.full(T, np.nan)
         n_corr = np.zeros(T, np.int64)
         seconds = np.zeros(T)
+        iou = np.full(T, np.nan)
+        fit = np.full(T, np.nan)
         if mode == "given":
             if "given/vertices" not in scene:
                 raise ValueError(f"{scene_path}: tracking.mode is 'given' but the source supplied no per-frame meshes")
             given = scene["given/vertices"]
             orig_faces = np.asarray(scene["template/faces"][...])
             ef, eb = template["embedding/face"][...], template["embedding/bary"][...]
-            for k in range(T):
-                verts[k] = transfer_vertices(given[k], orig_faces, ef, eb)
+            solved = ((k, transfer_vertices(given[k], orig_faces, ef, eb), None) for k, _ in enumerate(observed()))
         elif mode == "track":
-            masks = FrameSequence(masks_paths, "masks")
-            obs = observations_from_stores(frames, masks, cal, use_flow=params["w_flow"] > 0)
-            tp = TrackParams.from_dict(params)
-            for k, V, st in track_sequence(V0, F, obs, tp, texcoords=template["texcoords"][...],
-                                           texcoord_faces=template["texcoord_faces"][...]):
-                verts[k] = V
+            solved = track_sequence(V0, F, observed(), TrackParams.from_dict(params),
+                                    texcoords=template["texcoords"][...], texcoord_faces=template["texcoord_faces"][...])
+        else:
+            raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
+        for k, V, st in solved:
+            verts[k] = V
+            # how well the mesh explains the frame, measured alike in both modes (no truth needed)
+            iou[k] = silhouette_iou(V, F, last[0].mask, cal)
+            fit[k] = depth_residual(V, F, last[0].target, FRAME_GUARD_CLIP_M)
+            if st is not None:
                 residual[k] = st["data_rms_m"]
                 n_corr[k] = st["n_corr"]
                 seconds[k] = st["seconds"]
-        else:
-            raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
+        threshold = float(params["min_silhouette_iou"])
+        poor = [int(f) for f, v in zip(frames.frame_ids, iou) if not v >= threshold]  # NaN: nothing covered
+        if poor:
+            worst = int(np.argmin(np.nan_to_num(iou, nan=-1.0)))
+            log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
+                        "frames, first at frame %d, worst %.2f at frame %d: the mesh has likely lost part of the "
+                        "object there, and texture taken from those frames will be misplaced (frames: %s)",
+                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst],
+                        ", ".join(map(str, poor)))
+        store.attrs["poorly_fitted_frames"] = poor
+        store.write("silhouette_iou", np.nan_to_num(iou, nan=-1.0))
+        store.write("depth_fit_m", fit)
         store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
         store.write("n_correspondences", n_corr)
         store.write("seconds", seconds)
+
+
+def plot_tracking_fit(tracking_path, out) -> None:
+    """Write a PNG of how well the tracked (or given) mesh explains each frame: the silhouette
+    IoU against the mask, with ``min_silhouette_iou`` and the poorly fitted frames marked, and
+    the clipped depth difference (``silhouette_iou`` and ``depth_fit_m`` of the store)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stex.io import open_store
+
+    store = open_store(tracking_path, "tracking")
+    ids = np.asarray(store.attrs["frame_ids"])
+    iou = np.asarray(store["silhouette_iou"][...], np.float64)
+    fit_mm = 1000 * np.asarray(store["depth_fit_m"][...], np.float64)
+    params = store.attrs.get("params", {})
+    threshold = params.get("min_silhouette_iou")
+    poor = np.isin(ids, store.attrs["poorly_fitted_frames"])
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 4.6), dpi=120, sharex=True)
+    a1.plot(ids, iou, marker=".", label="silhouette IoU (mesh vs mask)")
+    if threshold is not None:
+        a1.axhline(threshold, color="tab:red", ls="--", lw=1, label=f"min_silhouette_iou {threshold:g}")
+    if poor.any():
+        a1.plot(ids[poor], iou[poor], "x", color="tab:red", label=f"poorly fitted ({int(poor.sum())} frames)")
+    a1.set_ylabel("IoU")
+    a1.set_title(f"tracking ({store.attrs['mode']}): how well the mesh explains each frame", fontsize=9)
+    a2.plot(ids, fit_mm, marker=".", color="tab:green", label="mean |rendered - observed| depth, clipped at 5 cm")
+    a2.set_ylabel("mm")
+    a2.set_xlabel("frame")
+    for ax in (a1, a2):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)

@@ -183,7 +183,8 @@ def test_track_params_defaults_match_the_schema():
     from stex.config import section_params
     schema = section_params("tracking")
     fields = asdict(TrackParams())
-    assert {k: v for k, v in schema.items() if k != "mode"} == fields
+    # mode and min_silhouette_iou are the stage's, not the solver's
+    assert {k: v for k, v in schema.items() if k not in ("mode", "min_silhouette_iou")} == fields
 
 
 def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):
@@ -420,3 +421,52 @@ def test_link_weights_enter_the_normal_equations_per_link():
     C, c = normal(g, res, np.full(E, 2.5), d_jk)   # a uniform vector weight is the scalar one
     D, dd = normal(g, res, 2.5, d_jk)
     assert np.allclose(C, D) and np.allclose(c, dd) and not np.allclose(A, C)
+
+
+def test_silhouette_iou_of_a_mesh_and_its_own_mask(tiny_config):
+    from stex.camera import transform_points
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import silhouette_iou
+
+    scene = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = scene.calibration
+    V = scene.true_vertices(0)
+    c = cal.color
+    own = rasterize(transform_points(cal.depth_to_color, V), scene.faces, c.K, c.width, c.height).depth > 0
+    assert silhouette_iou(V, scene.faces, own, cal) == pytest.approx(1.0)
+    shifted = silhouette_iou(V + [0.02, 0.0, 0.0], scene.faces, own, cal)
+    assert 0.3 < shifted < 0.95
+    assert silhouette_iou(V + [0.02, 0.0, 0.0], scene.faces, own, cal) < silhouette_iou(V + [0.005, 0.0, 0.0], scene.faces, own, cal)
+    with pytest.raises(ValueError, match="colour camera"):
+        silhouette_iou(V, scene.faces, own[:-1], cal)
+
+
+def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
+    """Given meshes that fit (the tiny scene's truth) pass; the same meshes moved 5 cm aside
+    are named in a warning and in poorly_fitted_frames, without any ground truth."""
+    import shutil
+
+    import zarr
+
+    from conftest import run_stages, tiny_scene_config
+    from stex.io import open_store
+    from stex.tracking import write_tracking
+
+    cfg = tiny_scene_config(template={"atlas_size": 128})
+    P = run_stages(cfg, tmp_path)
+    good = open_store(P["tracking"], "tracking")
+    assert good.attrs["poorly_fitted_frames"] == []
+    assert (good["silhouette_iou"][...] > 0.9).all()
+    moved = tmp_path / "moved_scene.zarr"
+    shutil.copytree(P["scene"], moved)
+    z = zarr.open_group(str(moved), mode="r+")
+    z["given/vertices"][...] = z["given/vertices"][...] + np.array([0.05, 0.0, 0.0], np.float32)
+    with caplog.at_level("WARNING", logger="stex.tracking"):
+        write_tracking(moved, P["template"], P["frames"], P["masks"], dict(cfg["tracking"], mode="given"),
+                       tmp_path / "moved_tracking.zarr")
+    bad = open_store(tmp_path / "moved_tracking.zarr", "tracking")
+    ids = open_store(P["scene"], "scene").attrs["frame_ids"]
+    assert bad.attrs["poorly_fitted_frames"] == list(ids)
+    assert (bad["silhouette_iou"][...] < good["silhouette_iou"][...]).all()
+    assert (bad["depth_fit_m"][...] > good["depth_fit_m"][...]).all()
+    assert "covers the object's mask poorly" in caplog.text

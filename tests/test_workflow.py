@@ -42,6 +42,11 @@ def test_outputs_exist_and_are_complete(tiny_run):
     assert frames.read("color", 5).shape == (150, 200, 3)
     assert np.array_equal(scene["given/vertices"][3], scene["truth/vertices"][3])
     assert (res / "previews" / "masks.png").stat().st_size > 1000
+    # the tiny scene is tracked (mode track): the mesh covers the mask at every frame
+    assert (res / "previews" / "tracking_fit.png").stat().st_size > 1000
+    tracking = open_store(res / "tracking.zarr", "tracking")
+    assert tracking.attrs["poorly_fitted_frames"] == []
+    assert (tracking["silhouette_iou"][...] > 0.85).all()
     from stex.synth.scene import SyntheticScene
     from stex.config import load_config
     s = SyntheticScene(load_config(overrides={"source": {"synthetic": TINY_SYNTHETIC}})["source"]["synthetic"])
@@ -63,7 +68,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     assert run.returncode == 0, out[-2000:]
     jobs = set(re.findall(r"^rule (\w+):", out, flags=re.M))
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
-    downstream = {"tracking", "poses", "projection", "projection_preview", "texcoords", "observations",
+    downstream = {"tracking", "tracking_preview", "poses", "projection", "projection_preview", "texcoords", "observations",
                   "tables", "labeling", "volume", "correction", "labels_preview", "preview_video",
                   "evaluate", "texcoords_preview", "global_texture"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out

@@ -24,7 +24,7 @@ def block_range(wildcards):
 def all_outputs():
     out = [f"{RESULTS}/scene.zarr", f"{RESULTS}/previews/masks.png"]
     out += [f"{RESULTS}/template.zarr", f"{RESULTS}/previews/template_atlas.png"]
-    out += [f"{RESULTS}/tracking.zarr", f"{RESULTS}/poses.zarr"]
+    out += [f"{RESULTS}/tracking.zarr", f"{RESULTS}/previews/tracking_fit.png", f"{RESULTS}/poses.zarr"]
     out += [f"{RESULTS}/projection.zarr", f"{RESULTS}/previews/projection.png"]
     out += [COORDS, f"{RESULTS}/observations.zarr", f"{RESULTS}/labels.zarr"]
     if OPTIMISED:

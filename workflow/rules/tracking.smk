@@ -19,3 +19,22 @@ rule tracking:
         ENV
     script:
         "../scripts/tracking.py"
+
+
+rule tracking_preview:
+    input:
+        f"{RESULTS}/tracking.zarr",
+    output:
+        report(
+            f"{RESULTS}/previews/tracking_fit.png",
+            caption="../report/tracking.rst",
+            category="Tracking",
+        ),
+    log:
+        f"{RESULTS}/logs/tracking_preview.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/tracking_preview.tsv",
+    conda:
+        ENV
+    script:
+        "../scripts/tracking_preview.py"
