@@ -137,6 +137,9 @@ def make_results(root, volume=True, corrected=True):
         s.write("residual_m", np.zeros(len(FRAME_IDS)))
         s.write("n_correspondences", np.zeros(len(FRAME_IDS), np.int32))
         s.write("seconds", np.zeros(len(FRAME_IDS)))
+        s.write("silhouette_iou", np.ones(len(FRAME_IDS)))
+        s.write("depth_fit_m", np.zeros(len(FRAME_IDS)))
+        s.attrs["poorly_fitted_frames"] = []
     rng = np.random.default_rng(0)
     for b, ids in enumerate(BLOCKS):
         ts = [FRAME_IDS.index(i) for i in ids]
