@@ -1110,7 +1110,10 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
 
     ``params`` is the ``tracking`` config section. Mode ``track`` runs :func:`track_sequence` on
     the depth stream; mode ``given`` carries the source's per-frame meshes (``given/vertices`` of
-    the scene, on the original template's topology) over to the template's topology.
+    the scene, on the original template's topology) over to the template's topology. In both
+    modes each frame's mesh is also scored against the frame itself (:func:`silhouette_iou`,
+    :func:`depth_residual`), and frames below ``min_silhouette_iou`` are named in a warning and
+    in the store's ``poorly_fitted_frames``.
     """
     from stex.camera import Calibration
     from stex.io import FrameSequence, create_store, open_store
@@ -1167,14 +1170,25 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
                         "frames, first at frame %d, worst %.2f at frame %d: the mesh has likely lost part of the "
                         "object there, and texture taken from those frames will be misplaced (frames: %s)",
-                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst],
-                        ", ".join(map(str, poor)))
+                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], _runs(poor))
         store.attrs["poorly_fitted_frames"] = poor
         store.write("silhouette_iou", np.nan_to_num(iou, nan=-1.0))
         store.write("depth_fit_m", fit)
         store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
         store.write("n_correspondences", n_corr)
         store.write("seconds", seconds)
+
+
+def _runs(ids) -> str:
+    """'3, 6-39' for [3, 6, 7, ..., 39]: consecutive integers as ranges."""
+    out, start = [], None
+    for i, v in enumerate(ids):
+        if start is None:
+            start = v
+        if i + 1 == len(ids) or ids[i + 1] != v + 1:
+            out.append(str(start) if start == v else f"{start}-{v}")
+            start = None
+    return ", ".join(out)
 
 
 def plot_tracking_fit(tracking_path, out) -> None:

@@ -470,3 +470,4 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     assert (bad["silhouette_iou"][...] < good["silhouette_iou"][...]).all()
     assert (bad["depth_fit_m"][...] > good["depth_fit_m"][...]).all()
     assert "covers the object's mask poorly" in caplog.text
+    assert f"frames: {ids[0]}-{ids[-1]}" in caplog.text
