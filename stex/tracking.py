@@ -1113,7 +1113,8 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     the scene, on the original template's topology) over to the template's topology. In both
     modes each frame's mesh is also scored against the frame itself (:func:`silhouette_iou`,
     :func:`depth_residual`), and frames below ``min_silhouette_iou`` are named in a warning and
-    in the store's ``poorly_fitted_frames``.
+    in the store's ``poorly_fitted_frames``; given meshes below it at every frame raise
+    ``ValueError`` (they and the calibration disagree) and no store is written.
     """
     from stex.camera import Calibration
     from stex.io import FrameSequence, create_store, open_store
@@ -1165,6 +1166,15 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                 seconds[k] = st["seconds"]
         threshold = float(params["min_silhouette_iou"])
         poor = [int(f) for f, v in zip(frames.frame_ids, iou) if not v >= threshold]  # NaN: nothing covered
+        if mode == "given" and len(poor) == T:
+            # a tracker can lose the object; given meshes that miss it at every frame disagree with the camera
+            raise ValueError(
+                f"{scene_path}: tracking.mode given: the source's per-frame meshes cover the frames' masks poorly at "
+                f"every frame (silhouette IoU {np.nanmin(iou) if np.isfinite(iou).any() else float('nan'):.2f}-"
+                f"{np.nanmax(iou) if np.isfinite(iou).any() else float('nan'):.2f}, below tracking.min_silhouette_iou "
+                f"{threshold:g}): the meshes and the camera disagree. Check that the meshes are in depth-camera "
+                f"coordinates in metres, the depth intrinsics and the depth-to-colour extrinsics (or the masks: "
+                f"previews/masks.png)")
         if poor:
             worst = int(np.argmin(np.nan_to_num(iou, nan=-1.0)))
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "

@@ -442,8 +442,9 @@ def test_silhouette_iou_of_a_mesh_and_its_own_mask(tiny_config):
 
 
 def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
-    """Given meshes that fit (the tiny scene's truth) pass; the same meshes moved 5 cm aside
-    are named in a warning and in poorly_fitted_frames, without any ground truth."""
+    """Given meshes that fit (the tiny scene's truth) pass; the same meshes moved 5 cm aside at
+    two frames are named in a warning and in poorly_fitted_frames, without any ground truth; at
+    every frame, or with the colour camera's focal length off by 15 %, the stage refuses them."""
     import shutil
 
     import zarr
@@ -457,17 +458,40 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     good = open_store(P["tracking"], "tracking")
     assert good.attrs["poorly_fitted_frames"] == []
     assert (good["silhouette_iou"][...] > 0.9).all()
-    moved = tmp_path / "moved_scene.zarr"
-    shutil.copytree(P["scene"], moved)
-    z = zarr.open_group(str(moved), mode="r+")
-    z["given/vertices"][...] = z["given/vertices"][...] + np.array([0.05, 0.0, 0.0], np.float32)
-    with caplog.at_level("WARNING", logger="stex.tracking"):
-        write_tracking(moved, P["template"], P["frames"], P["masks"], dict(cfg["tracking"], mode="given"),
-                       tmp_path / "moved_tracking.zarr")
-    bad = open_store(tmp_path / "moved_tracking.zarr", "tracking")
     ids = open_store(P["scene"], "scene").attrs["frame_ids"]
-    assert bad.attrs["poorly_fitted_frames"] == list(ids)
-    assert (bad["silhouette_iou"][...] < good["silhouette_iou"][...]).all()
-    assert (bad["depth_fit_m"][...] > good["depth_fit_m"][...]).all()
-    assert "covers the object's mask poorly" in caplog.text
-    assert f"frames: {ids[0]}-{ids[-1]}" in caplog.text
+    params = dict(cfg["tracking"], mode="given")
+
+    def with_scene(name, edit):
+        path = tmp_path / f"{name}_scene.zarr"
+        shutil.copytree(P["scene"], path)
+        edit(zarr.open_group(str(path), mode="r+"))
+        return path
+
+    def move(frames):
+        def edit(z):
+            v = z["given/vertices"][...]
+            v[frames] += np.array([0.05, 0.0, 0.0], np.float32)
+            z["given/vertices"][...] = v
+        return edit
+
+    with caplog.at_level("WARNING", logger="stex.tracking"):
+        write_tracking(with_scene("two", move([2, 3])), P["template"], P["frames"], P["masks"], params,
+                       tmp_path / "two_tracking.zarr")
+    bad = open_store(tmp_path / "two_tracking.zarr", "tracking")
+    assert bad.attrs["poorly_fitted_frames"] == [ids[2], ids[3]]
+    iou, fit = bad["silhouette_iou"][...], bad["depth_fit_m"][...]
+    assert (iou[[2, 3]] < 0.85).all() and (iou[[0, 1, 4, 5]] == good["silhouette_iou"][...][[0, 1, 4, 5]]).all()
+    assert (fit[[2, 3]] > good["depth_fit_m"][...][[2, 3]]).all()
+    assert f"frames: {ids[2]}-{ids[3]}" in caplog.text
+    with pytest.raises(ValueError, match="every frame.*depth-camera coordinates"):
+        write_tracking(with_scene("all", move(slice(None))), P["template"], P["frames"], P["masks"], params,
+                       tmp_path / "all_tracking.zarr")
+    assert not (tmp_path / "all_tracking.zarr").exists()
+
+    def wrong_focal(z):
+        cal = dict(z.attrs["calibration"])
+        cal["color"] = dict(cal["color"], fx=cal["color"]["fx"] * 1.15, fy=cal["color"]["fy"] * 1.15)
+        z.attrs["calibration"] = cal
+    with pytest.raises(ValueError, match="every frame"):
+        write_tracking(with_scene("focal", wrong_focal), P["template"], P["frames"], P["masks"], params,
+                       tmp_path / "focal_tracking.zarr")
