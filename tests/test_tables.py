@@ -136,3 +136,43 @@ def test_strain_term_prefers_the_source_with_the_targets_compression():
     assert (paper["candidates"][:, 0] == 1).all()                 # ties go to the lower index
     assert (ours["candidates"][:, 0] == 2).all()
     assert (ours["e_str"][:, 0] < 0.2).all()
+
+
+def test_poorly_fitted_frames_cost_poor_fit_cost_in_e_qual(tmp_path):
+    """The tiny scene's given meshes moved 5 cm aside at frames 2 and 3: the tracking stage names
+    them, and the tables add tables.poor_fit_cost to E_qual wherever those frames are candidates
+    and nowhere else (the labeling's data term then prices them higher)."""
+    from conftest import TINY_SYNTHETIC, run_stages, tiny_scene_config
+    from stex.io import open_store
+    from stex.observations import write_observations
+    from stex.poses import write_pose_table
+    from stex.tables import write_tables
+
+    synthetic = dict(TINY_SYNTHETIC, degradations=dict(
+        TINY_SYNTHETIC.get("degradations", {}),
+        tracking_glitch={"enabled": True, "frames": [2, 4], "offset_m": [0.05, 0.0, 0.0]}))
+    cfg = tiny_scene_config(template={"atlas_size": 128}, source={"kind": "synthetic", "synthetic": synthetic})
+    P = run_stages(cfg, tmp_path)
+    ids = open_store(P["scene"], "scene").attrs["frame_ids"]
+    assert open_store(P["tracking"], "tracking").attrs["poorly_fitted_frames"] == [ids[2], ids[3]]
+    write_pose_table(P["tracking"], tmp_path / "poses.zarr", cfg["poses"], array="vertices", faces=P["template"])
+    write_observations(P["template"], P["tracking"], P["projection"], P["projection"], P["frames"],
+                       cfg["observations"], tmp_path / "observations.zarr")
+    tables = {}
+    for cost in (0.0, 1.0):
+        out = tmp_path / f"tables_{cost}.zarr"
+        write_tables(P["scene"], P["template"], P["tracking"], tmp_path / "poses.zarr",
+                     tmp_path / "observations.zarr", [0, len(ids)], dict(cfg["tables"], poor_fit_cost=cost), out)
+        tables[cost] = open_store(out, "tables")
+    c0, c1 = tables[0.0]["candidates"][...], tables[1.0]["candidates"][...]
+    q0, q1 = tables[0.0]["e_qual"][...], tables[1.0]["e_qual"][...]
+    poor = np.isin(c1, [2, 3])
+    assert poor.any() and (~poor & (c1 >= 0)).any()
+    # the same (target, face, source) triples: E_qual up by exactly the cost at frames 2 and 3
+    T, F, K = c0.shape
+    for t in range(T):
+        for f in range(0, F, 7):
+            e0 = {int(s): q for s, q in zip(c0[t, f], q0[t, f]) if s >= 0}
+            for s, q in zip(c1[t, f], q1[t, f]):
+                if s >= 0 and int(s) in e0:
+                    assert q == pytest.approx(e0[int(s)] + (1.0 if s in (2, 3) else 0.0))
