@@ -277,7 +277,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
             "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
             "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
-            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step), plus params.poor_fit_cost if the tracking named the candidate frame poorly fitted", (1, "F", "K")),
+            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step)", (1, "F", "K")),
             "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes, clipped (0..1; 0 when tables.omega_str = 0)", (1, "F", "K")),
         },
         attrs={

@@ -255,8 +255,7 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     ids = list(obs.attrs["frame_ids"])
     start, stop = position_range(positions, len(ids), "target")
     faces = np.asarray(template["faces"][...], np.int64)
-    tracking = open_store(tracking_path, "tracking")
-    vertices = np.asarray(tracking["vertices"][...], np.float32)
+    vertices = np.asarray(open_store(tracking_path, "tracking")["vertices"][...], np.float32)
     poses_store = open_store(poses_path, "poses")
     if list(poses_store.attrs["frame_ids"]) != ids:
         raise ValueError(f"{poses_path} and {observations_path} hold different frames")
@@ -271,13 +270,6 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
                          f"stage since it offers blur_rule; re-run the observations stage)")
     e_qual = (np.asarray(obs["blur_cost"][...], np.float32)
               + np.asarray(obs["slanted"][...], np.float32))
-    # frames whose mesh has lost the object (named by the tracking stage) are the last choice
-    poorly_fitted = np.isin(ids, tracking.attrs.get("poorly_fitted_frames", []))
-    if p["poor_fit_cost"] > 0 and poorly_fitted.any():
-        e_qual = e_qual + np.float32(p["poor_fit_cost"]) * poorly_fitted[:, None].astype(np.float32)
-        if start == 0:   # said once, by the first block
-            log.info("tables: %d of %d frames poorly fitted by the tracking: E_qual + %g there",
-                     int(poorly_fitted.sum()), len(ids), p["poor_fit_cost"])
     descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
     strain = None
     if p["omega_str"] > 0 and p["similarity"] != "global":

@@ -133,12 +133,8 @@ class SyntheticScene:
         return transform_points(self.object_to_depth(t), self.body.vertices(t)).astype(np.float64)
 
     def given_vertices(self, frame: int) -> np.ndarray:
-        """Vertices handed to 'given' tracking mode: the truth plus the optional tracking glitch
-        (a run of frames moved aside) and tracking drift."""
+        """Vertices handed to 'given' tracking mode: the truth plus the optional tracking drift."""
         V = self.true_vertices(frame)
-        glitch = self.cfg["degradations"]["tracking_glitch"]
-        if glitch["enabled"] and glitch["frames"][0] <= frame < glitch["frames"][1]:
-            V = V + np.asarray(glitch["offset_m"], np.float64)
         drift = self.cfg["degradations"]["tracking_drift"]
         if not drift["enabled"]:
             return V
