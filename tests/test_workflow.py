@@ -113,3 +113,5 @@ def test_report_holds_the_tables(tiny_run):
                        for m in re.findall(r"data:text/html;[^,]*base64,([A-Za-z0-9+/=]+)", html))
     for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage"):
         assert row in embedded, (row, embedded[:2000])
+    # the tracking-fit plot is in the report, with its caption
+    assert "tracking_fit.png" in html and "min_silhouette_iou" in html
