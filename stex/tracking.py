@@ -1173,8 +1173,8 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                 f"every frame (silhouette IoU {np.nanmin(iou) if np.isfinite(iou).any() else float('nan'):.2f}-"
                 f"{np.nanmax(iou) if np.isfinite(iou).any() else float('nan'):.2f}, below tracking.min_silhouette_iou "
                 f"{threshold:g}): the meshes and the camera disagree. Check that the meshes are in depth-camera "
-                f"coordinates in metres, the depth intrinsics and the depth-to-colour extrinsics (or the masks: "
-                f"previews/masks.png)")
+                f"coordinates in metres, the depth intrinsics and the depth-to-colour extrinsics, or the masks "
+                f"(previews/masks.png; if they are known to be loose, lower tracking.min_silhouette_iou)")
         if poor:
             worst = int(np.argmin(np.nan_to_num(iou, nan=-1.0)))
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
