@@ -1165,24 +1165,24 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                 n_corr[k] = st["n_corr"]
                 seconds[k] = st["seconds"]
         threshold = float(params["min_silhouette_iou"])
-        poor = [int(f) for f, v in zip(frames.frame_ids, iou) if not v >= threshold]  # NaN: nothing covered
+        iou = np.nan_to_num(iou, nan=-1.0)   # NaN: neither the mesh nor the mask covers a pixel
+        poor = [int(f) for f, v in zip(frames.frame_ids, iou) if v < threshold]
         if mode == "given" and len(poor) == T:
             # a tracker can lose the object; given meshes that miss it at every frame disagree with the camera
             raise ValueError(
                 f"{scene_path}: tracking.mode given: the source's per-frame meshes cover the frames' masks poorly at "
-                f"every frame (silhouette IoU {np.nanmin(iou) if np.isfinite(iou).any() else float('nan'):.2f}-"
-                f"{np.nanmax(iou) if np.isfinite(iou).any() else float('nan'):.2f}, below tracking.min_silhouette_iou "
+                f"every frame (silhouette IoU {iou.min():.2f}-{iou.max():.2f}, below tracking.min_silhouette_iou "
                 f"{threshold:g}): the meshes and the camera disagree. Check that the meshes are in depth-camera "
                 f"coordinates in metres, the depth intrinsics and the depth-to-colour extrinsics, or the masks "
                 f"(previews/masks.png; if they are known to be loose, lower tracking.min_silhouette_iou)")
         if poor:
-            worst = int(np.argmin(np.nan_to_num(iou, nan=-1.0)))
+            worst = int(np.argmin(iou))
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
                         "frames, first at frame %d, worst %.2f at frame %d: the mesh has likely lost part of the "
                         "object there, and texture taken from those frames will be misplaced (frames: %s)",
                         threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], _runs(poor))
         store.attrs["poorly_fitted_frames"] = poor
-        store.write("silhouette_iou", np.nan_to_num(iou, nan=-1.0))
+        store.write("silhouette_iou", iou)
         store.write("depth_fit_m", fit)
         store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
         store.write("n_correspondences", n_corr)
