@@ -160,7 +160,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
     "tracking": ArtifactSpec(
         description="Per-frame vertices of the template (stex.tracking): embedded deformation with "
         "the L0 motion regulariser tracked through the depth stream (mode 'track'), or the "
-        "source's own per-frame meshes carried over to the template topology (mode 'given').",
+        "source's own per-frame meshes carried over to the template topology (mode 'given'); in "
+        "both modes, how well each frame's mesh explains the frame (silhouette_iou, depth_fit_m) "
+        "and the frames it explains poorly.",
         path="tracking.zarr",
         arrays={
             "vertices": ArraySpec(("T", "V", 3), "float32", "m", "template vertices at each frame, depth-camera coordinates (faces: template.zarr)", (1, "V", 3)),
