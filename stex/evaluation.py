@@ -64,6 +64,7 @@ import numpy as np
 from stex import evaluate as ev
 from stex.io import short_ids
 from stex.camera import Calibration, transform_points
+from stex.preview import pyplot
 
 log = logging.getLogger("stex.evaluation")
 
@@ -969,15 +970,6 @@ def _csv(x):
     return "" if isinstance(x, float) and not math.isfinite(x) else x
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _finish(plt, fig, ax, path, xlabel, ylabel):
     """Label, legend and grid a one-axis figure, write it to ``path`` and close it."""
     ax.set_xlabel(xlabel)
@@ -990,7 +982,7 @@ def _finish(plt, fig, ax, path, xlabel, ylabel):
 
 
 def _plot_psnr(path, records):
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
     x = [r["frame"] for r in records]
     for m in METHODS:
@@ -1002,7 +994,7 @@ def _plot_psnr(path, records):
 
 
 def _plot_blur_motion(path, records, ids, motion):
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
     x = [r["frame"] for r in records]
     ax.plot(x, [r["methods"]["ours"]["blur_input"] for r in records], "k.-", label="input")
@@ -1062,7 +1054,7 @@ def dynamism_regions(S, face_chart, face_area, n_regions: int) -> list[tuple[int
 
 
 def _plot_dynamism(path, S, face_chart, face_area, ids, n_regions):
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
     for c, s in dynamism_regions(S, face_chart, face_area, n_regions):
         ax.plot(ids, s, ".-", label=f"chart {c}")
@@ -1071,7 +1063,7 @@ def _plot_dynamism(path, S, face_chart, face_area, ids, n_regions):
 
 
 def _picture_side_by_side(path, t, ids, photos, masks, textures, V, atlas, cal, tv, face_visible):
-    plt = _pyplot()
+    plt = pyplot()
     texs = textures(t)
     image = photos.read("color", ids[t])
     shown = ["ours", "global", "projection"]

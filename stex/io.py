@@ -169,7 +169,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "residual_m": ArraySpec(("T",), "float32", "m", "RMS point-to-plane residual of the fit over its correspondences (-1: not tracked)"),
             "n_correspondences": ArraySpec(("T",), "int32", "1", "depth correspondences used at the last iteration"),
             "seconds": ArraySpec(("T",), "float32", "s", "solve time per frame"),
-            "silhouette_iou": ArraySpec(("T",), "float32", "1", "intersection over union of the mesh's silhouette in the colour camera and the frame's mask (-1: neither covers a pixel); both modes"),
+            "silhouette_iou": ArraySpec(("T",), "float32", "1", "intersection over union of the mesh's silhouette in the colour camera and the frame's mask; both modes"),
             "depth_fit_m": ArraySpec(("T",), "float32", "m", "mean |rendered - observed| depth over the union of the mesh's and the foreground's depth pixels, each clipped at 5 cm (a pixel only one covers counts 5 cm); both modes"),
         },
         attrs={"frame_ids": "list[int]", "mode": "'track' or 'given'",

@@ -38,6 +38,16 @@ def montage(images: list[np.ndarray], columns: int = 3, width: int = 960) -> np.
     return cv2.resize(grid, (width, max(1, round(grid.shape[0] * scale))), interpolation=cv2.INTER_AREA)
 
 
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (imported on first use: figures only)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def write_png(path, rgb: np.ndarray) -> None:
     if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
         raise OSError(f"cannot write image {path}")

@@ -1030,6 +1030,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                         "difference %.1f mm) than the %s (%.1f mm): keeping the %s",
                         pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
             cur = meshes[best]
+            stats["depth_residual_m"] = fits[best]   # the fit of the mesh the frame keeps
         stats["seconds"] = time.perf_counter() - tf
         stats.update(guard, frame_fallback=int(fallback))
         if progress:
@@ -1079,14 +1080,15 @@ def silhouette_iou(vertices, faces, mask, calibration) -> float:
 
     vertices (V, 3) depth-camera metres, faces (F, 3), mask (Hc, Wc) bool foreground of the
     colour image. How well a tracked mesh covers the object, without any ground truth: near 1
-    while the tracker follows, falling when it loses a part. NaN if both are empty.
+    while the tracker follows, falling when it loses a part (:func:`stex.masks.mask_iou`).
     """
+    from stex.masks import mask_iou
+
     c = calibration.color
     if mask.shape != (c.height, c.width):
         raise ValueError(f"mask is {mask.shape[1]}x{mask.shape[0]}, the colour camera {c.width}x{c.height}")
     covered = rasterize(transform_points(calibration.depth_to_color, vertices), faces, c.K, c.width, c.height).depth > 0
-    union = int((covered | mask).sum())
-    return float((covered & mask).sum() / union) if union else float("nan")
+    return mask_iou(covered, mask)
 
 
 # -- the stage ------------------------------------------------------------------------------------
@@ -1141,8 +1143,8 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
         residual = np.full(T, np.nan)
         n_corr = np.zeros(T, np.int64)
         seconds = np.zeros(T)
-        iou = np.full(T, np.nan)
-        fit = np.full(T, np.nan)
+        iou = np.zeros(T)
+        fit = np.zeros(T)
         if mode == "given":
             if "given/vertices" not in scene:
                 raise ValueError(f"{scene_path}: tracking.mode is 'given' but the source supplied no per-frame meshes")
@@ -1157,15 +1159,15 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
             raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
         for k, V, st in solved:
             verts[k] = V
-            # how well the mesh explains the frame, measured alike in both modes (no truth needed)
+            # how well the mesh explains the frame, measured alike in both modes (no truth needed;
+            # the tracker's frame guard has already measured the depth fit of the mesh it keeps)
             iou[k] = silhouette_iou(V, F, last[0].mask, cal)
-            fit[k] = depth_residual(V, F, last[0].target, FRAME_GUARD_CLIP_M)
+            fit[k] = depth_residual(V, F, last[0].target, FRAME_GUARD_CLIP_M) if st is None else st["depth_residual_m"]
             if st is not None:
                 residual[k] = st["data_rms_m"]
                 n_corr[k] = st["n_corr"]
                 seconds[k] = st["seconds"]
         threshold = float(params["min_silhouette_iou"])
-        iou = np.nan_to_num(iou, nan=-1.0)   # NaN: neither the mesh nor the mask covers a pixel
         poor = [int(f) for f, v in zip(frames.frame_ids, iou) if v < threshold]
         if mode == "given" and len(poor) == T:
             # a tracker can lose the object; given meshes that miss it at every frame disagree with the camera
@@ -1205,13 +1207,10 @@ def plot_tracking_fit(tracking_path, out) -> None:
     """Write a PNG of how well the tracked (or given) mesh explains each frame: the silhouette
     IoU against the mask, with ``min_silhouette_iou`` and the poorly fitted frames marked, and
     the clipped depth difference (``silhouette_iou`` and ``depth_fit_m`` of the store)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from stex.io import open_store
+    from stex.preview import pyplot
 
+    plt = pyplot()
     store = open_store(tracking_path, "tracking")
     ids = np.asarray(store.attrs["frame_ids"])
     iou = np.asarray(store["silhouette_iou"][...], np.float64)
