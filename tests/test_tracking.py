@@ -436,7 +436,7 @@ def test_silhouette_iou_of_a_mesh_and_its_own_mask(tiny_config):
     assert silhouette_iou(V, scene.faces, own, cal) == pytest.approx(1.0)
     shifted = silhouette_iou(V + [0.02, 0.0, 0.0], scene.faces, own, cal)
     assert 0.3 < shifted < 0.95
-    assert silhouette_iou(V + [0.02, 0.0, 0.0], scene.faces, own, cal) < silhouette_iou(V + [0.005, 0.0, 0.0], scene.faces, own, cal)
+    assert shifted < silhouette_iou(V + [0.005, 0.0, 0.0], scene.faces, own, cal)
     with pytest.raises(ValueError, match="colour camera"):
         silhouette_iou(V, scene.faces, own[:-1], cal)
 
