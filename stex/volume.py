@@ -22,11 +22,14 @@ What it computes
 
 Cost
 ----
-The covered texels are grouped by label with a counting sort, so each source image is read
-**once per slice** and a sequence costs O(T * W^2) (the authors' ``Renderer.cpp`` renders
-T^2 passes, ``official_code_notes.md`` §2.5). Per slice: one pass over the covered texels for the
-lookup, plus one scan of the atlas and the rings for the gutter. Kernels are numba
-``@njit(cache=True, nogil=True)`` (serial; slices are the unit of parallelism).
+The (target frame, face) pairs are grouped by label with a counting sort and each face's texels
+are listed once per atlas, so each source frame's image and ξ are read **once per pass** of
+``slices_per_pass`` slices (:meth:`TexelSampler.sample`), not once per slice: a slice draws on
+most of the sequence (paper scene: 218 of 265 source frames, median), and decoding them for
+every slice cost ~5.5 s of a paper-scale slice. A sequence costs O(T * W^2) (the authors'
+``Renderer.cpp`` renders T^2 passes, ``official_code_notes.md`` §2.5). Per slice: one pass over
+the covered texels for the lookup, plus one scan of the atlas and the rings for the gutter.
+Kernels are numba ``@njit(cache=True, nogil=True)`` (serial; blocks are the unit of parallelism).
 
 Label map
 ---------
@@ -54,98 +57,128 @@ __all__ = ["TexelSampler", "volume_slice", "fill_gutter", "label_colors", "neare
 # --------------------------------------------------------------------------------------------
 
 @njit(cache=True, nogil=True)
-def _group_by_label(tex_face, labels, n_labels):
-    """Counting sort of the covered texels by their label (labels -1..n_labels-1).
-
-    Returns (texel label (N,) int32, order (N,) int32 texel positions grouped by label,
-    start (n_labels + 2,) int64: group of label l is order[start[l + 1]:start[l + 2]])."""
-    N = tex_face.shape[0]
-    lab = np.empty(N, np.int32)
-    counts = np.zeros(n_labels + 2, np.int64)
-    for i in range(N):
-        l = labels[tex_face[i]]
-        if l < -1 or l >= n_labels:
-            l = -1
-        lab[i] = l
-        counts[l + 2] += 1
-    start = np.zeros(n_labels + 2, np.int64)
-    for k in range(1, n_labels + 2):
-        start[k] = start[k - 1] + counts[k]
-    # start[l + 1] = first position of label l (l = -1 .. n_labels - 1)
-    fill = start.copy()
-    order = np.empty(N, np.int32)
-    for i in range(N):
-        k = lab[i] + 1
-        order[fill[k]] = i
-        fill[k] += 1
-    return lab, order, start
+def _texels_by_face(tex_face, n_faces):
+    """Counting sort of the covered texels by face: (start (F + 1,) int64, texels (N,) int32);
+    the covered texels of face f are ``texels[start[f]:start[f + 1]]`` (positions in the compact
+    covered-texel arrays)."""
+    counts = np.zeros(n_faces + 1, np.int64)
+    for i in range(tex_face.shape[0]):
+        counts[tex_face[i] + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    texels = np.empty(tex_face.shape[0], np.int32)
+    for i in range(tex_face.shape[0]):
+        f = tex_face[i]
+        texels[fill[f]] = i
+        fill[f] += 1
+    return start, texels
 
 
 @njit(cache=True, nogil=True)
-def _texel_position(i, tex_face, tex_bary, faces, xi):
-    """Image position (u, v) of covered texel ``i``: its barycentrics applied to ξ of its face."""
-    f = tex_face[i]
-    b0 = np.float64(tex_bary[i, 0])
-    b1 = np.float64(tex_bary[i, 1])
-    b2 = np.float64(tex_bary[i, 2])
-    a0, a1, a2 = faces[f, 0], faces[f, 1], faces[f, 2]
-    return (b0 * xi[a0, 0] + b1 * xi[a1, 0] + b2 * xi[a2, 0],
-            b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1])
+def _pairs_by_label(labels, n_labels):
+    """Counting sort of the (slice, face) pairs of ``labels`` (S, F) by label; labels outside
+    0..n_labels-1 (-1 = none) are dropped. Returns (start (n_labels + 1,) int64, slice (P,) int32,
+    face (P,) int32): the pairs of label l are ``start[l]:start[l + 1]``."""
+    S, F = labels.shape
+    counts = np.zeros(n_labels + 1, np.int64)
+    for k in range(S):
+        for f in range(F):
+            l = labels[k, f]
+            if 0 <= l < n_labels:
+                counts[l + 1] += 1
+    start = np.cumsum(counts)
+    fill = start[:-1].copy()
+    pair_slice = np.empty(start[-1], np.int32)
+    pair_face = np.empty(start[-1], np.int32)
+    for k in range(S):
+        for f in range(F):
+            l = labels[k, f]
+            if 0 <= l < n_labels:
+                pair_slice[fill[l]] = k
+                pair_face[fill[l]] = f
+                fill[l] += 1
+    return start, pair_slice, pair_face
 
 
 @njit(cache=True, nogil=True)
-def _sample_group(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
-    """Sample image ``img`` at the ξ-interpolated positions of the texels ``sel`` (positions in the
-    compact covered-texel arrays); writes ``out`` (W*W, 3) uint8 and ``ok`` (W*W,) bool."""
+def _pair_positions(pair_slice, pair_face, face_start, face_texels, tex_bary, faces, xi, n_cov,
+                    pos, target):
+    """For every covered texel of the given (slice, face) pairs whose position is finite: its image
+    position ``x = sum_k bary_k * xi[faces[f, k]]`` into ``pos`` (n, 2) (u, v) and its
+    place ``slice * n_cov + texel`` in the (S, N) sample arrays into ``target``. Returns how many
+    were written (texels whose ξ is not finite are skipped)."""
+    j = 0
+    for p in range(pair_face.shape[0]):
+        f = pair_face[p]
+        a0, a1, a2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        base = np.int64(pair_slice[p]) * n_cov
+        for q in range(face_start[f], face_start[f + 1]):
+            i = face_texels[q]
+            b0 = np.float64(tex_bary[i, 0])
+            b1 = np.float64(tex_bary[i, 1])
+            b2 = np.float64(tex_bary[i, 2])
+            pos[j, 0] = b0 * xi[a0, 0] + b1 * xi[a1, 0] + b2 * xi[a2, 0]
+            pos[j, 1] = b0 * xi[a0, 1] + b1 * xi[a1, 1] + b2 * xi[a2, 1]
+            if np.isfinite(pos[j, 0]) and np.isfinite(pos[j, 1]):  # in pos's own dtype
+                target[j] = base + i
+                j += 1
+    return j
+
+
+@njit(cache=True, nogil=True)
+def _scatter(vals, target, colours, sampled):
+    """``colours[target] = vals``, ``sampled[target] = True`` (numpy's fancy assignment of 3-byte
+    rows is several times slower)."""
+    for j in range(target.shape[0]):
+        t = target[j]
+        colours[t, 0] = vals[j, 0]
+        colours[t, 1] = vals[j, 1]
+        colours[t, 2] = vals[j, 2]
+        sampled[t] = True
+
+
+@njit(cache=True, nogil=True)
+def _expand(index, face, labels_t, colours, sampled, image, ok, label_map):
+    """Covered-texel samples of one slice to the atlas: ``image``/``ok``/``label_map`` (W*W, ...)
+    get the colour, True and the face's label at ``index`` where ``sampled``."""
+    for i in range(index.shape[0]):
+        if sampled[i]:
+            t = index[i]
+            image[t, 0] = colours[i, 0]
+            image[t, 1] = colours[i, 1]
+            image[t, 2] = colours[i, 2]
+            ok[t] = True
+            label_map[t] = labels_t[face[i]]
+
+
+@njit(cache=True, nogil=True)
+def _lookup_bilinear(img, pos, vals):
+    """Bilinear lookup of ``img`` (H, W, 3) uint8 at finite ``pos`` (n, 2), exactly as
+    :func:`stex.render.sample_bilinear`, rounded to uint8 into ``vals`` (n, 3)."""
     H, Wd, C = img.shape
-    for j in range(sel.shape[0]):
-        i = sel[j]
-        u, v = _texel_position(i, tex_face, tex_bary, faces, xi)
-        if not (np.isfinite(u) and np.isfinite(v)):
-            continue
-        r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(u, v, Wd, H)
-        t = tex_index[i]
+    for j in range(pos.shape[0]):
+        r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(pos[j, 0], pos[j, 1], Wd, H)
         for k in range(3):
             val = np.float32(w00 * img[r0, c0, k] + w01 * img[r0, c1, k]
                              + w10 * img[r1, c0, k] + w11 * img[r1, c1, k])
             x = np.floor(val + np.float32(0.5))
-            out[t, k] = np.uint8(min(max(x, 0.0), 255.0))
-        ok[t] = True
+            vals[j, k] = np.uint8(min(max(x, 0.0), 255.0))
 
 
-@njit(cache=True, nogil=True)
-def _group_positions(sel, tex_index, tex_face, tex_bary, faces, xi, pos, target):
-    """The ξ-interpolated image positions of the texels ``sel``: ``pos`` (n, 2) float32 (u, v),
-    NaN where ξ is not finite; ``target`` (n,) their flat atlas index."""
-    for j in range(sel.shape[0]):
-        i = sel[j]
-        pos[j, 0], pos[j, 1] = _texel_position(i, tex_face, tex_bary, faces, xi)
-        target[j] = tex_index[i]
-
-
-def _sample_group_cubic(sel, tex_index, tex_face, tex_bary, faces, xi, img, out, ok):
-    """Bicubic variant of :func:`_sample_group`: OpenCV's ``remap`` (INTER_CUBIC, a = -0.75,
-    BORDER_REPLICATE: clamp-to-edge like the bilinear lookup; saturated to uint8)."""
-    n = sel.shape[0]
-    pos = np.empty((n, 2), np.float32)
-    target = np.empty(n, np.int64)
-    _group_positions(sel, tex_index, tex_face, tex_bary, faces, xi, pos, target)
-    good = np.isfinite(pos).all(axis=1)
-    if not good.any():
-        return
-    pos, target = pos[good], target[good]
+def _lookup_bicubic(img, pos, vals):
+    """OpenCV ``remap`` (INTER_CUBIC, a = -0.75, BORDER_REPLICATE: clamp-to-edge like the bilinear
+    lookup; saturated to uint8) of ``img`` at finite ``pos`` (n, 2) into ``vals`` (n, 3)."""
     H, W = img.shape[:2]
-    m = len(target)
+    m = len(pos)
     rows = -(-m // 1024)                 # remap's maps are 2-D, each side below 32768
     u = np.zeros(rows * 1024, np.float32)
     v = np.zeros(rows * 1024, np.float32)
     # clamp first, as the bilinear lookup does: remap's replicated border then only pads taps
     u[:m] = np.clip(pos[:, 0], 0, W - 1)
     v[:m] = np.clip(pos[:, 1], 0, H - 1)
-    vals = cv2.remap(img, u.reshape(rows, 1024), v.reshape(rows, 1024), cv2.INTER_CUBIC,
-                     borderMode=cv2.BORDER_REPLICATE)
-    out[target] = vals.reshape(-1, 3)[:m]
-    ok[target] = True
+    out = cv2.remap(img, u.reshape(rows, 1024), v.reshape(rows, 1024), cv2.INTER_CUBIC,
+                    borderMode=cv2.BORDER_REPLICATE)
+    vals[:] = out.reshape(-1, 3)[:m]
 
 
 @njit(cache=True, nogil=True)
@@ -309,20 +342,37 @@ class TexelSampler:
         if len(self.face) and self.face.max() >= len(self.faces):
             raise ValueError("texel_face refers to faces beyond len(faces)")
         self.bary = np.ascontiguousarray(tb.reshape(-1, 3)[self.index], dtype=np.float32)
+        self._face_start, self._face_texels = _texels_by_face(self.face, len(self.faces))
 
-    def slice(self, labels_t, coords, images, gutter_px: int = 4, fill: bool = True):
-        """One slice; see :func:`volume_slice` (same arguments and result). ``fill=False`` leaves
-        texels without colour black (no :func:`fill_gutter`; partial textures need no fill)."""
-        labels = np.ascontiguousarray(labels_t, dtype=np.int32)
-        if labels.shape != (len(self.faces),):
-            raise ValueError(f"labels_t must have shape ({len(self.faces)},), got {labels.shape}")
-        W = self.W
+    # texels looked up per call of the lookup kernel: bounds the position buffers (12 B a texel)
+    CHUNK_TEXELS = 1 << 22
+
+    def sample(self, labels, coords, images):
+        """Colours of the covered texels for S target frames at once, each source frame's image
+        and ξ read once for all S (a sequence's slices share most of their source frames).
+
+        Args:
+            labels: (S, F) int source frame of each face at each of the S target frames, -1 = none.
+            coords, images: as in :func:`volume_slice`.
+
+        Returns:
+            (colours (S, N, 3) uint8, sampled (S, N) bool) over the N covered texels
+            (``self.index`` gives their flat atlas positions); 0 / False where not sampled.
+        """
+        labels = np.ascontiguousarray(labels, dtype=np.int32)
+        if labels.ndim != 2 or labels.shape[1] != len(self.faces):
+            raise ValueError(f"labels must have shape (S, {len(self.faces)}), got {labels.shape}")
+        S, N = labels.shape[0], len(self.index)
+        colours = np.zeros((S * N, 3), np.uint8)
+        sampled = np.zeros(S * N, np.bool_)
         n_labels = int(labels.max()) + 1 if labels.size else 0
-        lab, order, start = _group_by_label(self.face, labels, max(n_labels, 0))
-        out = np.zeros((W * W, 3), np.uint8)
-        ok = np.zeros(W * W, np.bool_)
+        start, pair_slice, pair_face = _pairs_by_label(labels, max(n_labels, 0))
+        per_pair = np.diff(self._face_start)[pair_face]
+        # OpenCV's maps are float32; the bilinear lookup is stex.render's, in float64
+        lookup, pos_dtype = ((_lookup_bicubic, np.float32) if self.interpolation == "bicubic"
+                             else (_lookup_bilinear, np.float64))
         for l in range(n_labels):
-            a, b = start[l + 1], start[l + 2]
+            a, b = int(start[l]), int(start[l + 1])
             if b <= a:
                 continue
             xi = np.ascontiguousarray(_get(coords, l), dtype=np.float64)
@@ -331,15 +381,56 @@ class TexelSampler:
             img = np.ascontiguousarray(_get(images, l))
             if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
                 raise ValueError(f"images[{l}] must be (Hc, Wc, 3) uint8, got {img.shape} {img.dtype}")
-            sample = _sample_group_cubic if self.interpolation == "bicubic" else _sample_group
-            sample(order[a:b], self.index, self.face, self.bary, self.faces, xi, img, out, ok)
-        label_map = np.full(W * W, -1, np.int32)
-        sampled = ok[self.index]
-        label_map[self.index[sampled]] = lab[sampled]
-        image = out.reshape(W, W, 3)
-        if fill:
-            fill_gutter(image, ok.reshape(W, W), self.covered, gutter_px)
-        return image, label_map.reshape(W, W)
+            # split the pairs of this label so that no chunk holds more than CHUNK_TEXELS texels
+            ends = np.cumsum(per_pair[a:b])
+            cuts = np.searchsorted(ends, np.arange(self.CHUNK_TEXELS, ends[-1], self.CHUNK_TEXELS),
+                                   side="right")
+            for p0, p1 in zip(np.r_[0, cuts] + a, np.r_[cuts, b - a] + a):
+                n = int(per_pair[p0:p1].sum())
+                if n == 0:
+                    continue
+                pos = np.empty((n, 2), pos_dtype)
+                target = np.empty(n, np.int64)
+                m = _pair_positions(pair_slice[p0:p1], pair_face[p0:p1], self._face_start,
+                                    self._face_texels, self.bary, self.faces, xi, N, pos, target)
+                if m == 0:
+                    continue
+                vals = np.empty((m, 3), np.uint8)
+                lookup(img, pos[:m], vals)
+                _scatter(vals, target[:m], colours, sampled)
+        return colours.reshape(S, N, 3), sampled.reshape(S, N)
+
+    def slices(self, labels, coords, images, gutter_px: int = 4, fill: bool = True):
+        """The slices of S target frames, sampled together (:meth:`sample`), one at a time.
+
+        Args:
+            labels: (S, F) int, one row per target frame; coords, images, gutter_px as in
+                :func:`volume_slice`; ``fill`` as in :meth:`slice`.
+
+        Yields:
+            (slice (W, W, 3) uint8, label_map (W, W) int32) per target frame, in order.
+        """
+        labels = np.asarray(labels)
+        colours, sampled = self.sample(labels, coords, images)
+        W = self.W
+        for k in range(len(colours)):
+            image = np.zeros((W * W, 3), np.uint8)
+            ok = np.zeros(W * W, np.bool_)
+            label_map = np.full(W * W, -1, np.int32)
+            _expand(self.index, self.face, np.ascontiguousarray(labels[k], dtype=np.int32),
+                    colours[k], sampled[k], image, ok, label_map)
+            image = image.reshape(W, W, 3)
+            if fill:
+                fill_gutter(image, ok.reshape(W, W), self.covered, gutter_px)
+            yield image, label_map.reshape(W, W)
+
+    def slice(self, labels_t, coords, images, gutter_px: int = 4, fill: bool = True):
+        """One slice; see :func:`volume_slice` (same arguments and result). ``fill=False`` leaves
+        texels without colour black (no :func:`fill_gutter`; partial textures need no fill)."""
+        labels = np.asarray(labels_t)
+        if labels.shape != (len(self.faces),):
+            raise ValueError(f"labels_t must have shape ({len(self.faces)},), got {labels.shape}")
+        return next(self.slices(labels[None], coords, images, gutter_px, fill))
 
 
 def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter_px: int = 4,
@@ -389,6 +480,30 @@ def label_colors(label_map) -> np.ndarray:
 # never-seen faces, the stage writer
 # --------------------------------------------------------------------------------------------
 
+@njit(cache=True, nogil=True)
+def _corner_texels(texel_face, texel_bary, vertices, faces, seen_face):
+    """Per seen face and corner, the face's texel nearest (3-D) to that corner: (F, 3) int64 flat
+    texel indices, -1 for faces without texels and faces not seen."""
+    best = np.full((faces.shape[0], 3), np.inf)
+    texel = np.full((faces.shape[0], 3), -1, np.int64)
+    for t in range(texel_face.shape[0]):
+        f = texel_face[t]
+        if f < 0 or not seen_face[f]:
+            continue
+        p = np.zeros(3)
+        for k in range(3):
+            for d in range(3):
+                p[d] += texel_bary[t, k] * vertices[faces[f, k], d]
+        for k in range(3):
+            dist = 0.0
+            for d in range(3):
+                dist += (p[d] - vertices[faces[f, k], d]) ** 2
+            if dist < best[f, k]:
+                best[f, k] = dist
+                texel[f, k] = t
+    return texel
+
+
 def nearest_seen_texels(texel_face, texel_bary, vertices, faces, never_seen, k: int = 4):
     """Where the texels of never-seen faces take their colour from.
 
@@ -396,8 +511,12 @@ def nearest_seen_texels(texel_face, texel_bary, vertices, faces, never_seen, k: 
     inverse-distance weighting of the ``k`` nearest (3-D, template at rest) vertices of seen
     faces, each vertex represented by the seen texel nearest to it — a texture-space fill that
     also reaches charts without any seen texel, where a 2-D dilation inside the chart cannot.
-    (A k-d tree over the seen *texels* is far slower: most never-seen texels lie far from the
-    seen surface, and such queries visit a large part of a million-point tree.)
+    A vertex's nearest seen texel is searched among each seen face's texel nearest to each of its
+    corners (three per face): the nearest texel of all lies, but for folds finer than a texel,
+    in a face around the vertex, and the search then needs no tree over millions of texels
+    (paper scene, 8 M texels: 9 s → 0.5 s per volume job). (A k-d tree over the seen *texels*
+    for the never-seen ones is far slower still: most never-seen texels lie far from the seen
+    surface, and such queries visit a large part of a million-point tree.)
 
     Args:
         texel_face: (W, W) int face per texel (-1 empty); texel_bary: (W, W, 3).
@@ -411,31 +530,31 @@ def nearest_seen_texels(texel_face, texel_bary, vertices, faces, never_seen, k: 
     """
     from scipy.spatial import cKDTree
 
-    tf = np.asarray(texel_face).ravel()
+    tf = np.ascontiguousarray(np.asarray(texel_face).ravel(), dtype=np.int32)
     ns = np.asarray(never_seen, bool)
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    F = np.ascontiguousarray(faces, dtype=np.int64)
     covered = tf >= 0
-    face = np.where(covered, tf, 0)
-    unseen = covered & ns[face]
-    seen = covered & ~ns[face]
-    if not unseen.any() or not seen.any():
+    unseen = covered & ns[np.where(covered, tf, 0)]
+    corner = _corner_texels(tf, np.ascontiguousarray(np.asarray(texel_bary).reshape(-1, 3), dtype=np.float32),
+                            V, F, ~ns)
+    candidates = np.unique(corner[corner >= 0])                  # seen texels near a corner
+    if not unseen.any() or not candidates.size:
         return np.zeros(0, np.int64), np.zeros((0, k), np.int64), np.zeros((0, k), np.float32)
-    V = np.asarray(vertices, np.float64)
-    F = np.asarray(faces, np.int64)
-    bary = np.asarray(texel_bary, np.float64).reshape(-1, 3)
+    bary = np.asarray(texel_bary).reshape(-1, 3)
 
     def points(idx):
-        return np.einsum("nk,nkd->nd", bary[idx], V[F[tf[idx]]])
+        return np.einsum("nk,nkd->nd", bary[idx].astype(np.float64), V[F[tf[idx]]])
 
-    seen_texels = np.flatnonzero(seen)
     anchors = np.unique(F[~ns])                                  # vertices of seen faces
-    _, rep = cKDTree(points(seen_texels)).query(V[anchors])      # their nearest seen texel
+    _, rep = cKDTree(points(candidates)).query(V[anchors])       # their nearest seen texel
     dst = np.flatnonzero(unseen)
     kk = min(k, anchors.size)
     dist, near = cKDTree(V[anchors]).query(points(dst), k=kk)
     dist, near = dist.reshape(dst.size, kk), near.reshape(dst.size, kk)
     w = 1.0 / np.maximum(dist, 1e-6)
     w /= w.sum(axis=1, keepdims=True)
-    return dst.astype(np.int64), seen_texels[rep[near]].astype(np.int64), w.astype(np.float32)
+    return dst.astype(np.int64), candidates[rep[near]].astype(np.int64), w.astype(np.float32)
 
 
 def write_volume(template_path, labels_path, coords_path, frames_paths, positions, params: dict,
@@ -448,10 +567,9 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
         coords_path: ``texcoords`` store (ξ) or ``projection`` store (Φ), as the observations.
         frames_paths: ``frames`` block stores (colour images).
         positions: [start, stop) sequence positions of the slices to write.
-        params: the ``volume`` config section (gutter_px, image_cache, interpolation).
+        params: the ``volume`` config section (gutter_px, slices_per_pass, interpolation).
         out: path of the store.
     """
-    import functools
     import logging
     import time
 
@@ -478,28 +596,29 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     dst, src, weight = nearest_seen_texels(tf, tb, template["vertices"][...], faces, never)
     gutter = int(p["gutter_px"])
 
-    @functools.lru_cache(maxsize=int(p["image_cache"]))
-    def image(l):  # consecutive slices mostly share their source frames
+    def image(l):
         return frames.read("color", ids[l])
 
-    @functools.lru_cache(maxsize=int(p["image_cache"]))
     def xi(l):
         return np.asarray(coords[l], np.float64)
 
     W = sampler.W
+    per_pass = int(p["slices_per_pass"])
     t0 = time.perf_counter()
     attrs = {"frame_ids": ids[start:stop], "first_position": start, "gutter_px": gutter,
              "never_seen_texels": int(dst.size)}
     with create_store(out, "volume", attrs=attrs, params=p) as store:
         a_tex = store.create("texture", (stop - start, W, W, 3))
         a_lab = store.create("label_map", (stop - start, W, W))
-        for k in range(stop - start):
-            tex, lm = sampler.slice(labels[k], xi, image, gutter_px=0)
-            if dst.size:
-                flat = tex.reshape(-1, 3)
-                flat[dst] = np.round(np.einsum("nk,nkc->nc", weight, flat[src].astype(np.float32)))
-            fill_gutter(tex, sampler.covered, sampler.covered, gutter)
-            a_tex[k] = tex
-            a_lab[k] = lm.astype(np.int16)
-            log.info("volume: slice %d (%d/%d), %.2f s per slice", ids[start + k], k + 1,
-                     stop - start, (time.perf_counter() - t0) / (k + 1))
+        for k0 in range(0, stop - start, per_pass):
+            # the slices of one pass read each of their source frames once
+            k1 = min(k0 + per_pass, stop - start)
+            for k, (tex, lm) in enumerate(sampler.slices(labels[k0:k1], xi, image, gutter_px=0), k0):
+                if dst.size:
+                    flat = tex.reshape(-1, 3)
+                    flat[dst] = np.round(np.einsum("nk,nkc->nc", weight, flat[src].astype(np.float32)))
+                fill_gutter(tex, sampler.covered, sampler.covered, gutter)
+                a_tex[k] = tex
+                a_lab[k] = lm.astype(np.int16)
+                log.info("volume: slice %d (%d/%d), %.2f s per slice", ids[start + k], k + 1,
+                         stop - start, (time.perf_counter() - t0) / (k + 1))

@@ -4,7 +4,7 @@ import pytest
 
 from stex.render import sample_bilinear
 from stex.template import build_atlas, texel_map
-from stex.volume import TexelSampler, fill_gutter, label_colors, volume_slice
+from stex.volume import TexelSampler, fill_gutter, label_colors, nearest_seen_texels, volume_slice
 
 W = 128
 GUTTER = 3
@@ -154,6 +154,61 @@ def test_sampler_reuse_matches_function(plane):
         b = volume_slice(face, bary, F, labels, coords, images, GUTTER)
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_array_equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
+def test_slices_of_a_pass_read_each_source_once_and_equal_single_slices(plane, interpolation):
+    V, F, tc, tf, face, bary = plane
+    rng = np.random.default_rng(7)
+    T, S = 6, 5
+    images = rng.integers(0, 256, (T, 50, 70, 3), dtype=np.uint8)
+    coords = rng.uniform(-3, 72, (T, len(V), 2))
+    coords[2] = np.nan            # a source frame without coordinates: nothing sampled from it
+    coords[4, :9] = np.inf
+    labels = rng.integers(-1, T, (S, len(F))).astype(np.int32)
+    reads = []
+
+    def image_of(s):
+        reads.append(s)
+        return images[s]
+
+    sampler = TexelSampler(face, bary, F, interpolation)
+    sampler.CHUNK_TEXELS = 97     # many lookups per source frame, some of them all NaN
+    together = list(sampler.slices(labels, coords, image_of, GUTTER))
+    assert sorted(reads) == sorted(set(labels[labels >= 0].tolist())), "each source read once per pass"
+    assert len(together) == S
+    single = TexelSampler(face, bary, F, interpolation)
+    for k in range(S):
+        sl, lm = single.slice(labels[k], coords, images, GUTTER)
+        np.testing.assert_array_equal(together[k][0], sl)
+        np.testing.assert_array_equal(together[k][1], lm)
+        assert not (lm == 2).any() and (lm >= 0).any()
+    with pytest.raises(ValueError, match="labels must have shape"):
+        next(sampler.slices(labels[:, :-1], coords, images))
+
+
+def test_never_seen_texels_blend_the_nearest_seen_vertices(plane):
+    """Against brute force: every texel of a never-seen face blends the k nearest vertices of seen
+    faces (inverse distance), each represented by the seen texel nearest to it in 3-D."""
+    V, F, tc, tf, face, bary = plane
+    centres = V[F].mean(1)
+    never = centres[:, 0] > 0.2                       # a strip of faces no frame saw
+    dst, src, w = nearest_seen_texels(face, bary, V, F, never, k=3)
+    flat_face = face.ravel()
+    P = np.einsum("nk,nkd->nd", bary.reshape(-1, 3).astype(np.float64), V[F[np.maximum(flat_face, 0)]])
+    unseen = np.flatnonzero((flat_face >= 0) & never[np.maximum(flat_face, 0)])
+    np.testing.assert_array_equal(dst, unseen)
+    seen = np.flatnonzero((flat_face >= 0) & ~never[np.maximum(flat_face, 0)])
+    anchors = np.unique(F[~never])
+    rep = seen[np.argmin(((P[seen][None] - V[anchors][:, None]) ** 2).sum(-1), axis=1)]
+    d = np.linalg.norm(P[dst][:, None] - V[anchors][None], axis=-1)
+    near = np.argsort(d, axis=1)[:, :3]
+    np.testing.assert_array_equal(np.sort(src, 1), np.sort(rep[near], 1))
+    np.testing.assert_allclose(w.sum(1), 1, atol=1e-6)
+    dn = np.take_along_axis(d, near, 1)
+    np.testing.assert_allclose(np.sort(w, 1), np.sort((1 / dn) / (1 / dn).sum(1, keepdims=True), 1), rtol=1e-5)
+    assert nearest_seen_texels(face, bary, V, F, np.zeros(len(F), bool))[0].size == 0
+    assert nearest_seen_texels(face, bary, V, F, np.ones(len(F), bool))[0].size == 0
 
 
 def test_fill_gutter_rings():
