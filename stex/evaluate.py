@@ -344,17 +344,27 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
     Returns:
         dict ``ssim`` (dimensionless, <= 1), ``n_pixels`` (pixels averaged).
     """
+    ref, tst = _pair(reference, test)
+    return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range)[0]
+
+
+def _ssim_means(ref, tst, masks, data_range) -> list[dict]:
+    """:func:`masked_ssim` of (H, W, C) float64 images over each of ``masks`` ((H, W) bool), from
+    one SSIM map computed on the bounding box of their union (plus the margin)."""
     from skimage.metrics import structural_similarity
 
-    ref, tst = _pair(reference, test)
     H, W, C = ref.shape
-    m = _mask(mask, (H, W)).copy()
     pad = _SSIM_PAD
-    m[:pad] = m[H - pad:] = False
-    m[:, :pad] = m[:, W - pad:] = False
-    if not m.any():
-        return {"ssim": np.nan, "n_pixels": 0}
-    r0, r1, c0, c1 = _bbox(m)
+    trimmed = []
+    for mask in masks:
+        m = mask.copy()
+        m[:pad] = m[H - pad:] = False
+        m[:, :pad] = m[:, W - pad:] = False
+        trimmed.append(m)
+    union = np.logical_or.reduce(trimmed)
+    if not union.any():
+        return [{"ssim": np.nan, "n_pixels": 0} for _ in masks]
+    r0, r1, c0, c1 = _bbox(union)
     margin = pad + 2
     r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
     r1, c1 = min(H, r1 + margin), min(W, c1 + margin)
@@ -362,8 +372,12 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
         ref[r0:r1, c0:c1], tst[r0:r1, c0:c1], data_range=float(data_range), channel_axis=-1,
         gaussian_weights=True, sigma=_SSIM_SIGMA, use_sample_covariance=False, full=True)
     S = S.reshape(r1 - r0, c1 - c0, -1).mean(axis=-1)
-    mc = m[r0:r1, c0:c1]
-    return {"ssim": float(S[mc].mean()), "n_pixels": int(mc.sum())}
+    out = []
+    for m in trimmed:
+        mc = m[r0:r1, c0:c1]
+        n = int(mc.sum())
+        out.append({"ssim": float(S[mc].mean()) if n else np.nan, "n_pixels": n})
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -645,11 +659,13 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False) -> 
     m = _mask(mask, ref.shape[:2])
     reg = _mask(region, ref.shape[:2], name="region")
     out = {}
-    for name, sel in (("all", m), ("seen", m & reg), ("unseen", m & ~reg)):
+    regions = (("all", m), ("seen", m & reg), ("unseen", m & ~reg))
+    for name, sel in regions:
         p = masked_psnr(ref, tst, sel, data_range)
         out[f"psnr_{name}"], out[f"mse_{name}"], out[f"n_{name}"] = p["psnr"], p["mse"], p["n_pixels"]
-        if ssim:
-            out[f"ssim_{name}"] = masked_ssim(ref, tst, sel, data_range)["ssim"]
+    if ssim:  # one SSIM map for the three regions
+        for (name, _), s in zip(regions, _ssim_means(ref, tst, [sel for _, sel in regions], data_range)):
+            out[f"ssim_{name}"] = s["ssim"]
     return out
 
 

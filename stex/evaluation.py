@@ -55,7 +55,9 @@ import logging
 import math
 import os
 import shutil
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -643,7 +645,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                      projection_path, labels_path, volume_paths, corrected_paths, out_dir,
                      params: dict | None = None, *, global_texture_path, truth_paths=None,
                      coords_path=None, observations_path=None, tables_paths=None, frames=None,
-                     timing: dict | None = None) -> dict:
+                     timing: dict | None = None, threads: int = 1) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
 
     Args:
@@ -671,6 +673,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             texture (held-out protocol); without, the global texture's ``source_frames``.
         frames: global frame ids to score; None -> every ``stride``-th frame.
         timing: ``{stage: seconds}`` for the timing table, or None.
+        threads: frames scored at once (runs of consecutive frames, one per thread); the
+            result does not depend on it.
 
     Writes into ``out_dir``: ``evaluation.json`` (params, per-frame records
     ``frames[i] = {frame, position, held_out, motion_mm, methods: {method: {metric: value}}}``,
@@ -832,53 +836,72 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         out["truth"] = tv["novel"]
         return out
 
-    records, prev_novel = [], {}
     motion = np.full(T, math.nan)
-    t0 = time.perf_counter()
-    for n, fid in enumerate(score_ids):
-        t = pos_of[fid]
-        V = tracking["vertices"][t]
-        if t > 0:
-            motion[t] = vertex_motion(tracking["vertices"][t - 1], V)
-        image, mask = photos.read("color", fid), masks.read("mask", fid)
-        texs, has = textures(t), has_texture(t)
-        tv = truth_at(t) if truth is not None else None
-        rec = {"frame": fid, "position": t, "held_out": bool(not is_source[t]),
-               "motion_mm": motion[t], "methods": {}}
-        novel_now = {}
-        # a property of the photo, not of a method: once per frame, stored with every method
-        noise = ev.noise_sigma(image, mask)["sigma"]
-        for m in METHODS:
-            s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
-                            seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
-                            patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
-                            blur_interior_px=p["blur_interior_px"],
-                            return_views=tv is not None)
-            if tv is not None:
-                v = s.pop("views")
-                novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
-            s["noise_input"] = noise
-            rec["methods"][m] = s
-        if tv is not None and t > 0:
-            novel_now["truth"] = tv["novel"]
-            prev = prev_novel.get(t - 1) or novel_renders(t - 1, truth_at(t - 1), textures(t - 1))
-            tp_img, tp_mask = prev["truth"]
+
+    def score_run(frame_ids):
+        """Score consecutive frames; the first one's predecessor is rendered afresh for the
+        flicker, later ones reuse the renders of the frame before."""
+        out, prev_novel = [], {}
+        for fid in frame_ids:
+            t = pos_of[fid]
+            V = tracking["vertices"][t]
+            if t > 0:
+                motion[t] = vertex_motion(tracking["vertices"][t - 1], V)
+            image, mask = photos.read("color", fid), masks.read("mask", fid)
+            texs, has = textures(t), has_texture(t)
+            tv = truth_at(t) if truth is not None else None
+            rec = {"frame": fid, "position": t, "held_out": bool(not is_source[t]),
+                   "motion_mm": motion[t], "methods": {}}
+            novel_now = {}
+            # a property of the photo, not of a method: once per frame, stored with every method
+            noise = ev.noise_sigma(image, mask)["sigma"]
             for m in METHODS:
-                r_img, r_mask, seen = novel_now[m]
-                p_img, p_mask, p_seen = prev[m]
-                # borrowed in both frames: object in all four renders, unseen at t-1 and at t
-                sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
-                fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
-                rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
-                                         flicker_pixels=fl["n_pixels"])
-        elif tv is not None:
-            novel_now["truth"] = tv["novel"]
-        prev_novel = {t: novel_now} if tv is not None else {}
-        records.append(rec)
-        dt = time.perf_counter() - t0
-        log.info("evaluation: frame %d (%d/%d%s) ours PSNR %.2f dB, global %.2f dB; %.2f s per frame",
-                 fid, n + 1, len(score_ids), ", held out" if rec["held_out"] else "",
-                 rec["methods"]["ours"]["psnr"], rec["methods"]["global"]["psnr"], dt / (n + 1))
+                s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
+                                seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
+                                patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
+                                blur_interior_px=p["blur_interior_px"],
+                                return_views=tv is not None)
+                if tv is not None:
+                    v = s.pop("views")
+                    novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+                s["noise_input"] = noise
+                rec["methods"][m] = s
+            if tv is not None and t > 0:
+                novel_now["truth"] = tv["novel"]
+                prev = prev_novel.get(t - 1) or novel_renders(t - 1, truth_at(t - 1), textures(t - 1))
+                tp_img, tp_mask = prev["truth"]
+                for m in METHODS:
+                    r_img, r_mask, seen = novel_now[m]
+                    p_img, p_mask, p_seen = prev[m]
+                    # borrowed in both frames: object in all four renders, unseen at t-1 and at t
+                    sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
+                    fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
+                    rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
+                                             flicker_pixels=fl["n_pixels"])
+            elif tv is not None:
+                novel_now["truth"] = tv["novel"]
+            prev_novel = {t: novel_now} if tv is not None else {}
+            out.append(rec)
+            with progress_lock:
+                done[0] += 1
+                log.info("evaluation: frame %d (%d/%d%s) ours PSNR %.2f dB, global %.2f dB; "
+                         "%.2f s per frame", fid, done[0], len(score_ids),
+                         ", held out" if rec["held_out"] else "", rec["methods"]["ours"]["psnr"],
+                         rec["methods"]["global"]["psnr"], (time.perf_counter() - t0) / done[0])
+        return out
+
+    # frames are scored independently (the flicker re-renders a run's first predecessor), so
+    # runs of consecutive frames go to threads: the renders and most metrics release the GIL
+    progress_lock, done = threading.Lock(), [0]
+    n_threads = max(1, min(int(threads), len(score_ids)))
+    runs = [list(r) for r in np.array_split(np.array(score_ids, dtype=np.int64), n_threads)]
+    t0 = time.perf_counter()
+    if n_threads == 1:
+        records = score_run([int(f) for f in runs[0]])
+    else:
+        with ThreadPoolExecutor(n_threads) as pool:
+            records = [rec for run in pool.map(lambda r: score_run([int(f) for f in r]), runs)
+                       for rec in run]
 
     # vertex motion of every frame (the blur figure's x axis), one frame at a time
     for t in range(1, T):

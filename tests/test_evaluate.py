@@ -337,5 +337,8 @@ def test_seen_unseen_split(sphere_scene):
     assert res["n_seen"] + res["n_unseen"] == res["n_all"] == mask20.sum()
     assert res["n_seen"] > 0 and res["n_unseen"] > 0
     assert res["ssim_seen"] > res["ssim_unseen"]
+    # the three regions share one SSIM map: the same as each region scored on its own
+    for name, sel in (("all", mask20), ("seen", mask20 & seen20), ("unseen", mask20 & ~seen20)):
+        assert res[f"ssim_{name}"] == ev.masked_ssim(truth20, recon20, sel)["ssim"]
     res180 = ev.region_psnr(truth, recon, mask, seen)
     assert res180["n_unseen"] > 0.98 * mask.sum()

@@ -207,6 +207,16 @@ def test_outputs_are_written(evaluation):
     assert table[0][:2] == ["Metric", "Method"] and len(table) > 8
 
 
+def test_threads_score_exactly_as_one(pipe, evaluation, tmp_path):
+    """Runs of frames in 3 threads (the flicker of a run's first frame re-renders its
+    predecessor): every score equals the single-thread evaluation's."""
+    _, res = evaluation
+    par = _evaluate(pipe, tmp_path / "eval3", truth_paths=pipe["truth"],
+                    observations_path=pipe["observations"], tables_paths=pipe["tables"], threads=3)
+    assert [r["frame"] for r in par["frames"]] == list(range(6))
+    assert par["frames"] == res["frames"] and par["summary"] == res["summary"]
+
+
 def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
     tables = []
     for k, p in enumerate(pipe["tables"]):

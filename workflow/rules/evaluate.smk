@@ -25,6 +25,7 @@ rule evaluate:
             caption="../report/evaluation.rst",
             category="Evaluation",
         ),
+    threads: 2
     params:
         evaluation=config["evaluation"],
         benchmarks=lambda wildcards: f"{RESULTS}/benchmarks",

@@ -10,5 +10,5 @@ write_evaluation(i.scene, list(i.frames), list(i.masks), i.template, i.tracking,
                  i.labels, list(i.volume), list(i.corrected), out, snakemake.params.evaluation,
                  global_texture_path=i.global_texture, truth_paths=list(i.truth) or None,
                  coords_path=i.coords, observations_path=i.observations, tables_paths=list(i.tables),
-                 timing=stage_timings(snakemake.params.benchmarks))
+                 timing=stage_timings(snakemake.params.benchmarks), threads=snakemake.threads)
 write_tables_html(f"{out}/tables.rst", f"{out}/tables.html")
