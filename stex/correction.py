@@ -572,27 +572,67 @@ class CorrectionSystem:
 # measures (acceptance figures)
 # --------------------------------------------------------------------------------------------
 
-def _chart_tex(texel_face, face_chart):
-    tf = np.asarray(texel_face)
-    if face_chart is None:
-        return np.where(tf >= 0, 0, -1)
-    return np.where(tf >= 0, np.asarray(face_chart)[np.maximum(tf, 0)], -1)
+@njit(cache=True, nogil=True)
+def _boundary_step_sum(im, lm, texel_face, face_chart, use_chart):
+    """Sum and count, over right and down 4-neighbour texel pairs with two different labels (both
+    >= 0; with ``use_chart`` both inside one chart), of the channel-mean |difference|."""
+    H, W = lm.shape
+    C = im.shape[2]
+    total = 0.0
+    n = 0
+    for r in range(H):
+        for c in range(W):
+            la = lm[r, c]
+            if la < 0:
+                continue
+            ca = 0
+            if use_chart:
+                if texel_face[r, c] < 0:
+                    continue
+                ca = face_chart[texel_face[r, c]]
+            for step in range(2):
+                rr = r + step
+                cc = c + 1 - step
+                if rr >= H or cc >= W:
+                    continue
+                lb = lm[rr, cc]
+                if lb < 0 or lb == la:
+                    continue
+                if use_chart and (texel_face[rr, cc] < 0 or face_chart[texel_face[rr, cc]] != ca):
+                    continue
+                d = 0.0
+                for k in range(C):
+                    d += abs(np.float64(im[r, c, k]) - np.float64(im[rr, cc, k]))
+                total += d / C
+                n += 1
+    return total, n
 
 
 def label_boundary_step(image, label_map, texel_face=None, face_chart=None) -> float:
     """Mean colour step across label boundaries: mean over 4-neighbour texel pairs with two
     different labels (both >= 0, same chart when ``texel_face``/``face_chart`` are given) of
-    the channel-mean |difference| (grey levels). NaN if there is no such pair."""
-    im = np.asarray(image, np.float64)
-    lm = np.asarray(label_map)
-    ch = _chart_tex(texel_face, face_chart) if texel_face is not None else np.zeros(lm.shape, int)
-    steps = []
-    for a, b in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-                 ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
-        m = (lm[a] >= 0) & (lm[b] >= 0) & (lm[a] != lm[b]) & (ch[a] == ch[b]) & (ch[a] >= 0)
-        steps.append(np.abs(im[a][m] - im[b][m]).mean(1))
-    s = np.concatenate(steps)
-    return float(s.mean()) if len(s) else float("nan")
+    the channel-mean |difference| (grey levels). NaN if there is no such pair.
+
+    image (H, W, C) uint8 or float; label_map (H, W) int; texel_face (H, W) int (-1 empty);
+    face_chart (F,) int (None: one chart)."""
+    im = np.asarray(image)
+    if im.dtype != np.uint8:
+        im = np.asarray(im, np.float64)
+    lm = np.ascontiguousarray(label_map)
+    if lm.dtype.kind not in "iu":
+        lm = lm.astype(np.int64)
+    if im.ndim != 3 or im.shape[:2] != lm.shape:
+        raise ValueError(f"image {im.shape} must be (H, W, C) over the label map {lm.shape}")
+    if texel_face is None:
+        tf, fc, use = np.full((1, 1), -1, np.int64), np.zeros(1, np.int64), False
+    else:
+        tf = np.ascontiguousarray(texel_face)
+        n_faces = int(tf.max(initial=-1)) + 1
+        fc = (np.zeros(max(n_faces, 1), np.int64) if face_chart is None
+              else np.ascontiguousarray(face_chart, dtype=np.int64))
+        use = True
+    total, n = _boundary_step_sum(np.ascontiguousarray(im), lm, tf, fc, use)
+    return float(total / n) if n else float("nan")
 
 
 def interior_change(before, after, label_map, margin: int) -> float:

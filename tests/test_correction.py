@@ -152,3 +152,30 @@ def test_bad_shapes_raise(quad):
     cs = CorrectionSystem(face, tc, tf, F, factor=4)
     with pytest.raises(ValueError):
         cs.correct(np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10), np.int32))
+
+
+def test_label_boundary_step_against_pairs_listed_by_hand():
+    """Mean channel-mean |difference| over right/down neighbour pairs of two different labels
+    (both >= 0) inside one chart, listed pair by pair."""
+    rng = np.random.default_rng(5)
+    im = rng.integers(0, 256, (23, 31, 3), dtype=np.uint8)
+    lm = rng.integers(-1, 4, (23, 31)).astype(np.int16)
+    tf = rng.integers(-1, 9, (23, 31)).astype(np.int32)
+    chart = rng.integers(0, 3, 9)
+    for use_chart in (False, True):
+        steps = []
+        for r in range(23):
+            for c in range(31):
+                for rr, cc in ((r, c + 1), (r + 1, c)):
+                    if rr >= 23 or cc >= 31:
+                        continue
+                    a, b = lm[r, c], lm[rr, cc]
+                    if a < 0 or b < 0 or a == b:
+                        continue
+                    if use_chart and (tf[r, c] < 0 or tf[rr, cc] < 0
+                                      or chart[tf[r, c]] != chart[tf[rr, cc]]):
+                        continue
+                    steps.append(np.abs(im[r, c].astype(float) - im[rr, cc]).mean())
+        got = label_boundary_step(im, lm, tf, chart) if use_chart else label_boundary_step(im, lm)
+        assert got == pytest.approx(np.mean(steps), rel=1e-12)
+    assert np.isnan(label_boundary_step(im, np.zeros((23, 31), np.int16)))
