@@ -894,14 +894,11 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     # runs of consecutive frames go to threads: the renders and most metrics release the GIL
     progress_lock, done = threading.Lock(), [0]
     n_threads = max(1, min(int(threads), len(score_ids)))
-    runs = [list(r) for r in np.array_split(np.array(score_ids, dtype=np.int64), n_threads)]
+    n = len(score_ids)
+    runs = [score_ids[k * n // n_threads:(k + 1) * n // n_threads] for k in range(n_threads)]
     t0 = time.perf_counter()
-    if n_threads == 1:
-        records = score_run([int(f) for f in runs[0]])
-    else:
-        with ThreadPoolExecutor(n_threads) as pool:
-            records = [rec for run in pool.map(lambda r: score_run([int(f) for f in r]), runs)
-                       for rec in run]
+    with ThreadPoolExecutor(n_threads) as pool:
+        records = [rec for run in pool.map(score_run, runs) for rec in run]
 
     # vertex motion of every frame (the blur figure's x axis), one frame at a time
     for t in range(1, T):

@@ -22,12 +22,13 @@ What it computes
 
 Cost
 ----
-The (target frame, face) pairs are grouped by label with a counting sort and each face's texels
-are listed once per atlas, so each source frame's image and ξ are read **once per pass** of
+The (target frame, face) pairs are grouped by label and each face's texels are listed once per
+atlas (stable argsorts), so each source frame's image and ξ are read **once per pass** of
 ``slices_per_pass`` slices (:meth:`TexelSampler.sample`), not once per slice: a slice draws on
 most of the sequence (paper scene: 218 of 265 source frames, median), and decoding them for
-every slice made a paper-scale slice 6.09 s instead of 1.27 s (median of 3, one block of 16). A sequence costs O(T * W^2) (the authors'
-``Renderer.cpp`` renders T^2 passes, ``official_code_notes.md`` §2.5). Per slice: one pass over
+every slice made a paper-scale slice 6.09 s instead of 1.27 s (median of 3, one block of 16).
+A sequence costs O(T * W^2) (the authors' ``Renderer.cpp`` renders T^2 passes,
+``official_code_notes.md`` §2.5). Per slice: one pass over
 the covered texels for the lookup, plus one scan of the atlas and the rings for the gutter.
 Kernels are numba ``@njit(cache=True, nogil=True)`` (serial; blocks are the unit of parallelism).
 
@@ -56,48 +57,13 @@ __all__ = ["TexelSampler", "volume_slice", "fill_gutter", "label_colors", "neare
 # kernels
 # --------------------------------------------------------------------------------------------
 
-@njit(cache=True, nogil=True)
-def _texels_by_face(tex_face, n_faces):
-    """Counting sort of the covered texels by face: (start (F + 1,) int64, texels (N,) int32);
-    the covered texels of face f are ``texels[start[f]:start[f + 1]]`` (positions in the compact
-    covered-texel arrays)."""
-    counts = np.zeros(n_faces + 1, np.int64)
-    for i in range(tex_face.shape[0]):
-        counts[tex_face[i] + 1] += 1
-    start = np.cumsum(counts)
-    fill = start[:-1].copy()
-    texels = np.empty(tex_face.shape[0], np.int32)
-    for i in range(tex_face.shape[0]):
-        f = tex_face[i]
-        texels[fill[f]] = i
-        fill[f] += 1
-    return start, texels
-
-
-@njit(cache=True, nogil=True)
-def _pairs_by_label(labels, n_labels):
-    """Counting sort of the (slice, face) pairs of ``labels`` (S, F) by label; labels outside
-    0..n_labels-1 (-1 = none) are dropped. Returns (start (n_labels + 1,) int64, slice (P,) int32,
-    face (P,) int32): the pairs of label l are ``start[l]:start[l + 1]``."""
-    S, F = labels.shape
-    counts = np.zeros(n_labels + 1, np.int64)
-    for k in range(S):
-        for f in range(F):
-            l = labels[k, f]
-            if 0 <= l < n_labels:
-                counts[l + 1] += 1
-    start = np.cumsum(counts)
-    fill = start[:-1].copy()
-    pair_slice = np.empty(start[-1], np.int32)
-    pair_face = np.empty(start[-1], np.int32)
-    for k in range(S):
-        for f in range(F):
-            l = labels[k, f]
-            if 0 <= l < n_labels:
-                pair_slice[fill[l]] = k
-                pair_face[fill[l]] = f
-                fill[l] += 1
-    return start, pair_slice, pair_face
+def _group_by(keys, n_groups):
+    """Positions of ``keys`` (n,) int in 0..n_groups-1 grouped by key (stable):
+    (order (n,) int64, start (n_groups + 1,) int64); group g is ``order[start[g]:start[g + 1]]``."""
+    order = np.argsort(keys, kind="stable")
+    start = np.zeros(n_groups + 1, np.int64)
+    np.cumsum(np.bincount(keys, minlength=n_groups), out=start[1:])
+    return order, start
 
 
 @njit(cache=True, nogil=True)
@@ -342,7 +308,9 @@ class TexelSampler:
         if len(self.face) and self.face.max() >= len(self.faces):
             raise ValueError("texel_face refers to faces beyond len(faces)")
         self.bary = np.ascontiguousarray(tb.reshape(-1, 3)[self.index], dtype=np.float32)
-        self._face_start, self._face_texels = _texels_by_face(self.face, len(self.faces))
+        # the covered texels of face f: _face_texels[_face_start[f]:_face_start[f + 1]]
+        order, self._face_start = _group_by(self.face, len(self.faces))
+        self._face_texels = order.astype(np.int32)
 
     # texels looked up per call of the lookup kernel: bounds the position buffers (12 B a texel)
     CHUNK_TEXELS = 1 << 22
@@ -366,7 +334,10 @@ class TexelSampler:
         colours = np.zeros((S * N, 3), np.uint8)
         sampled = np.zeros(S * N, np.bool_)
         n_labels = int(labels.max()) + 1 if labels.size else 0
-        start, pair_slice, pair_face = _pairs_by_label(labels, max(n_labels, 0))
+        # the (slice, face) pairs of label l: pair_slice/pair_face[start[l]:start[l + 1]]
+        pairs = np.flatnonzero(labels.ravel() >= 0)
+        order, start = _group_by(labels.ravel()[pairs], max(n_labels, 0))
+        pair_slice, pair_face = np.divmod(pairs[order], len(self.faces))
         per_pair = np.diff(self._face_start)[pair_face]
         # OpenCV's maps are float32; the bilinear lookup is stex.render's, in float64
         lookup, pos_dtype = ((_lookup_bicubic, np.float32) if self.interpolation == "bicubic"
