@@ -22,6 +22,9 @@ What it computes
   ``ours_uncorrected`` (volume), ``global`` and ``projection`` on the chosen frames, temporal
   flicker in borrowed regions, and writes ``evaluation.json``, one CSV per table, ``tables.rst``
   and PNG figures into a folder.
+- :func:`score_frames` — the scoring of :func:`write_evaluation` for one frame block, into a
+  JSON file of per-frame records, so that the workflow scores blocks in separate jobs (as soon
+  as each block's slices exist) and ``write_evaluation(records_paths=...)`` merges them.
 - :func:`rst_tables` — reStructuredText tables laid out like the paper's Table 3 (reconstruction
   error and blur per method), coverage, ground truth and timing, over one or several scenes.
 
@@ -87,6 +90,7 @@ __all__ = [
     "timing_rows",
     "rst_tables",
     "dynamism_regions",
+    "score_frames",
     "write_evaluation",
 ]
 
@@ -624,10 +628,18 @@ def _finite_or_none(x):
     return x
 
 
-def _check_frames(name, path, ids, expected):
-    if list(ids) != list(expected):
-        raise ValueError(f"{name} store {path} holds frames {short_ids(ids)}, the scene has "
-                         f"{short_ids(expected)}")
+def _check_frames(name, path, ids, expected, needed=None):
+    """A store's frames: exactly the scene's, or (``needed`` given) at least those."""
+    if needed is None:
+        if list(ids) != list(expected):
+            raise ValueError(f"{name} store {path} holds frames {short_ids(ids)}, the scene has "
+                             f"{short_ids(expected)}")
+        return
+    missing = sorted(set(needed) - set(ids))
+    if missing or not set(ids) <= set(expected):
+        raise ValueError(f"{name} store {path} holds frames {short_ids(ids)}; frames "
+                         f"{short_ids(missing or sorted(set(ids) - set(expected)))} "
+                         f"{'are needed' if missing else 'are not frames of the scene'}")
 
 
 def _crop_box(masks, pad=4):
@@ -641,11 +653,357 @@ def _crop_box(masks, pad=4):
             max(0, cols[0] - pad), min(m.shape[1], cols[-1] + 1 + pad))
 
 
+class _Inputs:
+    """The stores of an evaluation, opened and checked, and what scoring one frame reads.
+
+    ``block`` ([start, stop) sequence positions) keeps the frames to score inside a frame
+    block; the frame-block stores then need to hold only those frames (and, with truth, each
+    one's predecessor, for the flicker). Without it they must hold every frame of the scene.
+    """
+
+    def __init__(self, scene_path, frames_paths, masks_paths, template_path, tracking_path,
+                 projection_path, labels_path, volume_paths, corrected_paths, params, *,
+                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block):
+        from stex.io import FrameSequence, StoreError, open_store
+        from stex.observations import open_coordinates
+        from stex.volume import TexelSampler
+
+        self.p = p = evaluation_params(params)
+        self.scene_path, self.template_path = scene_path, template_path
+        scene = open_store(scene_path, "scene")
+        self.ids = ids = [int(i) for i in scene.attrs["frame_ids"]]
+        T = len(ids)
+        self.pos_of = {fid: k for k, fid in enumerate(ids)}
+        self.cal = Calibration.from_dict(scene.attrs["calibration"])
+        self.template = template = open_store(template_path, "template")
+        self.tracking = tracking = open_store(tracking_path, "tracking")
+        projection = open_store(projection_path, "projection")
+        labels_store = open_store(labels_path, "labels")
+        for name, path, g in (("tracking", tracking_path, tracking), ("projection", projection_path, projection),
+                              ("labels", labels_path, labels_store)):
+            _check_frames(name, path, g.attrs["frame_ids"], ids)
+        self.atlas = atlas = Atlas.from_store(template)
+        F = len(atlas.faces)
+        if tracking["vertices"].shape[1] != template["vertices"].shape[0]:
+            raise ValueError(f"tracking store {tracking_path} has {tracking['vertices'].shape[1]} "
+                             f"vertices, template {template_path} has {len(template['vertices'])}")
+        for name, path, arr in (("projection", projection_path, projection["face_visible"]),
+                                ("labels", labels_path, labels_store["labels"])):
+            if arr.shape[1] != F:
+                raise ValueError(f"{name} store {path} has {arr.shape[1]} faces, template has {F}")
+        W = int(template.attrs["atlas_size"])
+
+        # the global baseline (Kim 2019), built from the source frames by the global_texture stage
+        global_store = open_store(global_texture_path, "global_texture")
+        self.global_tex = np.asarray(global_store["texture"][...], np.uint8)
+        self.global_faces = np.asarray(global_store["face_textured"][...], bool)
+        if self.global_tex.shape[0] != W:
+            raise ValueError(f"global_texture store {global_texture_path} is "
+                             f"{self.global_tex.shape[0]} texels wide, template {template_path} "
+                             f"atlas_size is {W}")
+        if self.global_faces.shape != (F,):
+            raise ValueError(f"global_texture store {global_texture_path} has "
+                             f"{len(self.global_faces)} faces, template {template_path} has {F}")
+        self.global_path = global_texture_path
+        self.global_sources = global_sources = [int(i) for i in global_store.attrs["source_frames"]]
+        if not set(global_sources) <= set(ids):
+            raise ValueError(f"global_texture store {global_texture_path} was built from frames "
+                             f"{short_ids(global_sources)} that are not all frames of the scene "
+                             f"{scene_path} ({short_ids(ids)})")
+        self.seconds_global = float(global_store.attrs["seconds"])
+
+        # held-out protocol: the frames allowed to texture
+        sources = set(global_sources)
+        k = global_store.attrs.get("params", {}).get("source_stride")
+        if tables_paths:
+            src = open_store(list(tables_paths)[0], "tables").attrs.get("source_frames")
+            if src is not None:
+                sources = {int(i) for i in src}
+                k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
+            if sorted(sources) != sorted(global_sources):
+                raise ValueError(f"global_texture store {global_texture_path} was built from source "
+                                 f"frames {short_ids(sorted(global_sources))}, the tables "
+                                 f"{list(tables_paths)[0]} allow {short_ids(sorted(sources))} "
+                                 f"(global_texture and tables must use the same source_stride)")
+        self.sources = sorted(sources)
+        self.stride_label = "" if len(sources) == T else (f"(1/{k})" if k else f"({len(sources)}/{T} frames)")
+        self.is_source = np.array([i in sources for i in ids])
+
+        score_ids = list(ids[::int(p["stride"])]) if frames is None else [int(f) for f in frames]
+        bad = [f for f in score_ids if f not in self.pos_of]
+        if bad or not score_ids:
+            raise ValueError(f"frames to score {bad or score_ids} are not frames of the scene "
+                             f"{scene_path} ({short_ids(ids)})")
+        if block is not None:
+            start, stop = (int(x) for x in block)
+            if not 0 <= start < stop <= T:
+                raise ValueError(f"frame block [{start}, {stop}) is outside the scene's {T} frames")
+            score_ids = [f for f in score_ids if start <= self.pos_of[f] < stop]
+        self.score_ids = score_ids
+        fig_t = score_ids[len(score_ids) // 2] if score_ids else ids[0]
+        fig_t = fig_t if p["figure_frame"] is None else int(p["figure_frame"])
+        if fig_t not in self.pos_of:
+            raise ValueError(f"figure_frame {fig_t} is not a frame of the scene ({short_ids(ids)})")
+        self.fig_pos = self.pos_of[fig_t]
+
+        # ground truth
+        self.truth = None
+        self.true_embedding = None
+        if truth_paths and "truth" not in scene:
+            raise StoreError(f"{scene_path}: truth stores given but the scene has no truth/vertices")
+        # what the frame-block stores must hold: with a block, its frames to score and (flicker)
+        # their predecessors; else every frame of the scene
+        needed = None
+        if block is not None:
+            needed = set(score_ids)
+            if truth_paths:
+                needed |= {ids[self.pos_of[f] - 1] for f in score_ids if self.pos_of[f] > 0}
+        self.photos = FrameSequence(list(frames_paths), "frames")
+        self.masks = FrameSequence(list(masks_paths), "masks")
+        self.volume = FrameSequence(list(volume_paths), "volume")
+        self.corrected = FrameSequence(list(corrected_paths), "corrected")
+        for name, paths, seq in (("frames", frames_paths, self.photos), ("masks", masks_paths, self.masks),
+                                 ("volume", volume_paths, self.volume),
+                                 ("corrected", corrected_paths, self.corrected)):
+            _check_frames(name, ", ".join(str(x) for x in paths), seq.frame_ids, ids,
+                          None if needed is None else (set(score_ids) if name == "masks" else needed))
+        if self.volume.groups[0]["texture"].shape[1] != W:
+            raise ValueError(f"volume stores are {self.volume.groups[0]['texture'].shape[1]} texels "
+                             f"wide, template atlas_size is {W}")
+        if truth_paths:
+            self.truth = FrameSequence(list(truth_paths), "truth")
+            _check_frames("truth", ", ".join(str(x) for x in truth_paths), self.truth.frame_ids, ids,
+                          needed)
+            self.true_atlas = Atlas.from_store(scene, "template/")
+            self.true_vertices = scene["truth/vertices"]
+            # the template's embedding in the scene's mesh carries the truth onto the template
+            if "embedding" in template:
+                emb_face = np.asarray(template["embedding/face"][...], np.int64)
+                if (len(emb_face) == template["vertices"].shape[0]
+                        and emb_face.max(initial=-1) < len(self.true_atlas.faces)):
+                    self.true_embedding = (emb_face, np.asarray(template["embedding/bary"][...], np.float64))
+            if self.true_vertices.shape[0] != T:
+                raise ValueError(f"{scene_path}: truth/vertices has {self.true_vertices.shape[0]} "
+                                 f"frames, the scene has {T}")
+
+        self.face_visible = np.asarray(projection["face_visible"][...], bool)
+        self.labels = labels_store["labels"]
+        self.seen_faces = (self.face_visible & self.is_source[:, None]).any(axis=0)
+        self.coords, _, _ = open_coordinates(coords_path or projection_path)
+        if self.coords.shape[0] != T:
+            raise ValueError(f"texture coordinates {coords_path or projection_path} hold "
+                             f"{self.coords.shape[0]} frames, the scene has {T}")
+        self.sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], atlas.faces)
+        # the volume fills never-seen faces from the nearest seen surface: they carry texture too
+        self.filled = (np.asarray(labels_store["never_seen"][...], bool)
+                       if int(self.volume.attrs.get("never_seen_texels", 0)) > 0
+                       else np.zeros(F, bool))
+
+    def textures(self, t):
+        """Every method's texture slice (W, W, 3) at sequence position t."""
+        from stex.baseline import projection_texture
+
+        fid = self.ids[t]
+        proj_tex, _ = projection_texture(self.sampler, np.asarray(self.coords[t], np.float64),
+                                         self.face_visible[t], self.photos.read("color", fid))
+        return {"ours": self.corrected.read("texture", fid),
+                "ours_uncorrected": self.volume.read("texture", fid),
+                "global": self.global_tex, "projection": proj_tex}
+
+    def has_texture(self, t):
+        """Every method's faces with texture (F,) bool at position t."""
+        lab = (np.asarray(self.labels[t]) >= 0) | self.filled
+        return {"ours": lab, "ours_uncorrected": lab, "global": self.global_faces,
+                "projection": self.face_visible[t]}
+
+    def truth_at(self, t):
+        """:func:`truth_views` at position t."""
+        from stex.template import transfer_vertices
+
+        surface = None
+        if self.true_embedding is not None:
+            surface = transfer_vertices(np.asarray(self.true_vertices[t], np.float64),
+                                        self.true_atlas.faces, *self.true_embedding)
+        return truth_views(self.true_vertices[t], self.true_atlas,
+                           self.truth.read("appearance", self.ids[t]), self.cal,
+                           self.p["novel_angle_deg"], template_vertices=surface)
+
+    def novel_renders(self, t, tv, texs):
+        """Novel-view renders of every method (and the truth) at t, for the flicker."""
+        out = {}
+        for m, tex in texs.items():
+            v = method_views(tex, self.tracking["vertices"][t], self.atlas, self.cal,
+                             tv["novel_transform"], self.face_visible[t])
+            out[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+        out["truth"] = tv["novel"]
+        return out
+
+
+def _score_run(inp: _Inputs, frame_ids, progress) -> list[dict]:
+    """Score consecutive frames; the first one's predecessor is rendered afresh for the
+    flicker, later ones reuse the renders of the frame before."""
+    p, out, prev_novel = inp.p, [], {}
+    for fid in frame_ids:
+        t = inp.pos_of[fid]
+        V = inp.tracking["vertices"][t]
+        motion = vertex_motion(inp.tracking["vertices"][t - 1], V) if t > 0 else math.nan
+        image, mask = inp.photos.read("color", fid), inp.masks.read("mask", fid)
+        texs, has = inp.textures(t), inp.has_texture(t)
+        tv = inp.truth_at(t) if inp.truth is not None else None
+        rec = {"frame": fid, "position": t, "held_out": bool(not inp.is_source[t]),
+               "motion_mm": motion, "methods": {}}
+        novel_now = {}
+        # a property of the photo, not of a method: once per frame, stored with every method
+        noise = ev.noise_sigma(image, mask)["sigma"]
+        for m in METHODS:
+            s = score_frame(texs[m], V, inp.atlas, image, mask, inp.cal, face_has_texture=has[m],
+                            seen_faces=inp.seen_faces, face_visible=inp.face_visible[t], truth=tv,
+                            patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
+                            blur_interior_px=p["blur_interior_px"], return_views=tv is not None)
+            if tv is not None:
+                v = s.pop("views")
+                novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+            s["noise_input"] = noise
+            rec["methods"][m] = s
+        if tv is not None:
+            novel_now["truth"] = tv["novel"]
+        if tv is not None and t > 0:
+            prev = prev_novel.get(t - 1) or inp.novel_renders(t - 1, inp.truth_at(t - 1), inp.textures(t - 1))
+            tp_img, tp_mask = prev["truth"]
+            for m in METHODS:
+                r_img, r_mask, seen = novel_now[m]
+                p_img, p_mask, p_seen = prev[m]
+                # borrowed in both frames: object in all four renders, unseen at t-1 and at t
+                sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
+                fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
+                rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
+                                         flicker_pixels=fl["n_pixels"])
+        prev_novel = {t: novel_now} if tv is not None else {}
+        out.append(rec)
+        progress(rec)
+    return out
+
+
+def _score(inp: _Inputs, score_ids, threads: int) -> list[dict]:
+    """Per-frame records of ``score_ids``, in order; runs of consecutive frames in threads."""
+    lock, done, t0 = threading.Lock(), [0], time.perf_counter()
+
+    def progress(rec):
+        with lock:
+            done[0] += 1
+            log.info("evaluation: frame %d (%d/%d%s) ours PSNR %.2f dB, global %.2f dB; "
+                     "%.2f s per frame", rec["frame"], done[0], len(score_ids),
+                     ", held out" if rec["held_out"] else "", rec["methods"]["ours"]["psnr"],
+                     rec["methods"]["global"]["psnr"], (time.perf_counter() - t0) / done[0])
+
+    # frames are scored independently (the flicker re-renders a run's first predecessor), so
+    # runs of consecutive frames go to threads: the renders and most metrics release the GIL
+    n = len(score_ids)
+    n_threads = max(1, min(int(threads), n))
+    runs = [score_ids[k * n // n_threads:(k + 1) * n // n_threads] for k in range(n_threads)]
+    with ThreadPoolExecutor(n_threads) as pool:
+        return [rec for run in pool.map(lambda r: _score_run(inp, r, progress), runs) for rec in run]
+
+
+def _json_params(p: dict) -> dict:
+    """The settings as they read back from JSON (tuples as lists), for comparisons."""
+    return json.loads(json.dumps(_finite_or_none(p)))
+
+
+def _nan_for_none(rec: dict) -> dict:
+    """A record read from JSON with NaN back in place of null (as :func:`_score` returns it)."""
+    def f(x):
+        return math.nan if x is None else x
+    return {**rec, "motion_mm": f(rec["motion_mm"]),
+            "methods": {m: {k: f(v) for k, v in s.items()} for m, s in rec["methods"].items()}}
+
+
+def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_path,
+                 projection_path, labels_path, volume_paths, corrected_paths, out_path,
+                 params: dict | None = None, *, global_texture_path, truth_paths=None,
+                 coords_path=None, tables_paths=None, frames=None, block=None,
+                 threads: int = 1) -> dict:
+    """Evaluation, one frame block: score every method on the block's frames to score.
+
+    The part of :func:`write_evaluation` that takes the time, split by frame block so that
+    blocks are scored in separate processes (jobs) as soon as their slices exist; the records
+    are merged by ``write_evaluation(..., records_paths=[...])``.
+
+    Args:
+        scene_path ... frames: the stores, settings and frames to score, as for
+            :func:`write_evaluation`.
+        out_path: JSON file to write (built as ``<out_path>.partial`` and moved into place).
+        block: [start, stop) sequence positions: score only the frames to score in it. The
+            frame-block stores may then be just the ones holding those frames (and, with
+            truth, each one's predecessor, for the flicker).
+        threads: frames scored at once (runs of consecutive frames, one per thread); the
+            result does not depend on it.
+
+    Writes ``out_path``: ``{"stex_artifact": "evaluation_frames", "params", "frame_ids",
+    "source_frames", "scored_frames", "frames": [record, ...], "seconds"}`` with the records of
+    ``evaluation.json`` (NaN as null). A block with no frame to score writes an empty list.
+
+    Returns:
+        the file's content.
+    """
+    t_start = time.perf_counter()
+    inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
+                  projection_path, labels_path, volume_paths, corrected_paths, params,
+                  global_texture_path=global_texture_path, truth_paths=truth_paths,
+                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=block)
+    records = _score(inp, inp.score_ids, threads) if inp.score_ids else []
+    doc = _finite_or_none({"stex_artifact": "evaluation_frames", "params": inp.p,
+                           "frame_ids": inp.ids, "source_frames": inp.sources,
+                           "scored_frames": inp.score_ids, "frames": records,
+                           "seconds": time.perf_counter() - t_start})
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    partial = out_path.with_name(out_path.name + ".partial")
+    partial.write_text(json.dumps(doc, indent=1))
+    os.replace(partial, out_path)
+    log.info("evaluation: %d frames of block %s scored in %.1f s; written to %s", len(records),
+             block, doc["seconds"], out_path)
+    return doc
+
+
+
+def _load_records(records_paths, inp: _Inputs) -> tuple[list[dict], float]:
+    """Records of :func:`score_frames` files, checked against the evaluation's inputs, in
+    scene order, and the seconds they took."""
+    from stex.io import StoreError
+
+    records, seconds, want = [], 0.0, _json_params(inp.p)
+    for path in records_paths:
+        try:
+            doc = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise StoreError(f"{path}: not a readable evaluation_frames file ({e})") from e
+        if not isinstance(doc, dict) or doc.get("stex_artifact") != "evaluation_frames":
+            raise StoreError(f"{path}: not an evaluation_frames file")
+        if doc["params"] != want:
+            diff = sorted(k for k in set(want) | set(doc["params"]) if doc["params"].get(k) != want.get(k))
+            raise ValueError(f"{path} was scored with other evaluation settings ({', '.join(diff)})")
+        if doc["frame_ids"] != inp.ids or doc["source_frames"] != inp.sources:
+            raise ValueError(f"{path} was scored on frames {short_ids(doc['frame_ids'])} with "
+                             f"source frames {short_ids(doc['source_frames'])}; the scene has "
+                             f"{short_ids(inp.ids)}, sources {short_ids(inp.sources)}")
+        records += [_nan_for_none(r) for r in doc["frames"]]
+        seconds += float(doc["seconds"])
+    records.sort(key=lambda r: r["position"])
+    got = [r["frame"] for r in records]
+    if got != inp.score_ids:
+        missing = sorted(set(inp.score_ids) - set(got))
+        extra = sorted(f for f in set(got) if got.count(f) > 1 or f not in inp.score_ids)
+        raise ValueError(f"records {', '.join(str(p) for p in records_paths)}: frames to score "
+                         f"{short_ids(missing)} missing, {short_ids(extra)} twice or not to score")
+    return records, seconds
+
+
 def write_evaluation(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                      projection_path, labels_path, volume_paths, corrected_paths, out_dir,
                      params: dict | None = None, *, global_texture_path, truth_paths=None,
                      coords_path=None, observations_path=None, tables_paths=None, frames=None,
-                     timing: dict | None = None, threads: int = 1) -> dict:
+                     records_paths=None, timing: dict | None = None, threads: int = 1) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
 
     Args:
@@ -658,8 +1016,6 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         labels_path: ``labels`` store (labels [T, F], never_seen).
         volume_paths, corrected_paths: ``volume`` / ``corrected`` block stores
             (``ours_uncorrected`` / ``ours``).
-        out_dir: folder to write (built as ``<out_dir>.partial`` and moved into place when
-            complete, replacing an older one).
         params: the evaluation settings (:func:`evaluation_params`).
         global_texture_path: (keyword, required) ``global_texture`` store, the ``global``
             method (:func:`stex.baseline.write_global_texture`: texture (W, W, 3) uint8,
@@ -668,10 +1024,14 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         truth_paths: ``truth`` block stores (synthetic scenes) -> ground-truth scores and flicker.
         coords_path: ``texcoords`` store (ξ) or the projection store (Φ, the default): the
             texture coordinates of the baselines, as used by the volume.
-        observations_path: ``observations`` store -> the SSIM-dynamism figure.
         tables_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
             texture (held-out protocol); without, the global texture's ``source_frames``.
-        frames: global frame ids to score; None -> every ``stride``-th frame.
+        frames: global frame ids to score; None -> every ``stride``-th frame of the scene.
+        out_dir: folder to write (built as ``<out_dir>.partial`` and moved into place when
+            complete, replacing an older one).
+        observations_path: ``observations`` store -> the SSIM-dynamism figure.
+        records_paths: :func:`score_frames` files whose records together cover the frames to
+            score (checked: same settings, frames and sources): merged instead of scoring here.
         timing: ``{stage: seconds}`` for the timing table, or None.
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
@@ -686,229 +1046,35 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     Returns:
         the ``evaluation.json`` content (NaN as None).
     """
-    from stex.baseline import projection_texture
-    from stex.io import FrameSequence, StoreError, open_store
-    from stex.observations import open_coordinates
-    from stex.template import transfer_vertices
-    from stex.volume import TexelSampler
+    from stex.io import open_store
 
-    p = evaluation_params(params)
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
-    scene = open_store(scene_path, "scene")
-    ids = [int(i) for i in scene.attrs["frame_ids"]]
-    T = len(ids)
-    cal = Calibration.from_dict(scene.attrs["calibration"])
-    template = open_store(template_path, "template")
-    tracking = open_store(tracking_path, "tracking")
-    projection = open_store(projection_path, "projection")
-    labels_store = open_store(labels_path, "labels")
-    for name, path, g in (("tracking", tracking_path, tracking), ("projection", projection_path, projection),
-                          ("labels", labels_path, labels_store)):
-        _check_frames(name, path, g.attrs["frame_ids"], ids)
-    photos = FrameSequence(list(frames_paths), "frames")
-    masks = FrameSequence(list(masks_paths), "masks")
-    volume = FrameSequence(list(volume_paths), "volume")
-    corrected = FrameSequence(list(corrected_paths), "corrected")
-    for name, paths, seq in (("frames", frames_paths, photos), ("masks", masks_paths, masks),
-                             ("volume", volume_paths, volume), ("corrected", corrected_paths, corrected)):
-        _check_frames(name, ", ".join(str(x) for x in paths), seq.frame_ids, ids)
-    atlas = Atlas.from_store(template)
-    F = len(atlas.faces)
-    if tracking["vertices"].shape[1] != template["vertices"].shape[0]:
-        raise ValueError(f"tracking store {tracking_path} has {tracking['vertices'].shape[1]} "
-                         f"vertices, template {template_path} has {len(template['vertices'])}")
-    for name, path, arr in (("projection", projection_path, projection["face_visible"]),
-                            ("labels", labels_path, labels_store["labels"])):
-        if arr.shape[1] != F:
-            raise ValueError(f"{name} store {path} has {arr.shape[1]} faces, template has {F}")
-    W = int(template.attrs["atlas_size"])
-    if volume.groups[0]["texture"].shape[1] != W:
-        raise ValueError(f"volume stores are {volume.groups[0]['texture'].shape[1]} texels wide, "
-                         f"template atlas_size is {W}")
-
-    # the global baseline (Kim 2019), built from the source frames by the global_texture stage
-    global_store = open_store(global_texture_path, "global_texture")
-    global_tex = np.asarray(global_store["texture"][...], np.uint8)
-    global_faces = np.asarray(global_store["face_textured"][...], bool)
-    if global_tex.shape[0] != W:
-        raise ValueError(f"global_texture store {global_texture_path} is {global_tex.shape[0]} "
-                         f"texels wide, template {template_path} atlas_size is {W}")
-    if global_faces.shape != (F,):
-        raise ValueError(f"global_texture store {global_texture_path} has {len(global_faces)} "
-                         f"faces, template {template_path} has {F}")
-    global_sources = [int(i) for i in global_store.attrs["source_frames"]]
-    if not set(global_sources) <= set(ids):
-        raise ValueError(f"global_texture store {global_texture_path} was built from frames "
-                         f"{short_ids(global_sources)} that are not all frames of the scene "
-                         f"{scene_path} ({short_ids(ids)})")
-    seconds_global = float(global_store.attrs["seconds"])
-
-    # held-out protocol: the frames allowed to texture
-    sources = set(global_sources)
-    k = global_store.attrs.get("params", {}).get("source_stride")
-    if tables_paths:
-        src = open_store(list(tables_paths)[0], "tables").attrs.get("source_frames")
-        if src is not None:
-            sources = {int(i) for i in src}
-            k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
-        if sorted(sources) != sorted(global_sources):
-            raise ValueError(f"global_texture store {global_texture_path} was built from source "
-                             f"frames {short_ids(sorted(global_sources))}, the tables "
-                             f"{list(tables_paths)[0]} allow {short_ids(sorted(sources))} "
-                             f"(global_texture and tables must use the same source_stride)")
-    stride_label = "" if len(sources) == T else (f"(1/{k})" if k else f"({len(sources)}/{T} frames)")
-    is_source = np.array([i in sources for i in ids])
-
-    score_ids = list(ids[::int(p["stride"])]) if frames is None else [int(f) for f in frames]
-    bad = [f for f in score_ids if f not in ids]
-    if bad or not score_ids:
-        raise ValueError(f"frames to score {bad or score_ids} are not frames of the scene "
-                         f"{scene_path} ({short_ids(ids)})")
-    pos_of = {fid: k for k, fid in enumerate(ids)}
-    fig_t = score_ids[len(score_ids) // 2] if p["figure_frame"] is None else int(p["figure_frame"])
-    if fig_t not in pos_of:
-        raise ValueError(f"figure_frame {fig_t} is not a frame of the scene ({short_ids(ids)})")
-    fig_pos = pos_of[fig_t]
-
-    # ground truth
-    truth = None
-    true_embedding = None
-    if truth_paths:
-        if "truth" not in scene:
-            raise StoreError(f"{scene_path}: truth stores given but the scene has no truth/vertices")
-        truth = FrameSequence(list(truth_paths), "truth")
-        _check_frames("truth", ", ".join(str(x) for x in truth_paths), truth.frame_ids, ids)
-        true_atlas = Atlas.from_store(scene, "template/")
-        true_vertices = scene["truth/vertices"]
-        # the template's embedding in the scene's mesh carries the truth onto the template
-        if "embedding" in template:
-            emb_face = np.asarray(template["embedding/face"][...], np.int64)
-            if len(emb_face) == template["vertices"].shape[0] and emb_face.max(initial=-1) < len(true_atlas.faces):
-                true_embedding = (emb_face, np.asarray(template["embedding/bary"][...], np.float64))
-        if true_vertices.shape[0] != T:
-            raise ValueError(f"{scene_path}: truth/vertices has {true_vertices.shape[0]} frames, "
-                             f"the scene has {T}")
-
-    face_visible = np.asarray(projection["face_visible"][...], bool)
-    labels = labels_store["labels"]
-    seen_faces = (face_visible & is_source[:, None]).any(axis=0)
-    coords, _, _ = open_coordinates(coords_path or projection_path)
-    if coords.shape[0] != T:
-        raise ValueError(f"texture coordinates {coords_path or projection_path} hold "
-                         f"{coords.shape[0]} frames, the scene has {T}")
-    sampler = TexelSampler(template["texel/face_id"][...], template["texel/bary"][...], atlas.faces)
-
+    inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
+                  projection_path, labels_path, volume_paths, corrected_paths, params,
+                  global_texture_path=global_texture_path, truth_paths=truth_paths,
+                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None)
+    p, ids, T = inp.p, inp.ids, len(inp.ids)
     log.info("evaluation: global texture %s from %d source frames (built in %.1f s)",
-             global_texture_path, len(global_sources), seconds_global)
+             global_texture_path, len(inp.global_sources), inp.seconds_global)
+    if records_paths is None:
+        records = _score(inp, inp.score_ids, threads)
+        seconds_scoring = time.perf_counter() - t_start
+    else:
+        records, seconds_scoring = _load_records(list(records_paths), inp)
+        log.info("evaluation: %d frames' records read from %d files (scored in %.1f s)",
+                 len(records), len(records_paths), seconds_scoring)
 
-    def textures(t):
-        fid = ids[t]
-        proj_tex, _ = projection_texture(sampler, np.asarray(coords[t], np.float64), face_visible[t],
-                                         photos.read("color", fid))
-        return {"ours": corrected.read("texture", fid), "ours_uncorrected": volume.read("texture", fid),
-                "global": global_tex, "projection": proj_tex}
-
-    # the volume fills never-seen faces from the nearest seen surface: they carry texture too
-    filled = (np.asarray(labels_store["never_seen"][...], bool)
-              if int(volume.attrs.get("never_seen_texels", 0)) > 0 else np.zeros(len(face_visible[0]), bool))
-
-    def has_texture(t):
-        lab = (np.asarray(labels[t]) >= 0) | filled
-        return {"ours": lab, "ours_uncorrected": lab, "global": global_faces,
-                "projection": face_visible[t]}
-
-    def truth_at(t):
-        surface = None
-        if true_embedding is not None:
-            surface = transfer_vertices(np.asarray(true_vertices[t], np.float64), true_atlas.faces,
-                                        *true_embedding)
-        return truth_views(true_vertices[t], true_atlas, truth.read("appearance", ids[t]), cal,
-                           p["novel_angle_deg"], template_vertices=surface)
-
-    # novel-view renders of every method at t, for the flicker of t and t+1
-    def novel_renders(t, tv, texs):
-        out = {}
-        for m, tex in texs.items():
-            v = method_views(tex, tracking["vertices"][t], atlas, cal, tv["novel_transform"],
-                             face_visible[t])
-            out[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
-        out["truth"] = tv["novel"]
-        return out
-
+    # vertex motion of every frame (the blur figure's x axis)
+    tracked = inp.tracking["vertices"]
     motion = np.full(T, math.nan)
-
-    def score_run(frame_ids):
-        """Score consecutive frames; the first one's predecessor is rendered afresh for the
-        flicker, later ones reuse the renders of the frame before."""
-        out, prev_novel = [], {}
-        for fid in frame_ids:
-            t = pos_of[fid]
-            V = tracking["vertices"][t]
-            if t > 0:
-                motion[t] = vertex_motion(tracking["vertices"][t - 1], V)
-            image, mask = photos.read("color", fid), masks.read("mask", fid)
-            texs, has = textures(t), has_texture(t)
-            tv = truth_at(t) if truth is not None else None
-            rec = {"frame": fid, "position": t, "held_out": bool(not is_source[t]),
-                   "motion_mm": motion[t], "methods": {}}
-            novel_now = {}
-            # a property of the photo, not of a method: once per frame, stored with every method
-            noise = ev.noise_sigma(image, mask)["sigma"]
-            for m in METHODS:
-                s = score_frame(texs[m], V, atlas, image, mask, cal, face_has_texture=has[m],
-                                seen_faces=seen_faces, face_visible=face_visible[t], truth=tv,
-                                patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
-                                blur_interior_px=p["blur_interior_px"],
-                                return_views=tv is not None)
-                if tv is not None:
-                    v = s.pop("views")
-                    novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
-                s["noise_input"] = noise
-                rec["methods"][m] = s
-            if tv is not None and t > 0:
-                novel_now["truth"] = tv["novel"]
-                prev = prev_novel.get(t - 1) or novel_renders(t - 1, truth_at(t - 1), textures(t - 1))
-                tp_img, tp_mask = prev["truth"]
-                for m in METHODS:
-                    r_img, r_mask, seen = novel_now[m]
-                    p_img, p_mask, p_seen = prev[m]
-                    # borrowed in both frames: object in all four renders, unseen at t-1 and at t
-                    sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
-                    fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
-                    rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
-                                             flicker_pixels=fl["n_pixels"])
-            elif tv is not None:
-                novel_now["truth"] = tv["novel"]
-            prev_novel = {t: novel_now} if tv is not None else {}
-            out.append(rec)
-            with progress_lock:
-                done[0] += 1
-                log.info("evaluation: frame %d (%d/%d%s) ours PSNR %.2f dB, global %.2f dB; "
-                         "%.2f s per frame", fid, done[0], len(score_ids),
-                         ", held out" if rec["held_out"] else "", rec["methods"]["ours"]["psnr"],
-                         rec["methods"]["global"]["psnr"], (time.perf_counter() - t0) / done[0])
-        return out
-
-    # frames are scored independently (the flicker re-renders a run's first predecessor), so
-    # runs of consecutive frames go to threads: the renders and most metrics release the GIL
-    progress_lock, done = threading.Lock(), [0]
-    n_threads = max(1, min(int(threads), len(score_ids)))
-    n = len(score_ids)
-    runs = [score_ids[k * n // n_threads:(k + 1) * n // n_threads] for k in range(n_threads)]
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(n_threads) as pool:
-        records = [rec for run in pool.map(score_run, runs) for rec in run]
-
-    # vertex motion of every frame (the blur figure's x axis), one frame at a time
     for t in range(1, T):
-        if not math.isfinite(motion[t]):
-            motion[t] = vertex_motion(tracking["vertices"][t - 1], tracking["vertices"][t])
+        motion[t] = vertex_motion(tracked[t - 1], tracked[t])
 
     summary = summarise_frames(records)
     summary["n_frames"] = len(records)
     summary["n_held_out"] = int(sum(r["held_out"] for r in records))
-    summary["held_out_label"] = stride_label
+    summary["held_out_label"] = inp.stride_label
     summary["blur_interior_px"] = int(p["blur_interior_px"])
     scene_name = str(Path(scene_path).parent.name or "scene")
     tabs = table_rows({scene_name: summary})
@@ -916,14 +1082,14 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         "params": p,
         "scene": scene_name,
         "frame_ids": ids,
-        "source_frames": sorted(sources),
-        "scored_frames": score_ids,
+        "source_frames": inp.sources,
+        "scored_frames": inp.score_ids,
         "methods": list(METHODS),
-        "has_truth": truth is not None,
+        "has_truth": inp.truth is not None,
         "frames": records,
         "summary": summary,
         "tables": tabs,
-        "seconds": {"global_texture": seconds_global},
+        "seconds": {"global_texture": inp.seconds_global, "scoring": seconds_scoring},
     }
 
     # built in <out_dir>.partial and moved into place: a folder at out_dir is complete
@@ -933,21 +1099,24 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     out_dir.mkdir(parents=True)
 
     def write_all(out_dir):
+        fig_pos = inp.fig_pos
         _write_csvs(out_dir, records, tabs, timing)
         (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing))
         _plot_psnr(out_dir / "psnr_per_frame.png", records)
         _plot_blur_motion(out_dir / "blur_vs_motion.png", records, ids, motion)
-        _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, photos, masks, textures,
-                              tracking["vertices"][fig_pos], atlas, cal,
-                              truth_at(fig_pos) if truth is not None else None, face_visible[fig_pos])
-        _picture_label_map(out_dir / "label_map.png", volume.read("label_map", ids[fig_pos]), ids[fig_pos])
+        _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, inp.photos, inp.masks,
+                              inp.textures, tracked[fig_pos], inp.atlas, inp.cal,
+                              inp.truth_at(fig_pos) if inp.truth is not None else None,
+                              inp.face_visible[fig_pos])
+        _picture_label_map(out_dir / "label_map.png", inp.volume.read("label_map", ids[fig_pos]),
+                           ids[fig_pos])
         if observations_path is not None:
             obs = open_store(observations_path, "observations")
             _check_frames("observations", observations_path, obs.attrs["frame_ids"], ids)
             if "dynamism" in obs:
                 _plot_dynamism(out_dir / "dynamism.png", np.asarray(obs["dynamism"][...], np.float32),
-                               np.asarray(template["face_chart"][...]),
-                               ev.face_areas(template["vertices"][...], atlas.faces), ids,
+                               np.asarray(inp.template["face_chart"][...]),
+                               ev.face_areas(inp.template["vertices"][...], inp.atlas.faces), ids,
                                int(p["dynamism_regions"]))
         result["seconds"]["total"] = time.perf_counter() - t_start
         (out_dir / "evaluation.json").write_text(json.dumps(_finite_or_none(result), indent=1))
@@ -960,9 +1129,10 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     if final_dir.exists():
         shutil.rmtree(final_dir)
     os.replace(out_dir, final_dir)
-    log.info("evaluation: %d frames scored in %.1f s; written to %s", len(records),
+    log.info("evaluation: %d frames in %.1f s; written to %s", len(records),
              time.perf_counter() - t_start, final_dir)
     return _finite_or_none(result)
+
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ from conftest import run_pipeline, tiny_scene_config
 from stex import evaluate as ev
 from stex.camera import Calibration, transform_points
 from stex.evaluation import (METHODS, Atlas, coverage_scores, dynamism_regions, image_scores,
-                             rst_tables, score_frame, truth_views, vertex_motion, write_evaluation)
+                             rst_tables, score_frame, score_frames, truth_views, vertex_motion,
+                             write_evaluation)
 from stex.baseline import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
 
@@ -215,6 +216,51 @@ def test_threads_score_exactly_as_one(pipe, evaluation, tmp_path):
                     observations_path=pipe["observations"], tables_paths=pipe["tables"], threads=3)
     assert [r["frame"] for r in par["frames"]] == list(range(6))
     assert par["frames"] == res["frames"] and par["summary"] == res["summary"]
+
+
+def _block_stores(P, blocks):
+    """The pipeline ``P`` with its frame-block stores cut to ``blocks`` (indices)."""
+    return {**P, **{k: [P[k][b] for b in blocks] for k in ("frames", "masks", "truth", "volume", "corrected")}}
+
+
+def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tmp_path):
+    """Each frame block scored from its own stores (and its predecessor block's, for the
+    flicker of its first frame), then merged: the same records, summary and tables."""
+    _, res = evaluation
+    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
+    assert len(blocks) == 2
+    paths = []
+    for b, block in enumerate(blocks):
+        P = _block_stores(pipe, [b - 1, b] if b else [b])
+        paths.append(tmp_path / f"block_{b}.json")
+        doc = score_frames(*_args(P), paths[-1], global_texture_path=P["global_texture"],
+                           truth_paths=P["truth"], tables_paths=P["tables"], block=block)
+        assert doc["scored_frames"] == list(range(*block))
+        assert not (tmp_path / f"block_{b}.json.partial").exists()
+    # the second block alone lacks frame 3, its first frame's predecessor
+    with pytest.raises(ValueError, match=r"frames \[3\] are needed"):
+        P = _block_stores(pipe, [1])
+        score_frames(*_args(P), tmp_path / "bad.json", global_texture_path=P["global_texture"],
+                     truth_paths=P["truth"], block=blocks[1])
+    assert not (tmp_path / "bad.json").exists()
+    merged = _evaluate(pipe, tmp_path / "merged", truth_paths=pipe["truth"],
+                       observations_path=pipe["observations"], tables_paths=pipe["tables"],
+                       records_paths=paths[::-1])
+    assert merged["frames"] == res["frames"] and merged["summary"] == res["summary"]
+    assert merged["tables"] == res["tables"]
+    assert (tmp_path / "merged" / "side_by_side.png").exists()
+
+    # records that do not make up the evaluation are refused, naming what is wrong
+    with pytest.raises(ValueError, match=r"\[4, 5\] missing"):
+        _evaluate(pipe, tmp_path / "m1", truth_paths=pipe["truth"], records_paths=paths[:1])
+    with pytest.raises(ValueError, match="twice"):
+        _evaluate(pipe, tmp_path / "m2", truth_paths=pipe["truth"], records_paths=paths + paths[1:])
+    with pytest.raises(ValueError, match="other evaluation settings .*radius"):
+        _evaluate(pipe, tmp_path / "m3", params={"radius": 2}, truth_paths=pipe["truth"], records_paths=paths)
+    (tmp_path / "junk.json").write_text("{not json")
+    with pytest.raises(StoreError, match="junk.json"):
+        _evaluate(pipe, tmp_path / "m4", truth_paths=pipe["truth"], records_paths=[tmp_path / "junk.json"])
+    assert not any((tmp_path / f"m{k}").exists() for k in range(1, 5))
 
 
 def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):

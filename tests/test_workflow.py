@@ -70,7 +70,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
     downstream = {"tracking", "tracking_preview", "poses", "projection", "projection_preview", "texcoords", "observations",
                   "tables", "labeling", "volume", "correction", "labels_preview", "preview_video",
-                  "evaluate", "texcoords_preview", "global_texture"}
+                  "evaluate_frames", "evaluate", "texcoords_preview", "global_texture"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out
 
@@ -97,8 +97,16 @@ def test_texture_outputs(tiny_run):
     assert corrected.read("texture", 3).shape == (256, 256, 3)
     assert (res / "previews" / "labels.png").stat().st_size > 1000
     assert (res / "previews" / "preview.mp4").stat().st_size > 1000
-    assert (res / "evaluation" / "evaluation.json").exists()
+    # every frame block scored in its own job, the records merged into the evaluation
+    import json
+
+    blocks = sorted((res / "evaluation_frames").glob("block_*.json"))
+    scored = [r["frame"] for b in blocks for r in json.loads(b.read_text())["frames"]]
+    evaluation = json.loads((res / "evaluation" / "evaluation.json").read_text())
+    assert len(blocks) == 2 and scored == [r["frame"] for r in evaluation["frames"]] == list(range(6))
     assert (res / "benchmarks" / "labeling.tsv").exists()
+    assert (res / "benchmarks" / "evaluate_frames_0001.tsv").exists()
+    assert "evaluate_frames" in (res / "evaluation" / "tables.rst").read_text()   # timing table
 
 
 def test_report_holds_the_tables(tiny_run):

@@ -45,3 +45,12 @@ def previous_corrected(wildcards):
     if not config["correction"]["temporal"] or b == 0:
         return []
     return [f"{RESULTS}/corrected/block_{b - 1:04d}.zarr"]
+
+
+def evaluation_blocks(kind):
+    """Input function: the ``kind`` block stores a frame block's scoring reads: its own and the
+    previous block's (the flicker of its first frame compares it with its predecessor)."""
+    def blocks(wildcards):
+        b = int(wildcards.block)
+        return [f"{RESULTS}/{kind}/block_{k:04d}.zarr" for k in range(max(0, b - 1), b + 1)]
+    return blocks

@@ -1,5 +1,36 @@
 # Evaluation: every method scored by the same code (input views, ground truth on synthetic
-# scenes), tables and figures for the report.
+# scenes), per frame block (each block's frames as soon as its slices exist), then merged into
+# the tables and figures of the report.
+
+
+rule evaluate_frames:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        frames=evaluation_blocks("frames"),
+        masks=evaluation_blocks("masks"),
+        truth=evaluation_blocks("truth") if SYNTHETIC else [],
+        template=f"{RESULTS}/template.zarr",
+        tracking=f"{RESULTS}/tracking.zarr",
+        projection=f"{RESULTS}/projection.zarr",
+        coords=COORDS,
+        tables=expand(f"{RESULTS}/tables/block_{{block}}.zarr", block=BLOCK_IDS),
+        labels=f"{RESULTS}/labels.zarr",
+        volume=evaluation_blocks("volume"),
+        corrected=evaluation_blocks("corrected"),
+        global_texture=f"{RESULTS}/global_texture.zarr",
+    output:
+        f"{RESULTS}/evaluation_frames/block_{{block}}.json",
+    params:
+        evaluation=config["evaluation"],
+        positions=block_range,
+    log:
+        f"{RESULTS}/logs/evaluate_frames_{{block}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/evaluate_frames_{{block}}.tsv",
+    conda:
+        ENV
+    script:
+        "../scripts/evaluate_frames.py"
 
 
 rule evaluate:
@@ -18,6 +49,7 @@ rule evaluate:
         volume=expand(f"{RESULTS}/volume/block_{{block}}.zarr", block=BLOCK_IDS),
         corrected=expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS),
         global_texture=f"{RESULTS}/global_texture.zarr",
+        records=expand(f"{RESULTS}/evaluation_frames/block_{{block}}.json", block=BLOCK_IDS),
     output:
         report(
             directory(f"{RESULTS}/evaluation"),
@@ -25,7 +57,6 @@ rule evaluate:
             caption="../report/evaluation.rst",
             category="Evaluation",
         ),
-    threads: 2
     params:
         evaluation=config["evaluation"],
         benchmarks=lambda wildcards: f"{RESULTS}/benchmarks",

@@ -1,4 +1,5 @@
-"""Thin adapter: rule evaluate -> stex.evaluation.write_evaluation (+ the stage timings)."""
+"""Thin adapter: rule evaluate -> stex.evaluation.write_evaluation over the blocks' records
+(+ the stage timings)."""
 from stex.evaluation import write_evaluation
 from stex.logs import setup_logging
 from stex.reporting import stage_timings, write_tables_html
@@ -10,5 +11,5 @@ write_evaluation(i.scene, list(i.frames), list(i.masks), i.template, i.tracking,
                  i.labels, list(i.volume), list(i.corrected), out, snakemake.params.evaluation,
                  global_texture_path=i.global_texture, truth_paths=list(i.truth) or None,
                  coords_path=i.coords, observations_path=i.observations, tables_paths=list(i.tables),
-                 timing=stage_timings(snakemake.params.benchmarks), threads=snakemake.threads)
+                 records_paths=list(i.records), timing=stage_timings(snakemake.params.benchmarks))
 write_tables_html(f"{out}/tables.rst", f"{out}/tables.html")
