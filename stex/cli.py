@@ -3,6 +3,7 @@
     stex inspect results/demo/scene.zarr      # what a store holds: kind, frames, arrays, params
     stex export results/demo --what mp4 --out out/   # texture volume as PNG/MP4/OBJ/glTF
     stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
+    stex tables results/demo results/fox --out tables.html   # the paper's tables, a column per run
 
 Errors (missing or incomplete stores, a frame range outside the sequence) print one line on
 stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
@@ -83,6 +84,23 @@ def _run_preview(args) -> int:
     return 0
 
 
+def _run_tables(args) -> int:
+    from pathlib import Path
+
+    from stex.reporting import runs_tables, tables_html
+
+    rst = runs_tables(args.results)
+    if args.out is None:
+        print(rst)
+        return 0
+    out = Path(args.out)
+    if out.suffix not in (".rst", ".html"):
+        raise ValueError(f"--out {out}: give a .rst or .html file")
+    out.write_bytes(tables_html(rst) if out.suffix == ".html" else rst.encode())
+    print(f"wrote {out}: {len(args.results)} run(s)")
+    return 0
+
+
 def _run_inspect(args) -> int:
     status = 0
     for store in args.stores:
@@ -125,6 +143,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the frames' timestamps)")
     p.add_argument("--size", type=int, default=360, help="panel height in pixels (default 360)")
     p.set_defaults(run=_run_preview)
+
+    p = sub.add_parser("tables", help="the paper-style tables over runs, one column per run "
+                                      "(from each run's evaluation and job times)")
+    p.add_argument("results", nargs="+", help="results/<scene> folders, each with an evaluation")
+    p.add_argument("--out", default=None, help="output .rst or .html (default: print the tables)")
+    p.set_defaults(run=_run_tables)
 
     args = parser.parse_args(argv)
     try:

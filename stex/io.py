@@ -586,6 +586,21 @@ def artifacts_markdown() -> str:
         if spec.attrs:
             lines += ["", "attrs:", ""] + [f"- `{k}`: {v}" for k, v in spec.attrs.items()]
         lines.append("")
+    lines += [
+        "## Evaluation outputs (JSON, CSV and figures, not zarr)",
+        "",
+        "- `results/<scene>/evaluation_frames/block_<b>.json` — one frame block's scores "
+        "(stex.evaluation.score_frames), written atomically: `stex_artifact` "
+        "\"evaluation_frames\", `params` (the evaluation settings), `frame_ids` (every frame of "
+        "the scene), `source_frames`, `scored_frames` (this block's), `seconds`, and `frames`: "
+        "one record per scored frame, `{frame, position, held_out, motion_mm, methods: {method: "
+        "{metric: value}}}` (metrics in docs/metrics.md; null where a score is undefined, e.g. the "
+        "flicker of the first frame).",
+        "- `results/<scene>/evaluation/` — the blocks' records merged "
+        "(stex.evaluation.write_evaluation): `evaluation.json` (the records, `summary`, `tables`), "
+        "`per_frame.csv`, `table_<name>.csv`, `tables.rst` / `tables.html` and the PNG figures.",
+        "",
+    ]
     return "\n".join(lines)
 
 

@@ -1,11 +1,14 @@
-"""Report helpers: stage timings from Snakemake benchmark files, RST tables as HTML."""
+"""Report helpers: stage timings from Snakemake benchmark files, RST tables as HTML, the
+paper-style tables over several runs."""
 
 from __future__ import annotations
 
 import csv
+import json
+import math
 from pathlib import Path
 
-__all__ = ["stage_timings", "write_tables_html"]
+__all__ = ["stage_timings", "write_tables_html", "tables_html", "runs_tables"]
 
 
 def stage_timings(benchmark_dir) -> dict:
@@ -27,12 +30,53 @@ def stage_timings(benchmark_dir) -> dict:
     return out
 
 
-def write_tables_html(rst_path, html_path) -> None:
-    """The reStructuredText tables of the evaluation as a standalone HTML page (docutils), for
-    the Snakemake report (which embeds HTML results)."""
+def tables_html(rst: str) -> bytes:
+    """reStructuredText tables as a standalone HTML page (docutils)."""
     from docutils.core import publish_string
 
-    html = publish_string(Path(rst_path).read_text(), writer="html5",
+    return publish_string(rst, writer="html5",
                           settings_overrides={"report_level": 4, "embed_stylesheet": True,
-                                               "title": "stex evaluation tables"})
-    Path(html_path).write_bytes(html)
+                                              "title": "stex evaluation tables"})
+
+
+def write_tables_html(rst_path, html_path) -> None:
+    """The reStructuredText tables of the evaluation as a standalone HTML page, for the
+    Snakemake report (which embeds HTML results)."""
+    Path(html_path).write_bytes(tables_html(Path(rst_path).read_text()))
+
+
+def _nan_for_none(x):
+    if isinstance(x, dict):
+        return {k: _nan_for_none(v) for k, v in x.items()}
+    return math.nan if x is None else x
+
+
+def runs_tables(run_dirs) -> str:
+    """The paper-style tables (:func:`stex.evaluation.rst_tables`) over several runs, one column
+    per run, as the paper lays out its scenes: each ``results/<scene>`` folder's
+    ``evaluation/evaluation.json`` summary and its jobs' wall times (``benchmarks/``).
+
+    A held-out run (e.g. ``results/demo_heldout``) is a column of its own, with the held-out
+    rows. Raises FileNotFoundError for a folder without an evaluation, ValueError for two runs
+    of one scene name.
+    """
+    from stex.evaluation import rst_tables
+
+    summaries, timing = {}, {}
+    for d in map(Path, run_dirs):
+        path = d / "evaluation" / "evaluation.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no evaluation in {d} (run the workflow on that "
+                                    f"scene first)")
+        try:
+            doc = json.loads(path.read_text())
+            name, summary = str(doc.get("scene") or d.name), doc["summary"]
+        except (ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{path}: not an evaluation.json ({e})") from e
+        if name in summaries:
+            raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")
+        summaries[name] = _nan_for_none(summary)
+        timing[name] = stage_timings(d / "benchmarks")
+    if not summaries:
+        raise ValueError("no runs given")
+    return rst_tables(summaries, timing if any(timing.values()) else None)

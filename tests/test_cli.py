@@ -87,3 +87,52 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
     assert main(["preview", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.mp4")]) == 1
     assert "nowhere: no such results folder" in capsys.readouterr().err
     assert not (tmp_path / "p.mp4").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# stex tables: the paper-style tables over runs
+# --------------------------------------------------------------------------------------------
+
+def _fake_run(d, scene, psnr, held_out=()):
+    """A results/<scene> folder with an evaluation.json of 4 frames (ours at ``psnr`` dB, the
+    global texture 2 dB below; no flicker, stored as null) and one job's benchmark file."""
+    import json
+    import math
+
+    from stex.evaluation import _finite_or_none, summarise_frames
+
+    records = [{"frame": t, "position": t, "held_out": t in held_out, "motion_mm": 1.0,
+                "methods": {"ours": {"psnr": psnr + 0.1 * t, "flicker": math.nan},
+                            "global": {"psnr": psnr - 2}}} for t in range(4)]
+    summary = summarise_frames(records, methods=("ours", "global"))
+    summary.update(n_held_out=len(held_out), held_out_label="(1/2)" if held_out else "")
+    (d / "evaluation").mkdir(parents=True)
+    (d / "evaluation" / "evaluation.json").write_text(
+        json.dumps(_finite_or_none({"scene": scene, "summary": summary})))
+    (d / "benchmarks").mkdir()
+    (d / "benchmarks" / "labeling.tsv").write_text("s\th:m:s\n120.0\t0:02:00\n")
+    return d
+
+
+def test_tables_over_runs(tmp_path, capsys):
+    a = _fake_run(tmp_path / "demo", "demo", 30.0)
+    b = _fake_run(tmp_path / "demo_heldout", "demo_heldout", 25.0, held_out=(1, 3))
+    assert main(["tables", str(a), str(b)]) == 0
+    rst = capsys.readouterr().out
+    header = next(line for line in rst.splitlines() if "demo_heldout" in line)
+    assert header.index("demo ") < header.index("demo_heldout")          # a column per run
+    ours = next(line for line in rst.splitlines() if "| Ours " in line)
+    assert "30.15" in ours and "25.15" in ours                            # mean over the 4 frames
+    held = next(line for line in rst.splitlines() if "Ours (1/2)" in line)
+    assert "25.20" in held and "–" in held                                # frames 1, 3; demo has none
+    assert "Computation time" in rst and "2.00" in rst                    # labeling 120 s
+    out = tmp_path / "tables.html"
+    assert main(["tables", str(a), str(b), "--out", str(out)]) == 0
+    assert b"<table" in out.read_bytes() and "wrote" in capsys.readouterr().out
+    # errors: one line, status 1, naming the folder
+    assert main(["tables", str(a), str(tmp_path / "nothing")]) == 1
+    assert "nothing/evaluation/evaluation.json: no evaluation" in capsys.readouterr().err
+    assert main(["tables", str(a), str(a)]) == 1
+    assert "second run of scene 'demo'" in capsys.readouterr().err
+    assert main(["tables", str(a), "--out", str(tmp_path / "t.txt")]) == 1
+    assert ".rst or .html" in capsys.readouterr().err
