@@ -263,6 +263,26 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tm
     assert not any((tmp_path / f"m{k}").exists() for k in range(1, 5))
 
 
+def test_blocks_score_every_stride_th_frame_of_the_scene(pipe, tmp_path):
+    """With evaluation.stride the frames to score are every k-th of the whole scene, whichever
+    block holds them; a block with none of them writes an empty record list."""
+    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
+    docs = [score_frames(*_args(pipe), tmp_path / f"b{b}.json", {"stride": 5},
+                         global_texture_path=pipe["global_texture"], block=block)
+            for b, block in enumerate(blocks)]
+    assert [d["scored_frames"] for d in docs] == [[0], [5]]
+    assert [[r["frame"] for r in d["frames"]] for d in docs] == [[0], [5]]
+    empty = score_frames(*_args(pipe), tmp_path / "none.json", {"stride": 5},
+                         global_texture_path=pipe["global_texture"], block=[1, 4])
+    assert empty["frames"] == [] and json.loads((tmp_path / "none.json").read_text())["frames"] == []
+    res = _evaluate(pipe, tmp_path / "eval", params={"stride": 5},
+                    records_paths=[tmp_path / "b0.json", tmp_path / "none.json", tmp_path / "b1.json"])
+    assert res["scored_frames"] == [0, 5] and [r["frame"] for r in res["frames"]] == [0, 5]
+    with pytest.raises(ValueError, match="outside the scene"):
+        score_frames(*_args(pipe), tmp_path / "x.json", global_texture_path=pipe["global_texture"],
+                     block=[4, 9])
+
+
 def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
     tables = []
     for k, p in enumerate(pipe["tables"]):
