@@ -127,6 +127,21 @@ def _bbox(m: np.ndarray):
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
+def _crop(mask, images, margin: int):
+    """``images`` (each (H, W[, C]); None passes through) and ``mask`` ((H, W) bool) cut to the
+    mask's bounding box plus ``margin`` px (clamped to the image), so that masked scores convert
+    and check only the pixels they read; an empty mask or None leaves everything whole."""
+    if mask is None:
+        return mask, images
+    m = np.asarray(mask)
+    if m.ndim != 2 or not m.any() or any(np.shape(x)[:2] != m.shape for x in images if x is not None):
+        return mask, images          # the callers' own checks report shapes; empty stays empty
+    r0, r1, c0, c1 = _bbox(m)
+    r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
+    r1, c1 = min(m.shape[0], r1 + margin), min(m.shape[1], c1 + margin)
+    return m[r0:r1, c0:c1], [None if x is None else np.asarray(x)[r0:r1, c0:c1] for x in images]
+
+
 def psnr_from_mse(mse, data_range=255.0, cap=PSNR_CAP):
     """PSNR in dB, ``min(cap, 10 log10(data_range^2 / mse))``; ``cap`` where mse <= 0; NaN stays NaN.
 
@@ -314,6 +329,7 @@ def masked_psnr(reference, test, mask=None, data_range=255.0) -> dict:
     Returns:
         dict ``psnr`` (dB, capped at 100), ``mse`` (grey levels^2), ``n_pixels``.
     """
+    mask, (reference, test) = _crop(mask, [reference, test], 0)
     ref, tst = _pair(reference, test)
     m = _mask(mask, ref.shape[:2])
     n = int(m.sum())
@@ -562,9 +578,11 @@ def render_texture(vertices, faces, texcoords, texcoord_faces, texture, K, width
     """
     image, mask = render_textured(vertices, faces, texcoords, texcoord_faces, texture, K,
                                   width, height)
-    if quantize:
-        image = np.clip(np.rint(image), 0.0, 255.0).astype(np.float32)
-    image[~mask] = 0.0
+    # render_textured leaves 0 where empty: round and clip only the mask's bounding box
+    if quantize and mask.any():
+        r0, r1, c0, c1 = _bbox(mask)
+        sub = image[r0:r1, c0:c1]
+        np.clip(np.rint(sub, out=sub), 0.0, 255.0, out=sub)
     return image, mask
 
 
@@ -655,6 +673,9 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False) -> 
         ``mse_*`` and ``n_all``, ``n_seen``, ``n_unseen`` (pixels); with ``ssim=True`` also
         ``ssim_all``, ``ssim_seen``, ``ssim_unseen`` (:func:`masked_ssim` over each region).
     """
+    # every region lies in the mask: its bounding box, with room for the SSIM window, suffices
+    # (a box edge that is not the image's stays more than the window from every scored pixel)
+    mask, (reference, test, region) = _crop(mask, [reference, test, region], 2 * _SSIM_PAD + 2)
     ref, tst = _pair(reference, test)
     m = _mask(mask, ref.shape[:2])
     reg = _mask(region, ref.shape[:2], name="region")

@@ -164,6 +164,27 @@ def test_masked_ssim_matches_skimage():
     assert small["n_pixels"] == mask.sum()
 
 
+def test_region_scores_on_the_masks_box_equal_the_full_image_ones():
+    """region_psnr works on the mask's bounding box (plus the SSIM window): the same PSNR and
+    SSIM as over the whole image, for a mask inside the image and one touching its border."""
+    ref = textured_image(seed=13)
+    tst = np.clip(ref + np.random.default_rng(14).normal(0, 10, ref.shape), 0, 255)
+    kw = dict(data_range=255.0, channel_axis=-1, gaussian_weights=True, sigma=1.5,
+              use_sample_covariance=False)
+    S = structural_similarity(ref, tst, full=True, **kw)[1].mean(axis=-1)
+    H, W = ref.shape[:2]
+    inside = np.zeros((H, W), bool)
+    inside[5:H - 5, 5:W - 5] = True                        # skimage leaves the 5 px border out
+    region = (np.arange(W) % 7 < 3)[None, :].repeat(H, axis=0)   # stripes: splits any disk
+    for mask in (disk(H, W, 30, cy=70, cx=150), disk(H, W, 40, cy=10, cx=W - 12)):
+        r = ev.region_psnr(ref, tst, mask, region, ssim=True)
+        for name, sel in (("all", mask), ("seen", mask & region), ("unseen", mask & ~region)):
+            d = (ref - tst)[sel]
+            assert r[f"psnr_{name}"] == pytest.approx(10 * np.log10(255.0 ** 2 / np.mean(d * d)), abs=1e-9)
+            assert r[f"ssim_{name}"] == pytest.approx(S[sel & inside].mean(), abs=1e-12)
+            assert r[f"n_{name}"] == sel.sum()
+
+
 # ---------------------------------------------------------------------------------------- blur
 
 def test_blur_orders_sharp_and_blurred():
