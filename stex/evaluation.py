@@ -92,6 +92,7 @@ __all__ = [
     "dynamism_regions",
     "score_frames",
     "write_evaluation",
+    "nan_for_none",
 ]
 
 #: Methods scored by :func:`write_evaluation`, in table order.
@@ -910,12 +911,15 @@ def _json_params(p: dict) -> dict:
     return json.loads(json.dumps(_finite_or_none(p)))
 
 
-def _nan_for_none(rec: dict) -> dict:
-    """A record read from JSON with NaN back in place of null (as :func:`_score` returns it)."""
-    def f(x):
-        return math.nan if x is None else x
-    return {**rec, "motion_mm": f(rec["motion_mm"]),
-            "methods": {m: {k: f(v) for k, v in s.items()} for m, s in rec["methods"].items()}}
+def nan_for_none(x):
+    """The inverse of ``_finite_or_none`` for what ``evaluation.json`` files hold: every null
+    (in nested dicts and lists) back to NaN, so that records and summaries read from JSON score
+    and summarise as the ones computed in-process."""
+    if isinstance(x, dict):
+        return {k: nan_for_none(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [nan_for_none(v) for v in x]
+    return math.nan if x is None else x
 
 
 def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_path,
@@ -987,7 +991,7 @@ def _load_records(records_paths, inp: _Inputs) -> tuple[list[dict], float]:
             raise ValueError(f"{path} was scored on frames {short_ids(doc['frame_ids'])} with "
                              f"source frames {short_ids(doc['source_frames'])}; the scene has "
                              f"{short_ids(inp.ids)}, sources {short_ids(inp.sources)}")
-        records += [_nan_for_none(r) for r in doc["frames"]]
+        records += nan_for_none(doc["frames"])
         seconds += float(doc["seconds"])
     records.sort(key=lambda r: r["position"])
     got = [r["frame"] for r in records]
@@ -1066,7 +1070,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                  len(records), len(records_paths), seconds_scoring)
 
     # vertex motion of every frame (the blur figure's x axis)
-    tracked = inp.tracking["vertices"]
+    tracked = np.asarray(inp.tracking["vertices"][...])
     motion = np.full(T, math.nan)
     for t in range(1, T):
         motion[t] = vertex_motion(tracked[t - 1], tracked[t])

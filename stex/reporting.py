@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 from pathlib import Path
 
 __all__ = ["stage_timings", "write_tables_html", "tables_html", "runs_tables"]
@@ -45,12 +44,6 @@ def write_tables_html(rst_path, html_path) -> None:
     Path(html_path).write_bytes(tables_html(Path(rst_path).read_text()))
 
 
-def _nan_for_none(x):
-    if isinstance(x, dict):
-        return {k: _nan_for_none(v) for k, v in x.items()}
-    return math.nan if x is None else x
-
-
 def runs_tables(run_dirs) -> str:
     """The paper-style tables (:func:`stex.evaluation.rst_tables`) over several runs, one column
     per run, as the paper lays out its scenes: each ``results/<scene>`` folder's
@@ -60,7 +53,7 @@ def runs_tables(run_dirs) -> str:
     rows. Raises FileNotFoundError for a folder without an evaluation, ValueError for two runs
     of one scene name.
     """
-    from stex.evaluation import rst_tables
+    from stex.evaluation import nan_for_none, rst_tables
 
     summaries, timing = {}, {}
     for d in map(Path, run_dirs):
@@ -75,7 +68,7 @@ def runs_tables(run_dirs) -> str:
             raise ValueError(f"{path}: not an evaluation.json ({e})") from e
         if name in summaries:
             raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")
-        summaries[name] = _nan_for_none(summary)
+        summaries[name] = nan_for_none(summary)
         timing[name] = stage_timings(d / "benchmarks")
     if not summaries:
         raise ValueError("no runs given")
