@@ -717,10 +717,11 @@ class _Inputs:
         sources = set(global_sources)
         k = global_store.attrs.get("params", {}).get("source_stride")
         if tables_paths:
-            src = open_store(list(tables_paths)[0], "tables").attrs.get("source_frames")
+            tables_attrs = open_store(list(tables_paths)[0], "tables").attrs
+            src = tables_attrs.get("source_frames")
             if src is not None:
                 sources = {int(i) for i in src}
-                k = open_store(list(tables_paths)[0], "tables").attrs.get("params", {}).get("source_stride")
+                k = tables_attrs.get("params", {}).get("source_stride")
             if sorted(sources) != sorted(global_sources):
                 raise ValueError(f"global_texture store {global_texture_path} was built from source "
                                  f"frames {short_ids(sorted(global_sources))}, the tables "
