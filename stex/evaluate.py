@@ -32,18 +32,22 @@ Metrics
   with texture per frame.
 - :func:`render_texture`, :func:`novel_view`, :func:`input_view_visibility`,
   :func:`seen_mask_in_view`, :func:`region_psnr` — ground-truth scores from novel views, split
-  into surface seen / unseen by the input camera at that frame.
+  into surface seen / unseen by the input camera at that frame. :func:`mesh_view`,
+  :func:`view_texture` and :func:`view_seen` do what :func:`render_texture` and
+  :func:`seen_mask_in_view` do from one rasterisation, for several textures on one mesh.
 - :func:`temporal_flicker` — frame-to-frame change minus the true change.
 - :func:`summarise` — mean / median / min / max / n of a list of per-frame scores.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
 
-from stex.render import face_visibility, rasterize, render_textured
+from stex.render import face_visibility, pixel_texcoords, rasterize, sample_texture
 
 __all__ = [
     "PSNR_CAP",
@@ -61,6 +65,10 @@ __all__ = [
     "face_coverage",
     "projection_coverage",
     "render_texture",
+    "MeshView",
+    "mesh_view",
+    "view_texture",
+    "view_seen",
     "novel_view",
     "input_view_visibility",
     "seen_mask_in_view",
@@ -97,8 +105,9 @@ def _image(x, name) -> np.ndarray:
     if a.ndim not in (2, 3) or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
         raise ValueError(f"{name} must be an (H, W) or (H, W, C) numeric image, got shape {a.shape}"
                          f" dtype {a.dtype}")
+    finite = not np.issubdtype(a.dtype, np.floating)  # integers and bools cannot be NaN
     a = a.astype(np.float64, copy=False)
-    if not np.isfinite(a).all():
+    if not finite and not np.isfinite(a).all():
         raise ValueError(f"{name} contains non-finite values ({int((~np.isfinite(a)).sum())} of {a.size})")
     return a[..., None] if a.ndim == 2 else a
 
@@ -109,6 +118,19 @@ def _pair(reference, test):
     if ref.shape != tst.shape:
         raise ValueError(f"reference and test images differ in shape: {ref.shape} vs {tst.shape}")
     return ref, tst
+
+
+def _same_shape(reference, test) -> tuple[int, int]:
+    """(H, W) of two images :func:`_pair` would accept, checked without converting them."""
+    a, b = np.asarray(reference), np.asarray(test)
+    for x, name in ((a, "reference"), (b, "test")):
+        if x.ndim not in (2, 3):
+            _image(x, name)  # raises its error
+    sa = a.shape if a.ndim == 3 else a.shape + (1,)
+    sb = b.shape if b.ndim == 3 else b.shape + (1,)
+    if sa != sb:
+        raise ValueError(f"reference and test images differ in shape: {sa} vs {sb}")
+    return a.shape[0], a.shape[1]
 
 
 def _mask(mask, shape, name="mask") -> np.ndarray:
@@ -166,12 +188,14 @@ def _shift_order(radius):
 
 
 @njit(cache=True, nogil=True)
-def _patch_shift_kernel(refg, mg, tp, oy, ox, r0, c0, P, r, shifts, best, best_k, sse0):
+def _patch_shift_kernel(refg, mg, tp, oy, ox, P, r, shifts, best, best_k, sse0):
     """Per patch n (grid origin (oy[n], ox[n])): the minimum masked SSE over ``shifts``.
 
     refg (Hg, Wg, C) / mg (Hg, Wg): reference and mask on the grid (grid (0, 0) = image
-    (r0, c0)); tp: test edge-padded by r. Shifts are tried in order; a shift replaces the best
-    only if strictly smaller, and stops accumulating once it exceeds the best (same result).
+    (r0, c0)); tp: test from image (r0 - r, c0 - r) on, edge-padded past the image, so that
+    grid (y, x) shifted by (dy, dx) reads tp[y + dy + r, x + dx + r]. Shifts are tried in
+    order; a shift replaces the best only if strictly smaller, and stops accumulating once it
+    exceeds the best (same result).
     """
     C = refg.shape[2]
     for n in range(oy.shape[0]):
@@ -179,8 +203,8 @@ def _patch_shift_kernel(refg, mg, tp, oy, ox, r0, c0, P, r, shifts, best, best_k
         b = np.inf
         bk = 0
         for k in range(shifts.shape[0]):
-            ty0 = r0 + gy0 + shifts[k, 0] + r
-            tx0 = c0 + gx0 + shifts[k, 1] + r
+            ty0 = gy0 + shifts[k, 0] + r
+            tx0 = gx0 + shifts[k, 1] + r
             sse = 0.0
             for i in range(P):
                 for j in range(P):
@@ -255,8 +279,7 @@ def patch_shift_psnr(reference, test, mask, patch=DEFAULT_PATCH, radius=DEFAULT_
         small), and the parameters ``patch``, ``radius``, ``data_range``, ``min_fraction``.
         Scores are NaN when no patch counts.
     """
-    ref, tst = _pair(reference, test)
-    H, W, C = ref.shape
+    H, W = _same_shape(reference, test)
     m = _mask(mask, (H, W))
     P, r = int(patch), int(radius)
     if P < 1 or r < 0:
@@ -283,20 +306,24 @@ def patch_shift_psnr(reference, test, mask, patch=DEFAULT_PATCH, radius=DEFAULT_
     N = py.size
     if N == 0:
         return nan_result
+    ref = _image(np.asarray(reference)[r0:r0 + hh, c0:c0 + ww], "reference")
+    C = ref.shape[2]
     refg = np.zeros((Hg, Wg, C))
-    refg[:hh, :ww] = ref[r0:r0 + hh, c0:c0 + ww]
+    refg[:hh, :ww] = ref
     n_p = counts[py, px].astype(np.float64)
 
-    # test, edge-padded by r (and far enough to cover the grid): test[y, x] = tp[y + r, x + r]
-    pad_b = max(0, r0 + Hg - H)
-    pad_r = max(0, c0 + Wg - W)
-    tp = np.ascontiguousarray(np.pad(tst, ((r, r + pad_b), (r, r + pad_r), (0, 0)), mode="edge"))
+    # the part of test the search reads, rows r0 - r .. r0 + Hg + r (columns alike), edge-padded
+    # where that runs past the image: test[y, x] = tp[y - r0 + r, x - c0 + r]
+    y0, y1, x0, x1 = r0 - r, r0 + Hg + r, c0 - r, c0 + Wg + r
+    tst = _image(np.asarray(test)[max(0, y0):min(H, y1), max(0, x0):min(W, x1)], "test")
+    pads = ((max(0, -y0), max(0, y1 - H)), (max(0, -x0), max(0, x1 - W)), (0, 0))
+    tp = np.ascontiguousarray(np.pad(tst, pads, mode="edge") if any(map(any, pads)) else tst)
     shifts = np.asarray(_shift_order(r), dtype=np.int64)  # (0, 0) first
     best = np.empty(N)
     best_k = np.empty(N, dtype=np.int64)
     sse0 = np.empty(N)
     _patch_shift_kernel(np.ascontiguousarray(refg), mg, tp, (py * P).astype(np.int64),
-                        (px * P).astype(np.int64), r0, c0, P, r, shifts, best, best_k, sse0)
+                        (px * P).astype(np.int64), P, r, shifts, best, best_k, sse0)
 
     denom = C * n_p
     mse = float(best.sum() / denom.sum())
@@ -360,6 +387,9 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
     Returns:
         dict ``ssim`` (dimensionless, <= 1), ``n_pixels`` (pixels averaged).
     """
+    # the box plus twice the window keeps every scored pixel's window inside the crop, and the
+    # image border where the box reaches it (as region_psnr)
+    mask, (reference, test) = _crop(mask, [reference, test], 2 * _SSIM_PAD + 2)
     ref, tst = _pair(reference, test)
     return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range)[0]
 
@@ -434,8 +464,10 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
     """
     from skimage.measure import blur_effect
 
-    img = _image(image, "image") / float(data_range)
-    H, W, C = img.shape
+    raw = np.asarray(image)
+    if raw.ndim not in (2, 3):
+        _image(raw, "image")  # raises its error
+    H, W = raw.shape[:2]
     m = _mask(mask, (H, W))
     if fill not in ("nearest", "mean", "none"):
         raise ValueError(f"fill must be 'nearest', 'mean' or 'none', got {fill!r}")
@@ -449,7 +481,8 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
     if not m.any():
         return dict(res, blur=np.nan, bbox=None)
     r0, r1, c0, c1 = _bbox(m)
-    crop = img[r0:r1, c0:c1].copy()
+    crop = _image(raw[r0:r1, c0:c1], "image") / float(data_range)  # a new array: filled below
+    C = crop.shape[2]
     mc = m[r0:r1, c0:c1]
     if min(crop.shape[:2]) < 4:
         return dict(res, blur=np.nan, bbox=(r0, r1, c0, c1))
@@ -557,13 +590,62 @@ def projection_coverage(visible, face_area=None) -> np.ndarray:
 # ground truth: renders, novel views, seen / unseen regions
 # --------------------------------------------------------------------------------------------
 
+class MeshView(NamedTuple):
+    """A mesh rasterised in one camera, ready to show any texture of its atlas
+    (:func:`view_texture`) and any per-face flag (:func:`view_seen`)."""
+
+    face_id: np.ndarray  #: (H, W) int32 nearest face at each pixel centre, -1 = empty
+    mask: np.ndarray     #: (H, W) bool, face_id >= 0
+    uv: np.ndarray       #: (N, 2) float64 texcoords of the mask's pixels, row-major
+
+
+def mesh_view(vertices, faces, texcoords, texcoord_faces, K, width, height) -> MeshView:
+    """Rasterise a mesh once for :func:`view_texture` / :func:`view_seen` (arguments as
+    :func:`render_texture`)."""
+    if np.shape(texcoord_faces)[0] != np.shape(faces)[0]:
+        raise ValueError(f"texcoord_faces has {np.shape(texcoord_faces)[0]} rows but faces has "
+                         f"{np.shape(faces)[0]}")
+    raster = rasterize(vertices, faces, K, width, height)
+    mask, uv = pixel_texcoords(raster, texcoords, texcoord_faces)
+    return MeshView(raster.face_id, mask, uv)
+
+
+def view_texture(view: MeshView, texture, quantize=True) -> np.ndarray:
+    """:func:`render_texture`'s image of ``texture`` on the mesh of ``view``: (H, W, C) float32
+    grey levels, rounded and clipped to 0..255 unless ``quantize`` is False, 0 where empty."""
+    image = sample_texture(view.mask, view.uv, texture)
+    # the image is 0 where empty: round and clip only the mask's bounding box
+    if quantize and view.uv.shape[0]:
+        r0, r1, c0, c1 = _bbox(view.mask)
+        sub = image[r0:r1, c0:c1]
+        np.clip(np.rint(sub, out=sub), 0.0, 255.0, out=sub)
+    return image
+
+
+def view_seen(view: MeshView, face_flag) -> np.ndarray:
+    """(H, W) bool: the pixels of ``view`` whose face has ``face_flag`` ((F,) bool) set, as
+    :func:`seen_mask_in_view` from the view's raster."""
+    return _face_flag_image(view.face_id, face_flag)
+
+
+def _face_flag_image(face_id, face_flag) -> np.ndarray:
+    flag = np.asarray(face_flag, dtype=bool)
+    hit = face_id >= 0
+    if hit.any() and int(face_id.max()) >= flag.shape[0]:
+        raise ValueError(f"face flags hold {flag.shape[0]} faces, the view shows face {int(face_id.max())}")
+    seen = np.zeros(face_id.shape, dtype=bool)
+    seen[hit] = flag[face_id[hit]]
+    return seen
+
+
 def render_texture(vertices, faces, texcoords, texcoord_faces, texture, K, width, height,
                    quantize=True):
     """Render a textured mesh as an 8-bit camera would record it.
 
-    A thin wrapper over :func:`stex.render.render_textured` (perspective-correct texcoords,
-    bilinear clamp-to-edge sampling), rounded to integers and clipped to 0..255 so that renders
-    of the reconstructed and of the true texture are quantised like the input photos.
+    :func:`stex.render.render_textured` (perspective-correct texcoords, bilinear clamp-to-edge
+    sampling), rounded to integers and clipped to 0..255 so that renders of the reconstructed
+    and of the true texture are quantised like the input photos. To render several textures on
+    one mesh, use :func:`mesh_view` once and :func:`view_texture` per texture (the same images).
 
     Args:
         vertices: (V, 3) float camera-space positions, metres. faces: (F, 3) int.
@@ -576,14 +658,8 @@ def render_texture(vertices, faces, texcoords, texcoord_faces, texture, K, width
         image: (height, width, C) float32 grey levels, 0 where empty.
         mask: (height, width) bool, True where the mesh covers the pixel centre.
     """
-    image, mask = render_textured(vertices, faces, texcoords, texcoord_faces, texture, K,
-                                  width, height)
-    # render_textured leaves 0 where empty: round and clip only the mask's bounding box
-    if quantize and mask.any():
-        r0, r1, c0, c1 = _bbox(mask)
-        sub = image[r0:r1, c0:c1]
-        np.clip(np.rint(sub, out=sub), 0.0, 255.0, out=sub)
-    return image, mask
+    view = mesh_view(vertices, faces, texcoords, texcoord_faces, K, width, height)
+    return view_texture(view, texture, quantize), view.mask
 
 
 def novel_view(vertices, angle_deg, center=None, axis=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -655,11 +731,7 @@ def seen_mask_in_view(vertices, faces, face_visible, K, width, height) -> np.nda
     if vis.shape != (np.asarray(faces).shape[0],):
         raise ValueError(f"face_visible must have shape (F,) = ({np.asarray(faces).shape[0]},),"
                          f" got {vis.shape}")
-    fid = rasterize(vertices, faces, K, width, height).face_id
-    seen = np.zeros(fid.shape, dtype=bool)
-    hit = fid >= 0
-    seen[hit] = vis[fid[hit]]
-    return seen
+    return _face_flag_image(rasterize(vertices, faces, K, width, height).face_id, vis)
 
 
 def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False) -> dict:
@@ -714,6 +786,8 @@ def temporal_flicker(recon_prev, recon_cur, true_prev, true_cur, mask=None) -> d
         dict ``flicker``, ``excess``, ``recon_change`` (mean d_rec), ``true_change`` (mean d_true),
         all in grey levels, and ``n_pixels``.
     """
+    mask, (recon_prev, recon_cur, true_prev, true_cur) = _crop(
+        mask, [recon_prev, recon_cur, true_prev, true_cur], 0)
     a0, a1 = _pair(recon_prev, recon_cur)
     b0, b1 = _pair(true_prev, true_cur)
     if a0.shape != b0.shape:

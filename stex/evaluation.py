@@ -14,8 +14,11 @@ What it computes
   tracked mesh against the TRUE appearance on the TRUE mesh, from a novel view (default: 180°
   about the vertical axis through the true object's centre) and from the input view, split into
   the regions seen / unseen by the camera at t.
-- :func:`image_scores`, :func:`coverage_scores`, :func:`truth_views`, :func:`method_views` —
-  the pieces of :func:`score_frame`, for callers that score other images.
+- :func:`score_methods` — :func:`score_frame` for several methods' slices on one frame's mesh,
+  which shares what does not depend on the texture (the rasterised mesh, the photo's blur).
+- :func:`image_scores`, :func:`reference_blur`, :func:`coverage_scores`, :func:`truth_views`,
+  :func:`frame_views`, :func:`method_views` — the pieces of :func:`score_frame`, for callers
+  that score other images.
 - :func:`write_evaluation` — the stage: reads the Kim 2019 global texture over the source
   frames (the ``global_texture`` store, :func:`stex.baseline.write_global_texture`), builds the
   naive per-frame projection baseline, scores ``ours`` (corrected volume),
@@ -81,8 +84,11 @@ __all__ = [
     "image_scores",
     "coverage_scores",
     "truth_views",
+    "frame_views",
     "method_views",
+    "reference_blur",
     "score_frame",
+    "score_methods",
     "vertex_motion",
     "summarise_frames",
     "SUMMARY_METRICS",
@@ -155,8 +161,18 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum() / u) if u else math.nan
 
 
+def reference_blur(reference, mask, h_size=ev.DEFAULT_H_SIZE,
+                   blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
+    """``blur_input`` and ``blur_input_interior`` of :func:`image_scores`: the photo's own blur
+    inside ``mask`` and inside it eroded by ``blur_interior_px``, which depend on no render."""
+    return {"blur_input": ev.blur(reference, mask, h_size=h_size)["blur"],
+            "blur_input_interior": ev.blur(reference, mask, h_size=h_size,
+                                           erode_px=blur_interior_px)["blur"]}
+
+
 def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAULT_RADIUS,
-                 h_size=ev.DEFAULT_H_SIZE, blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
+                 h_size=ev.DEFAULT_H_SIZE, blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX,
+                 reference_scores=None) -> dict:
     """The input-view scores of one render against one photo, inside ``mask``.
 
     Args:
@@ -165,6 +181,8 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         mask: (H, W) bool, the scored pixels.
         patch, radius: patch-shift PSNR P and r (px). h_size: blur filter length (px).
         blur_interior_px: the mask's erosion (px) for the ``*_interior`` blur scores.
+        reference_scores: :func:`reference_blur` of ``reference`` in ``mask`` with the same
+            settings, when several renders are scored against one photo; None computes it.
 
     Returns:
         dict ``psnr`` (patch-shift, dB), ``psnr_unshifted`` (same patches, no shift, dB),
@@ -186,15 +204,16 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
     # not with the render's black background, so the score is about the texture
     composite = np.where(m[..., None], tst, ref)
     ps = ev.patch_shift_psnr(ref, tst, m, patch=patch, radius=radius)
+    rb = reference_scores or reference_blur(ref, m, h_size, blur_interior_px)
     return {
         "psnr": ps["psnr"],
         "psnr_unshifted": ps["psnr_unshifted"],
         "psnr_plain": ev.masked_psnr(ref, tst, m)["psnr"],
         "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
         "blur": ev.blur(tst, m, h_size=h_size)["blur"],
-        "blur_input": ev.blur(ref, m, h_size=h_size)["blur"],
+        "blur_input": rb["blur_input"],
         "blur_interior": ev.blur(tst, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
-        "blur_input_interior": ev.blur(ref, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
+        "blur_input_interior": rb["blur_input_interior"],
         "mean_shift_px": ps["mean_shift_px"],
         "n_patches": ps["n_patches"],
         "n_pixels": int(m.sum()),
@@ -263,8 +282,44 @@ def truth_views(true_vertices, true_atlas, appearance, calibration,
     }
 
 
+def frame_views(vertices, atlas, calibration, novel_transform=None, face_visible=None,
+                seen_faces=None, input_view=True) -> dict:
+    """One frame's mesh rasterised once for every method's texture (:func:`method_views`).
+
+    Args:
+        vertices: (V, 3) vertices at this frame (tracked, or the true surface in the template's
+            topology), depth-camera coordinates (m).
+        atlas, calibration: as :func:`method_views`.
+        novel_transform: (4, 4) from :func:`truth_views`, or None (no novel view).
+        face_visible: (F,) bool faces the camera sees at this frame, or None.
+        seen_faces: (F,) bool faces some source frame saw, or None.
+        input_view: False leaves the input camera's view out (only the novel view is needed).
+
+    Returns:
+        dict of :class:`stex.evaluate.MeshView` ``input`` and ``novel`` (None when not asked
+        for), and (H, W) bool images (None without the flags): ``input_seen`` (pixels of the
+        input view on faces seen at this frame), ``novel_seen`` (the same in the novel view) and
+        ``novel_ever`` (novel-view pixels on faces some source frame saw).
+    """
+    K, w, h, d2c = _camera(calibration)
+    a = _atlas(atlas)
+    Vc = transform_points(d2c, np.asarray(vertices, np.float64))
+    view_in = ev.mesh_view(Vc, a.faces, a.texcoords, a.texcoord_faces, K, w, h) if input_view else None
+    view_nov = None
+    if novel_transform is not None:
+        Vn = transform_points(np.asarray(novel_transform, np.float64), Vc)
+        view_nov = ev.mesh_view(Vn, a.faces, a.texcoords, a.texcoord_faces, K, w, h)
+
+    def seen(view, flag):
+        return None if view is None or flag is None else ev.view_seen(view, flag)
+
+    return {"input": view_in, "novel": view_nov, "input_seen": seen(view_in, face_visible),
+            "novel_seen": seen(view_nov, face_visible),
+            "novel_ever": seen(view_nov, None if face_visible is None else seen_faces)}
+
+
 def method_views(texture, vertices, atlas, calibration, novel_transform=None,
-                 face_visible=None) -> dict:
+                 face_visible=None, geometry=None) -> dict:
     """Renders of one method's texture slice on the tracked mesh.
 
     Args:
@@ -275,23 +330,23 @@ def method_views(texture, vertices, atlas, calibration, novel_transform=None,
         novel_transform: (4, 4) from :func:`truth_views`, or None (no novel view).
         face_visible: (F,) bool faces the camera sees at this frame (projection stage), for the
             seen mask of the novel view; None -> no seen mask.
+        geometry: :func:`frame_views` of these arguments, to share it between textures; None
+            computes it (then ``vertices`` ... ``face_visible`` are used).
 
     Returns:
         dict ``input`` (image float32 (H, W, 3), mask (H, W) bool) and, with a novel transform,
         ``novel`` (image, mask) and ``novel_seen`` ((H, W) bool or None).
     """
-    K, w, h, d2c = _camera(calibration)
-    a = _atlas(atlas)
     tex = np.asarray(texture)
     if tex.ndim != 3 or tex.shape[2] != 3:
         raise ValueError(f"texture must be (W, W, 3), got {tex.shape}")
-    Vc = transform_points(d2c, np.asarray(vertices, np.float64))
-    out = {"input": ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)}
-    if novel_transform is not None:
-        Vn = transform_points(np.asarray(novel_transform, np.float64), Vc)
-        out["novel"] = ev.render_texture(Vn, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)
-        out["novel_seen"] = (None if face_visible is None else
-                             ev.seen_mask_in_view(Vn, a.faces, face_visible, K, w, h))
+    g = geometry or frame_views(vertices, atlas, calibration, novel_transform, face_visible)
+    out = {}
+    if g["input"] is not None:
+        out["input"] = (ev.view_texture(g["input"], tex), g["input"].mask)
+    if g["novel"] is not None:
+        out["novel"] = (ev.view_texture(g["novel"], tex), g["novel"].mask)
+        out["novel_seen"] = g["novel_seen"]
     return out
 
 
@@ -306,17 +361,14 @@ def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen)
     return out
 
 
-def _novel_scores(prefix, truth, views, vertices, a, calibration, seen_faces) -> dict:
-    """Novel-view scores of one render (``views`` of :func:`method_views` on ``vertices``) against
-    the true render: :func:`_truth_region_scores`, and the unseen region split into surface some
-    source frame saw (borrowed from another frame: what the labeling decides) and surface no
-    frame saw (filled: a guess for any method)."""
-    K, w, h, d2c = _camera(calibration)
+def _novel_scores(prefix, truth, views, ever) -> dict:
+    """Novel-view scores of one render (``views`` of :func:`method_views`) against the true
+    render: :func:`_truth_region_scores`, and, with ``ever`` (the novel view's pixels on surface
+    some source frame saw, or None), the unseen region split into surface some source frame saw
+    (borrowed from another frame: what the labeling decides) and surface no frame saw (filled: a
+    guess for any method)."""
     out = _truth_region_scores(prefix, *truth["novel"], *views["novel"], views["novel_seen"])
-    if seen_faces is not None and views["novel_seen"] is not None:
-        Vn = transform_points(np.asarray(truth["novel_transform"], np.float64),
-                              transform_points(d2c, np.asarray(vertices, np.float64)))
-        ever = ev.seen_mask_in_view(Vn, a.faces, seen_faces, K, w, h)
+    if ever is not None:
         (t_img, t_mask), (r_img, r_mask) = truth["novel"], views["novel"]
         r = ev.region_psnr(t_img, r_img, t_mask & r_mask & ~views["novel_seen"], ever)
         out.update({f"{prefix}_psnr_borrowed": r["psnr_seen"], f"{prefix}_n_borrowed": r["n_seen"],
@@ -363,6 +415,32 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         ``template_vertices``, the same novel-view keys with prefix ``gt_truegeom`` for the
         texture rendered on the true surface instead of the tracked one.
     """
+    return score_methods({"method": texture}, vertices, atlas, image, mask, calibration,
+                         face_has_texture=None if face_has_texture is None else {"method": face_has_texture},
+                         seen_faces=seen_faces, face_visible=face_visible, truth=truth,
+                         novel_angle_deg=novel_angle_deg, patch=patch, radius=radius, h_size=h_size,
+                         return_views=return_views, blur_interior_px=blur_interior_px)["method"]
+
+
+def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
+                  face_has_texture: dict | None = None, seen_faces=None, face_visible=None,
+                  truth=None, novel_angle_deg=180.0, patch=ev.DEFAULT_PATCH,
+                  radius=ev.DEFAULT_RADIUS, h_size=ev.DEFAULT_H_SIZE, return_views=False,
+                  blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
+    """:func:`score_frame` of several methods' texture slices on one frame's mesh.
+
+    Every method is rendered on the same geometry, so the mesh is rasterised once per view and
+    what depends only on the photo, the mesh or the truth (the photo's and the true render's
+    blur, the seen masks) is computed once; the scores equal :func:`score_frame`'s per method.
+
+    Args:
+        textures: {name: (W, W, 3) uint8 texture slice in ``atlas``}.
+        face_has_texture: {name: (F,) bool} (the same names), or None.
+        the rest: as :func:`score_frame`.
+
+    Returns:
+        {name: :func:`score_frame`'s dict}, in the order of ``textures``.
+    """
     K, w, h, _ = _camera(calibration)
     img = np.asarray(image)
     if img.shape != (h, w, 3):
@@ -370,46 +448,57 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
     m = np.asarray(mask, bool)
     if m.shape != (h, w):
         raise ValueError(f"mask must be ({h}, {w}), got {m.shape}")
+    if face_has_texture is not None and set(face_has_texture) != set(textures):
+        raise ValueError(f"face_has_texture names {sorted(face_has_texture)} differ from the "
+                         f"textures' {sorted(textures)}")
     a = _atlas(atlas)
     if truth is not None and not isinstance(truth, dict):
         truth = truth_views(*truth, calibration, novel_angle_deg)
-    views = method_views(texture, vertices, a, calibration,
-                         None if truth is None else truth["novel_transform"], face_visible)
-    rec, rmask = views["input"]
-    out = image_scores(img, rec, m & rmask, patch=patch, radius=radius, h_size=h_size,
-                       blur_interior_px=blur_interior_px)
-    out["mask_iou"] = _iou(m, rmask)
-    if face_has_texture is not None:
-        area = ev.face_areas(vertices, a.faces)
-        out.update(coverage_scores(face_has_texture, area, seen_faces))
+    novel_t = None if truth is None else truth["novel_transform"]
+    geom = frame_views(vertices, a, calibration, novel_t, face_visible,
+                       seen_faces if truth is not None else None)
+    rmask = geom["input"].mask
+    scored = m & rmask
+    photo_blur = reference_blur(img, scored, h_size, blur_interior_px)
+    area = None if face_has_texture is None else ev.face_areas(vertices, a.faces)
+    surface = surface_geom = same = None
     if truth is not None:
-        seen_in = None
-        if face_visible is not None:
-            Vc = transform_points(_camera(calibration)[3], np.asarray(vertices, np.float64))
-            seen_in = ev.seen_mask_in_view(Vc, a.faces, face_visible, K, w, h)
-        out.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, seen_in))
         # the sharpness a texture can have through this renderer: the true appearance rendered
         # in the same view (no sensor noise, which the Crete metric reads as sharpness)
         t_img, t_mask = truth["input"]
-        t_scored = m & rmask & t_mask
-        out["blur_truth"] = ev.blur(t_img, t_scored, h_size=h_size)["blur"]
-        out["blur_truth_interior"] = ev.blur(t_img, t_scored, h_size=h_size,
-                                             erode_px=blur_interior_px)["blur"]
-        out.update(_novel_scores("gt_novel", truth, views, vertices, a, calibration, seen_faces))
+        t_scored = scored & t_mask
+        truth_blur = {"blur_truth": ev.blur(t_img, t_scored, h_size=h_size)["blur"],
+                      "blur_truth_interior": ev.blur(t_img, t_scored, h_size=h_size,
+                                                     erode_px=blur_interior_px)["blur"]}
         surface = truth.get("template_vertices")
         if surface is not None:
             # the same texture on the true surface: what is left is the texture's own error
-            # (the tracked mesh adds its geometric error to every method); 'given' meshes without
-            # drift are the true surface already (to float32, the tracking store's precision),
-            # and their renders are reused
+            # (the tracked mesh adds its geometric error to every method); 'given' meshes
+            # without drift are the true surface already (to float32, the tracking store's
+            # precision), and their renders are reused
             same = np.array_equal(np.asarray(surface, np.float32), np.asarray(vertices, np.float32))
-            on_surface = (views if same else
-                          method_views(texture, surface, a, calibration, truth["novel_transform"],
-                                       face_visible))
-            out.update(_novel_scores("gt_truegeom", truth, on_surface, surface, a, calibration,
-                                     seen_faces))
-    if return_views:
-        out["views"] = views
+            surface_geom = geom if same else frame_views(surface, a, calibration, novel_t, face_visible,
+                                                         seen_faces, input_view=False)
+    out = {}
+    for name, texture in textures.items():
+        views = method_views(texture, vertices, a, calibration, geometry=geom)
+        rec = views["input"][0]
+        s = image_scores(img, rec, scored, patch=patch, radius=radius, h_size=h_size,
+                         blur_interior_px=blur_interior_px, reference_scores=photo_blur)
+        s["mask_iou"] = _iou(m, rmask)
+        if face_has_texture is not None:
+            s.update(coverage_scores(face_has_texture[name], area, seen_faces))
+        if truth is not None:
+            s.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, geom["input_seen"]))
+            s.update(truth_blur)
+            s.update(_novel_scores("gt_novel", truth, views, geom["novel_ever"]))
+            if surface is not None:
+                on_surface = views if same else method_views(texture, surface, a, calibration,
+                                                             geometry=surface_geom)
+                s.update(_novel_scores("gt_truegeom", truth, on_surface, surface_geom["novel_ever"]))
+        if return_views:
+            s["views"] = views
+        out[name] = s
     return out
 
 
@@ -832,11 +921,10 @@ class _Inputs:
 
     def novel_renders(self, t, tv, texs):
         """Novel-view renders of every method (and the truth) at t, for the flicker."""
-        out = {}
-        for m, tex in texs.items():
-            v = method_views(tex, self.tracking["vertices"][t], self.atlas, self.cal,
-                             tv["novel_transform"], self.face_visible[t])
-            out[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
+        g = frame_views(self.tracking["vertices"][t], self.atlas, self.cal, tv["novel_transform"],
+                        self.face_visible[t], input_view=False)
+        out = {m: (ev.view_texture(g["novel"], tex), g["novel"].mask, g["novel_seen"])
+               for m, tex in texs.items()}
         out["truth"] = tv["novel"]
         return out
 
@@ -857,11 +945,12 @@ def _score_run(inp: _Inputs, frame_ids, progress) -> list[dict]:
         novel_now = {}
         # a property of the photo, not of a method: once per frame, stored with every method
         noise = ev.noise_sigma(image, mask)["sigma"]
-        for m in METHODS:
-            s = score_frame(texs[m], V, inp.atlas, image, mask, inp.cal, face_has_texture=has[m],
-                            seen_faces=inp.seen_faces, face_visible=inp.face_visible[t], truth=tv,
-                            patch=p["patch"], radius=p["radius"], h_size=p["h_size"],
-                            blur_interior_px=p["blur_interior_px"], return_views=tv is not None)
+        scores = score_methods({m: texs[m] for m in METHODS}, V, inp.atlas, image, mask, inp.cal,
+                               face_has_texture=has, seen_faces=inp.seen_faces,
+                               face_visible=inp.face_visible[t], truth=tv, patch=p["patch"],
+                               radius=p["radius"], h_size=p["h_size"],
+                               blur_interior_px=p["blur_interior_px"], return_views=tv is not None)
+        for m, s in scores.items():
             if tv is not None:
                 v = s.pop("views")
                 novel_now[m] = (v["novel"][0], v["novel"][1], v["novel_seen"])
@@ -1262,9 +1351,8 @@ def _picture_side_by_side(path, t, ids, photos, masks, textures, V, atlas, cal, 
     texs = textures(t)
     image = photos.read("color", ids[t])
     shown = ["ours", "global", "projection"]
-    views = {m: method_views(texs[m], V, atlas, cal,
-                             None if tv is None else tv["novel_transform"], face_visible)
-             for m in shown}
+    geom = frame_views(V, atlas, cal, None if tv is None else tv["novel_transform"], face_visible)
+    views = {m: method_views(texs[m], V, atlas, cal, geometry=geom) for m in shown}
     top = [("input", image.astype(np.float32))] + [(m, views[m]["input"][0]) for m in shown]
     box = _crop_box([masks.read("mask", ids[t])] + [views[m]["input"][1] for m in shown])
     rows = [[(METHOD_NAMES[n] if n != "input" else "input photo", im, box) for n, im in top]]

@@ -12,8 +12,10 @@ What it computes
   compares against the surface's tangent plane, not a constant depth, so slanted surfaces are
   not mistaken for occluded ones (see the comment above ``_plane_depth_test``).
 - :func:`interpolate_attributes`, :func:`sample_bilinear`, :func:`texcoords_to_pixels`,
-  :func:`render_textured` — per-pixel attribute interpolation, bilinear image sampling and
-  rendering of a textured mesh (synthetic scenes, evaluation, previews).
+  :func:`pixel_texcoords`, :func:`sample_texture`, :func:`render_textured` — per-pixel attribute
+  interpolation, bilinear image sampling and rendering of a textured mesh (synthetic scenes,
+  evaluation, previews); the last is the first two on one raster, so that several textures on
+  one mesh share the raster.
 
 Conventions
 -----------
@@ -73,6 +75,8 @@ __all__ = [
     "interpolate_attributes",
     "sample_bilinear",
     "texcoords_to_pixels",
+    "pixel_texcoords",
+    "sample_texture",
     "render_textured",
 ]
 
@@ -710,9 +714,59 @@ def texcoords_to_pixels(texcoords, width, height) -> np.ndarray:
     return out
 
 
+def pixel_texcoords(raster: Raster, texcoords, texcoord_faces) -> tuple[np.ndarray, np.ndarray]:
+    """Texture coordinates of the pixel centres a raster covers.
+
+    Args:
+        raster: :class:`Raster` of a mesh (from :func:`rasterize`).
+        texcoords: (Vt, 2) float stex texcoords (see module docstring: v downward, glTF).
+        texcoord_faces: (F, 3) int indices into ``texcoords``, one row per face of the rasterised
+            mesh (may differ from its faces — UV seams).
+
+    Returns:
+        mask: (H, W) bool, True where a face covers the pixel centre.
+        uv: (N, 2) float64 texcoords of the N covered pixels in row-major order (the order of
+            ``image[mask]``), interpolated with the raster's perspective-correct barycentrics.
+    """
+    tc = np.asarray(texcoords, dtype=np.float64)
+    if tc.ndim != 2 or tc.shape[1] != 2:
+        raise ValueError(f"texcoords must have shape (Vt, 2), got {tc.shape}")
+    TF = _check_faces(texcoord_faces, tc.shape[0], name="texcoord_faces")
+    mask = raster.face_id >= 0
+    fid = raster.face_id[mask]
+    if fid.size and int(fid.max()) >= TF.shape[0]:
+        raise ValueError(f"texcoord_faces has {TF.shape[0]} rows but the raster shows face {int(fid.max())}")
+    f = TF[fid]
+    b = raster.bary[mask].astype(np.float64)
+    uv = b[:, 0:1] * tc[f[:, 0]] + b[:, 1:2] * tc[f[:, 1]] + b[:, 2:3] * tc[f[:, 2]]
+    return mask, uv
+
+
+def sample_texture(mask, uv, texture) -> np.ndarray:
+    """An image of ``texture`` sampled bilinearly (clamp-to-edge) at the covered pixels.
+
+    Args:
+        mask, uv: from :func:`pixel_texcoords`.
+        texture: (Ht, Wt, C) (or (Ht, Wt)) image, any numeric dtype.
+
+    Returns:
+        (H, W, C) (or (H, W)) float32 in the texture's value units, 0 where ``mask`` is False.
+    """
+    tex = np.asarray(texture)
+    if tex.ndim not in (2, 3):
+        raise ValueError(f"texture must be (Ht, Wt, C) or (Ht, Wt), got shape {tex.shape}")
+    Ht, Wt = tex.shape[:2]
+    image = np.zeros(mask.shape + tex.shape[2:], dtype=np.float32)
+    if uv.shape[0]:
+        image[mask] = sample_bilinear(tex, texcoords_to_pixels(uv, Wt, Ht))
+    return image
+
+
 def render_textured(vertices, faces, texcoords, texcoord_faces, texture, K, width, height,
                     near=1e-3):
-    """Render a textured mesh: rasterise, interpolate texcoords, sample the texture bilinearly.
+    """Render a textured mesh: rasterise, interpolate texcoords, sample the texture bilinearly
+    (:func:`rasterize`, :func:`pixel_texcoords`, :func:`sample_texture`; to render several
+    textures on one mesh, call those once per mesh and :func:`sample_texture` per texture).
 
     Args:
         vertices: (V, 3) float camera-space positions, metres. faces: (F, 3) int.
@@ -739,14 +793,5 @@ def render_textured(vertices, faces, texcoords, texcoord_faces, texture, K, widt
     tex = np.asarray(texture)
     if tex.ndim not in (2, 3):
         raise ValueError(f"texture must be (Ht, Wt, C) or (Ht, Wt), got shape {tex.shape}")
-    raster = rasterize(V, F, K, width, height, near=near)
-    mask = raster.face_id >= 0
-    Ht, Wt = tex.shape[:2]
-    out_shape = raster.depth.shape + tex.shape[2:]
-    image = np.zeros(out_shape, dtype=np.float32)
-    if mask.any():
-        f = TF[raster.face_id[mask]]
-        b = raster.bary[mask].astype(np.float64)
-        t = b[:, 0:1] * tc[f[:, 0]] + b[:, 1:2] * tc[f[:, 1]] + b[:, 2:3] * tc[f[:, 2]]
-        image[mask] = sample_bilinear(tex, texcoords_to_pixels(t, Wt, Ht))
-    return image, mask
+    mask, uv = pixel_texcoords(rasterize(V, F, K, width, height, near=near), tc, TF)
+    return sample_texture(mask, uv, tex), mask

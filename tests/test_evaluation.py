@@ -11,7 +11,8 @@ from conftest import run_pipeline, tiny_scene_config
 from stex import evaluate as ev
 from stex.camera import Calibration, transform_points
 from stex.evaluation import (METHODS, Atlas, coverage_scores, dynamism_regions, image_scores,
-                             rst_tables, score_frame, score_frames, truth_views, vertex_motion,
+                             rst_tables, score_frame, score_frames, score_methods, truth_views,
+                             vertex_motion,
                              write_evaluation)
 from stex.baseline import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
@@ -159,6 +160,52 @@ def test_texture_on_the_true_surface(frame, pipe):
     assert "gt_truegeom_psnr_unseen" not in score_frame(
         frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"], frame["cal"],
         truth=plain, face_visible=frame["visible"])
+
+
+def test_methods_scored_together_score_as_each_alone(frame, pipe):
+    """score_methods shares the rasterised mesh and the photo's and the truth's blur between
+    textures: every score equals score_frame's for that texture alone, with the true surface
+    apart from the tracked mesh (its own rasters) and with it in the same place (reused)."""
+    from stex.template import transfer_vertices
+    template = open_store(pipe["template"], "template")
+    surface = transfer_vertices(frame["true_V"], frame["true_atlas"].faces,
+                                template["embedding/face"][...], template["embedding/bary"][...])
+    F = len(frame["atlas"].faces)
+    textures = {"ours": frame["ours"], "flipped": np.ascontiguousarray(frame["ours"][::-1]),
+                "grey": np.full_like(frame["ours"], 128)}
+    has = {"ours": np.ones(F, bool), "flipped": frame["visible"], "grey": np.arange(F) % 3 == 0}
+    for V in (frame["V"], surface):
+        tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"],
+                         template_vertices=surface)
+        kw = dict(truth=tv, face_visible=frame["visible"], seen_faces=frame["visible"] | (np.arange(F) % 2 == 0))
+        together = score_methods(textures, V, frame["atlas"], frame["image"], frame["mask"],
+                                 frame["cal"], face_has_texture=has, **kw)
+        assert list(together) == list(textures)
+        for name, tex in textures.items():
+            alone = score_frame(tex, V, frame["atlas"], frame["image"], frame["mask"], frame["cal"],
+                                face_has_texture=has[name], **kw)
+            assert list(together[name]) == list(alone)
+            np.testing.assert_equal(together[name], alone)
+            # and as rendered and scored one by one from the metric functions
+            cal = frame["cal"]
+            K, w, h = cal.color.K, cal.color.width, cal.color.height
+            a = frame["atlas"]
+            Vc = transform_points(cal.depth_to_color, np.asarray(V, np.float64))
+            rec, rmask = ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)
+            direct = image_scores(frame["image"], rec, frame["mask"] & rmask)
+            assert {k: together[name][k] for k in direct} == direct
+            Vn = transform_points(tv["novel_transform"], Vc)
+            nov, nmask = ev.render_texture(Vn, a.faces, a.texcoords, a.texcoord_faces, tex, K, w, h)
+            seen = ev.seen_mask_in_view(Vn, a.faces, frame["visible"], K, w, h)
+            r = ev.region_psnr(*tv["novel"][:1], nov, tv["novel"][1] & nmask, seen, ssim=True)
+            assert r["n_unseen"] > 0
+            for k in ("psnr_seen", "psnr_unseen", "ssim_seen", "ssim_unseen"):
+                np.testing.assert_equal(together[name][f"gt_novel_{k}"], r[k])
+        assert together["grey"]["psnr"] != together["ours"]["psnr"]
+        assert together["grey"]["blur_input"] == together["ours"]["blur_input"]
+    with pytest.raises(ValueError, match="face_has_texture names"):
+        score_methods(textures, frame["V"], frame["atlas"], frame["image"], frame["mask"],
+                      frame["cal"], face_has_texture={"ours": has["ours"]})
 
 
 def test_coverage(evaluation):
