@@ -4,6 +4,7 @@
     stex export results/demo --what mp4 --out out/   # texture volume as PNG/MP4/OBJ/glTF
     stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
     stex tables results/demo results/fox --out tables.html   # the paper's tables, a column per run
+    stex evaluate results/demo --texture mine=my_slices/ --out eval_mine/   # another method beside ours
 
 Errors (missing or incomplete stores, a frame range outside the sequence) print one line on
 stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
@@ -112,6 +113,40 @@ def _run_inspect(args) -> int:
     return status
 
 
+def _run_evaluate(args) -> int:
+    import logging
+
+    from stex.evaluation import evaluate_results
+    from stex.export import parse_frame_range, select_frames
+
+    others = {}
+    for item in args.texture:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--texture {item!r}: expected NAME=PATH")
+        if name in others:
+            raise ValueError(f"--texture: method name {name!r} given twice")
+        others[name] = path
+    frames = None
+    if args.frames is not None:
+        ids = open_store(f"{args.results}/scene.zarr", "scene").attrs["frame_ids"]
+        frames = select_frames(ids, *parse_frame_range(args.frames))
+    # the evaluation logs one line per scored frame: that is the progress
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    log = logging.getLogger("stex.evaluation")
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    try:
+        res = evaluate_results(args.results, args.out, others, frames=frames, stride=args.stride,
+                               threads=args.threads)
+    finally:
+        log.removeHandler(handler)
+    print(f"wrote {args.out}: {len(res['frames'])} frames, methods {', '.join(res['methods'])}")
+    print(open(f"{args.out}/tables.rst").read())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     from stex.export import EXPORT_KINDS, PIX_FMTS, SOURCES
 
@@ -149,6 +184,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("results", nargs="+", help="results/<scene> folders, each with an evaluation")
     p.add_argument("--out", default=None, help="output .rst or .html (default: print the tables)")
     p.set_defaults(run=_run_tables)
+
+    p = sub.add_parser("evaluate", help="score a finished run's methods, and other methods' texture "
+                                        "slices beside them, into a new evaluation folder")
+    p.add_argument("results", help="results/<scene> folder of a finished run")
+    p.add_argument("--texture", action="append", default=[], metavar="NAME=PATH",
+                   help="another method's slices in the run's atlas: a folder of texture_<frame>.png "
+                        "(as 'stex export --what png' writes) or a corrected/volume store or folder "
+                        "of block stores; repeatable")
+    p.add_argument("--out", required=True, help="output folder (not the run's own evaluation/)")
+    p.add_argument("--frames", default=None, help=frames_help)
+    p.add_argument("--stride", type=int, default=None,
+                   help="score every k-th frame (default: the run's evaluation.stride)")
+    p.add_argument("--threads", type=int, default=1, help="frames scored at once (default 1)")
+    p.set_defaults(run=_run_evaluate)
 
     args = parser.parse_args(argv)
     try:

@@ -28,6 +28,9 @@ What it computes
 - :func:`score_frames` — the scoring of :func:`write_evaluation` for one frame block, into a
   JSON file of per-frame records, so that the workflow scores blocks in separate jobs (as soon
   as each block's slices exist) and ``write_evaluation(records_paths=...)`` merges them.
+- :func:`evaluate_results` — :func:`write_evaluation` of a finished run's folder with other
+  methods' texture slices (:class:`TextureSlices`: PNG files or a texture store in the run's
+  atlas) scored beside ours by the same code (``stex evaluate``).
 - :func:`rst_tables` — reStructuredText tables laid out like the paper's Table 3 (reconstruction
   error and blur per method), coverage, ground truth and timing, over one or several scenes.
 
@@ -80,6 +83,8 @@ __all__ = [
     "Atlas",
     "METHODS",
     "METHOD_NAMES",
+    "method_name",
+    "TextureSlices",
     "evaluation_params",
     "image_scores",
     "coverage_scores",
@@ -98,6 +103,7 @@ __all__ = [
     "dynamism_regions",
     "score_frames",
     "write_evaluation",
+    "evaluate_results",
     "nan_for_none",
 ]
 
@@ -125,6 +131,76 @@ class Atlas(NamedTuple):
         template store (prefix "") or a synthetic scene's true template (prefix "template/")."""
         return cls(np.asarray(store[prefix + "faces"][...], np.int64), np.asarray(store[prefix + "texcoords"][...]),
                    np.asarray(store[prefix + "texcoord_faces"][...], np.int64))
+
+
+class TextureSlices:
+    """Another method's texture slices in the run's atlas, to score beside ours.
+
+    ``path`` is either a folder of PNG files ``texture_{frame:05d}.png`` (what ``stex export
+    --what png`` writes; 8-bit RGB, one per frame id) or a stex texture store: a ``corrected``
+    or ``volume`` zarr store, or a folder of such block stores (e.g. another run's
+    ``corrected/``). Black texels (0, 0, 0) count as "no texture" for the coverage scores.
+    """
+
+    PATTERN = "texture_{frame:05d}.png"
+
+    def __init__(self, path):
+        from stex.io import FrameSequence, StoreError
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise StoreError(f"{self.path}: no such texture folder or store")
+        stores = ([self.path] if (self.path / ".zattrs").exists() or (self.path / "zarr.json").exists()
+                  else sorted(self.path.glob("block_*.zarr")))
+        self._seq = None
+        if stores:
+            import zarr
+            kind = zarr.open_group(str(stores[0]), mode="r").attrs.get("stex_artifact")
+            if kind not in ("corrected", "volume"):
+                raise StoreError(f"{stores[0]}: expected a 'corrected' or 'volume' store, found {kind!r}")
+            self._seq = FrameSequence([str(x) for x in stores], kind)
+            self.frame_ids = [int(i) for i in self._seq.frame_ids]
+        else:
+            import re
+            found = {int(m.group(1)): f for f in self.path.glob("texture_*.png")
+                     if (m := re.fullmatch(r"texture_(\d+)\.png", f.name))}
+            if not found:
+                raise StoreError(f"{self.path}: no texture_<frame>.png files and no block_*.zarr stores")
+            self._files = found
+            self.frame_ids = sorted(found)
+
+    def read(self, frame_id: int) -> np.ndarray:
+        """(W, W, 3) uint8 slice of ``frame_id``."""
+        from stex.io import StoreError
+
+        if self._seq is not None:
+            return np.asarray(self._seq.read("texture", frame_id), np.uint8)
+        from PIL import Image
+        f = self._files.get(int(frame_id))
+        if f is None:
+            raise StoreError(f"{self.path}: no {self.PATTERN.format(frame=int(frame_id))}")
+        with Image.open(f) as im:
+            if im.mode != "RGB":
+                raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
+            return np.asarray(im)
+
+
+def _other_methods(others) -> dict:
+    """``{name: TextureSlices}`` of ``{name: path}``, names checked."""
+    import re
+
+    out = {}
+    for name, path in (others or {}).items():
+        if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in METHODS or name in ("input", "truth"):
+            raise ValueError(f"method name {name!r}: use lower-case letters, digits and '_', "
+                             f"not one of {', '.join(METHODS)}, input, truth")
+        out[name] = path if isinstance(path, TextureSlices) else TextureSlices(path)
+    return out
+
+
+def method_name(method: str) -> str:
+    """The name tables and figures show for a method (an other method's own name)."""
+    return METHOD_NAMES.get(method, method)
 
 
 def evaluation_params(params: dict | None = None) -> dict:
@@ -587,31 +663,35 @@ def table_rows(summaries: dict) -> dict:
     """
     scenes = list(summaries)
     rec = [["Metric", "Method"] + scenes]
+    # the pipeline's methods, then other methods scored beside them (stex evaluate --texture)
+    others = list(dict.fromkeys(m for s in scenes for m in summaries[s].get("all", {})
+                                if m not in METHODS))
+    methods = list(METHODS) + others
 
     def add(table, label, method, subset, metric, digits=2, scale=1.0, name=None):
         vals = [_mean(summaries[s], subset, method, metric) for s in scenes]
         if all(not math.isfinite(v) for v in vals):
             return
         first = "" if any(r[0] == label for r in table[1:]) else label   # group label once
-        table.append([first, name or METHOD_NAMES[method]] + [_fmt(v, digits, scale) for v in vals])
+        table.append([first, name or method_name(method)] + [_fmt(v, digits, scale) for v in vals])
 
-    for m in METHODS:
+    for m in methods:
         add(rec, "PSNR, dB (every frame)", m, "all", "psnr")
     for s in scenes:
         if summaries[s].get("n_held_out", 0):
-            for m in ("global", "ours", "ours_uncorrected"):
+            for m in ["global", "ours", "ours_uncorrected"] + others:
                 label = summaries[s].get("held_out_label", "")
                 add(rec, "PSNR, dB (held-out frames)", m, "held_out", "psnr",
-                    name=METHOD_NAMES[m] + (f" {label}" if m.startswith("ours") else ""))
+                    name=method_name(m) + (f" {label}" if m.startswith("ours") else ""))
             break
-    for m in METHODS:
+    for m in methods:
         add(rec, "Plain PSNR, dB (every frame)", m, "all", "psnr_plain")
-    for m in METHODS:
+    for m in methods:
         add(rec, "SSIM (every frame)", m, "all", "ssim", digits=4)
     add(rec, "Blurriness (Crete et al.)", "ours", "all", "blur_input", digits=4, name=METHOD_NAMES["input"])
     add(rec, "Blurriness (Crete et al.)", "ours", "all", "blur_truth", digits=4,
         name="true appearance, rendered")
-    for m in ("global", "ours", "ours_uncorrected", "projection"):
+    for m in ["global", "ours", "ours_uncorrected", "projection"] + others:
         add(rec, "Blurriness (Crete et al.)", m, "all", "blur", digits=4)
     # the same without the silhouette band, where a photo mixes object and background
     bands = sorted({summaries[s].get("blur_interior_px") for s in scenes} - {None})
@@ -619,7 +699,7 @@ def table_rows(summaries: dict) -> dict:
              + " / ".join(str(b) for b in bands) + " px)")
     add(rec, inner, "ours", "all", "blur_input_interior", digits=4, name=METHOD_NAMES["input"])
     add(rec, inner, "ours", "all", "blur_truth_interior", digits=4, name="true appearance, rendered")
-    for m in ("global", "ours", "ours_uncorrected", "projection"):
+    for m in ["global", "ours", "ours_uncorrected", "projection"] + others:
         add(rec, inner, m, "all", "blur_interior", digits=4)
     # the blur metric reads noise as sharpness: how noisy the inputs are belongs beside it
     add(rec, "Noise, grey levels (Immerkær)", "ours", "all", "noise_input", digits=2,
@@ -628,7 +708,7 @@ def table_rows(summaries: dict) -> dict:
     cov = [["Coverage (mean over frames)", "Method"] + scenes]
     for metric, label in (("coverage_faces", "faces, %"), ("coverage_area", "surface area, %"),
                           ("coverage_seen", "of the faces seen by some frame, %")):
-        for m in METHODS:
+        for m in methods:
             add(cov, label, m, "all", metric, digits=1, scale=100.0)
     out = {"reconstruction": rec, "coverage": cov}
 
@@ -644,7 +724,7 @@ def table_rows(summaries: dict) -> dict:
                                   ("gt_truegeom_psnr_borrowed", "on the true surface: PSNR, dB, unseen at t, seen by another frame", 2),
                                   ("gt_truegeom_psnr_never_seen", "on the true surface: PSNR, dB, never seen", 2),
                                   ("flicker", "flicker in borrowed regions, grey levels", 2)):
-        for m in METHODS:
+        for m in methods:
             add(gt, label, m, "all", metric, digits=digits)
     if len(gt) > 1:
         out["ground_truth"] = gt
@@ -753,7 +833,8 @@ class _Inputs:
 
     def __init__(self, scene_path, frames_paths, masks_paths, template_path, tracking_path,
                  projection_path, labels_path, volume_paths, corrected_paths, params, *,
-                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block):
+                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block,
+                 others=None):
         from stex.io import FrameSequence, StoreError, open_store
         from stex.observations import open_coordinates
         from stex.volume import TexelSampler
@@ -890,6 +971,22 @@ class _Inputs:
                        if int(self.volume.attrs.get("never_seen_texels", 0)) > 0
                        else np.zeros(F, bool))
 
+        # other methods' slices, scored beside ours
+        self.others = _other_methods(others)
+        self.methods = METHODS + tuple(self.others)
+        want = set(score_ids)
+        if truth_paths:  # the flicker of a frame compares it with its predecessor
+            want |= {ids[self.pos_of[f] - 1] for f in score_ids if self.pos_of[f] > 0}
+        for name, src in self.others.items():
+            missing = sorted(want - set(src.frame_ids))
+            if missing:
+                raise ValueError(f"method {name!r}: {src.path} has no slices for frames {short_ids(missing)}")
+            first = src.read(score_ids[0] if score_ids else src.frame_ids[0])
+            if first.shape != (W, W, 3):
+                raise ValueError(f"method {name!r}: {src.path} slices are {first.shape}, the atlas "
+                                 f"({template_path}) is ({W}, {W}, 3)")
+        self.texel_face = (np.asarray(template["texel/face_id"][...], np.int64) if self.others else None)
+
     def textures(self, t):
         """Every method's texture slice (W, W, 3) at sequence position t."""
         from stex.baseline import projection_texture
@@ -897,15 +994,29 @@ class _Inputs:
         fid = self.ids[t]
         proj_tex, _ = projection_texture(self.sampler, np.asarray(self.coords[t], np.float64),
                                          self.face_visible[t], self.photos.read("color", fid))
-        return {"ours": self.corrected.read("texture", fid),
-                "ours_uncorrected": self.volume.read("texture", fid),
-                "global": self.global_tex, "projection": proj_tex}
+        out = {"ours": self.corrected.read("texture", fid),
+               "ours_uncorrected": self.volume.read("texture", fid),
+               "global": self.global_tex, "projection": proj_tex}
+        for name, src in self.others.items():
+            tex = src.read(fid)
+            if tex.shape != self.global_tex.shape:
+                raise ValueError(f"method {name!r}: {src.path} slice of frame {fid} is {tex.shape}, "
+                                 f"the atlas is {self.global_tex.shape}")
+            out[name] = tex
+        return out
 
-    def has_texture(self, t):
-        """Every method's faces with texture (F,) bool at position t."""
+    def has_texture(self, t, textures):
+        """Every method's faces with texture (F,) bool at position t (``textures``: what
+        :meth:`textures` gave; an other method textures the faces with a texel not black)."""
         lab = (np.asarray(self.labels[t]) >= 0) | self.filled
-        return {"ours": lab, "ours_uncorrected": lab, "global": self.global_faces,
-                "projection": self.face_visible[t]}
+        out = {"ours": lab, "ours_uncorrected": lab, "global": self.global_faces,
+               "projection": self.face_visible[t]}
+        for name in self.others:
+            has = np.zeros(len(self.atlas.faces), bool)
+            f = self.texel_face[textures[name].any(axis=2)]
+            has[f[f >= 0]] = True
+            out[name] = has
+        return out
 
     def truth_at(self, t):
         """:func:`truth_views` at position t."""
@@ -938,14 +1049,15 @@ def _score_run(inp: _Inputs, frame_ids, progress) -> list[dict]:
         V = inp.tracking["vertices"][t]
         motion = vertex_motion(inp.tracking["vertices"][t - 1], V) if t > 0 else math.nan
         image, mask = inp.photos.read("color", fid), inp.masks.read("mask", fid)
-        texs, has = inp.textures(t), inp.has_texture(t)
+        texs = inp.textures(t)
+        has = inp.has_texture(t, texs)
         tv = inp.truth_at(t) if inp.truth is not None else None
         rec = {"frame": fid, "position": t, "held_out": bool(not inp.is_source[t]),
                "motion_mm": motion, "methods": {}}
         novel_now = {}
         # a property of the photo, not of a method: once per frame, stored with every method
         noise = ev.noise_sigma(image, mask)["sigma"]
-        scores = score_methods({m: texs[m] for m in METHODS}, V, inp.atlas, image, mask, inp.cal,
+        scores = score_methods({m: texs[m] for m in inp.methods}, V, inp.atlas, image, mask, inp.cal,
                                face_has_texture=has, seen_faces=inp.seen_faces,
                                face_visible=inp.face_visible[t], truth=tv, patch=p["patch"],
                                radius=p["radius"], h_size=p["h_size"],
@@ -961,7 +1073,7 @@ def _score_run(inp: _Inputs, frame_ids, progress) -> list[dict]:
         if tv is not None and t > 0:
             prev = prev_novel.get(t - 1) or inp.novel_renders(t - 1, inp.truth_at(t - 1), inp.textures(t - 1))
             tp_img, tp_mask = prev["truth"]
-            for m in METHODS:
+            for m in inp.methods:
                 r_img, r_mask, seen = novel_now[m]
                 p_img, p_mask, p_seen = prev[m]
                 # borrowed in both frames: object in all four renders, unseen at t-1 and at t
@@ -1097,7 +1209,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                      projection_path, labels_path, volume_paths, corrected_paths, out_dir,
                      params: dict | None = None, *, global_texture_path, truth_paths=None,
                      coords_path=None, observations_path=None, tables_paths=None, frames=None,
-                     records_paths=None, timing: dict | None = None, threads: int = 1) -> dict:
+                     records_paths=None, timing: dict | None = None, threads: int = 1,
+                     others: dict | None = None) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
 
     Args:
@@ -1129,6 +1242,10 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         timing: ``{stage: seconds}`` for the timing table, or None.
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
+        others: ``{name: path}`` other methods' texture slices in the template's atlas
+            (:class:`TextureSlices`: a folder of ``texture_<frame>.png`` or a texture store),
+            scored by the same code beside ours and shown in every table under ``name``; not
+            with ``records_paths``.
 
     Writes into ``out_dir``: ``evaluation.json`` (params, per-frame records
     ``frames[i] = {frame, position, held_out, motion_mm, methods: {method: {metric: value}}}``,
@@ -1147,7 +1264,11 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                   projection_path, labels_path, volume_paths, corrected_paths, params,
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
-                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None)
+                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None,
+                  others=others)
+    if inp.others and records_paths is not None:
+        raise ValueError("other methods are scored here, not read from records: give others "
+                         "without records_paths")
     p, ids, T = inp.p, inp.ids, len(inp.ids)
     log.info("evaluation: global texture %s from %d source frames (built in %.1f s)",
              global_texture_path, len(inp.global_sources), inp.seconds_global)
@@ -1165,7 +1286,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     for t in range(1, T):
         motion[t] = vertex_motion(tracked[t - 1], tracked[t])
 
-    summary = summarise_frames(records)
+    summary = summarise_frames(records, inp.methods)
     summary["n_frames"] = len(records)
     summary["n_held_out"] = int(sum(r["held_out"] for r in records))
     summary["held_out_label"] = inp.stride_label
@@ -1178,7 +1299,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         "frame_ids": ids,
         "source_frames": inp.sources,
         "scored_frames": inp.score_ids,
-        "methods": list(METHODS),
+        "methods": list(inp.methods),
         "has_truth": inp.truth is not None,
         "frames": records,
         "summary": summary,
@@ -1229,6 +1350,64 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
 
 
+def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=None,
+                     stride: int | None = None, threads: int = 1) -> dict:
+    """:func:`write_evaluation` of a finished run's folder, with other methods beside ours.
+
+    Finds the stores of ``results/<scene>`` as the workflow lays them out (the scene's own
+    block list, not a glob; ξ or Φ as its observations used; truth on synthetic scenes) and
+    scores them with the run's evaluation settings (its ``evaluation/evaluation.json``, else the
+    defaults).
+
+    Args:
+        results_dir: the run's folder (``results/<scene>``).
+        out_dir: folder to write (as :func:`write_evaluation`; not the run's own
+            ``evaluation``, which the workflow owns).
+        others: ``{name: path}`` other methods' slices (:class:`TextureSlices`).
+        frames: frame ids to consider, or None (all); every ``stride``-th of them is scored.
+        stride: score every k-th frame; None -> the run's setting.
+        threads: frames scored at once.
+
+    Returns:
+        the ``evaluation.json`` content.
+    """
+    from stex.io import StoreError, open_store
+
+    R = Path(results_dir)
+    if not (R / "scene.zarr").exists():
+        raise StoreError(f"{R}: not a results folder (no scene.zarr)")
+    if Path(out_dir).resolve() == (R / "evaluation").resolve():
+        raise ValueError(f"{out_dir} is the run's own evaluation folder: write elsewhere")
+    scene = open_store(R / "scene.zarr", "scene")
+    n_blocks = len(scene.attrs["frame_blocks"])
+
+    def blocks(kind):
+        return [R / kind / f"block_{b:04d}.zarr" for b in range(n_blocks)]
+
+    params = {}
+    previous = R / "evaluation" / "evaluation.json"
+    if previous.exists():
+        params = dict(json.loads(previous.read_text()).get("params", {}))
+    if stride is not None:
+        params["stride"] = int(stride)
+    params = evaluation_params(params)
+    coords = R / "projection.zarr"
+    observations = R / "observations.zarr"
+    if observations.exists():
+        if open_store(observations, "observations").attrs.get("coordinates") == "texcoords":
+            coords = R / "texcoords.zarr"
+    elif (R / "texcoords.zarr").exists():
+        coords = R / "texcoords.zarr"
+    chosen = None if frames is None else [int(f) for f in frames][::int(params["stride"])]
+    return write_evaluation(
+        R / "scene.zarr", blocks("frames"), blocks("masks"), R / "template.zarr", R / "tracking.zarr",
+        R / "projection.zarr", R / "labels.zarr", blocks("volume"), blocks("corrected"), out_dir,
+        params, global_texture_path=R / "global_texture.zarr",
+        truth_paths=blocks("truth") if "truth" in scene else None, coords_path=coords,
+        observations_path=observations if observations.exists() else None,
+        tables_paths=blocks("tables"), frames=chosen, threads=threads, others=others)
+
+
 # --------------------------------------------------------------------------------------------
 # files and figures
 # --------------------------------------------------------------------------------------------
@@ -1269,8 +1448,8 @@ def _plot_psnr(path, records):
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=120)
     x = [r["frame"] for r in records]
-    for m in METHODS:
-        ax.plot(x, [r["methods"][m]["psnr"] for r in records], marker=".", label=METHOD_NAMES[m])
+    for m in (records[0]["methods"] if records else METHODS):
+        ax.plot(x, [r["methods"][m]["psnr"] for r in records], marker=".", label=method_name(m))
     held = [r["frame"] for r in records if r["held_out"]]
     for i, h in enumerate(held):
         ax.axvline(h, color="0.85", lw=3, zorder=0, label="held-out frame" if i == 0 else None)
@@ -1284,8 +1463,9 @@ def _plot_blur_motion(path, records, ids, motion):
     ax.plot(x, [r["methods"]["ours"]["blur_input"] for r in records], "k.-", label="input")
     if all("blur_truth" in r["methods"]["ours"] for r in records):
         ax.plot(x, [r["methods"]["ours"]["blur_truth"] for r in records], "k:", label="true appearance")
-    for m in ("ours", "global"):
-        ax.plot(x, [r["methods"][m]["blur"] for r in records], ".-", label=METHOD_NAMES[m])
+    others = [m for m in (records[0]["methods"] if records else ()) if m not in METHODS]
+    for m in ["ours", "global"] + others:
+        ax.plot(x, [r["methods"][m]["blur"] for r in records], ".-", label=method_name(m))
     ax.set_xlabel("frame")
     ax.set_ylabel("blur (Crete), smaller is sharper")
     ax2 = ax.twinx()

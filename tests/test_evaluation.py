@@ -10,7 +10,7 @@ import zarr
 from conftest import run_pipeline, tiny_scene_config
 from stex import evaluate as ev
 from stex.camera import Calibration, transform_points
-from stex.evaluation import (METHODS, Atlas, coverage_scores, dynamism_regions, image_scores,
+from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dynamism_regions, image_scores,
                              rst_tables, score_frame, score_frames, score_methods, truth_views,
                              vertex_motion,
                              write_evaluation)
@@ -308,6 +308,82 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tm
     with pytest.raises(StoreError, match="junk.json"):
         _evaluate(pipe, tmp_path / "m4", truth_paths=pipe["truth"], records_paths=[tmp_path / "junk.json"])
     assert not any((tmp_path / f"m{k}").exists() for k in range(1, 5))
+
+
+def _results_folder(pipe, root):
+    """The tiny pipeline's stores laid out as a workflow run's ``results/<scene>`` (symlinks)."""
+    root.mkdir(parents=True)
+    for name in ("scene", "template", "tracking", "projection", "labels", "observations",
+                 "global_texture"):
+        (root / f"{name}.zarr").symlink_to(pipe[name])
+    for kind in ("frames", "masks", "truth", "tables", "volume", "corrected"):
+        (root / kind).mkdir()
+        for b, path in enumerate(pipe[kind]):
+            (root / kind / f"block_{b:04d}.zarr").symlink_to(path)
+    return root
+
+
+def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
+    """Other methods' slices (PNG files as `stex export` writes them, or a texture store) are
+    scored by the same code as ours: ours exported to PNG and ours_uncorrected's own stores score
+    exactly as ours and ours_uncorrected, and appear in the tables under their names; bad
+    sources are refused naming what is wrong."""
+    from PIL import Image
+
+    from stex.cli import main
+    from stex.evaluation import evaluate_results
+    from stex.export import write_png_slices
+
+    _, res = evaluation
+    ours = FrameSequence(pipe["corrected"], "corrected")
+    ids = ours.frame_ids
+    write_png_slices((ours.read("texture", i) for i in ids), ids, tmp_path / "mine")
+    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    got = evaluate_results(R, tmp_path / "eval", {"mine": tmp_path / "mine", "unc": R / "volume"})
+    assert got["methods"] == list(METHODS) + ["mine", "unc"]
+    assert [f["frame"] for f in got["frames"]] == [f["frame"] for f in res["frames"]]
+    keys = ("psnr", "psnr_plain", "ssim", "blur", "blur_interior", "gt_novel_psnr_unseen",
+            "gt_input_psnr_all", "flicker", "coverage_faces")
+    for f, before in zip(got["frames"], res["frames"]):
+        for other, same in (("mine", "ours"), ("unc", "ours_uncorrected")):
+            np.testing.assert_equal({k: f["methods"][other].get(k) for k in keys},
+                                    {k: f["methods"][same].get(k) for k in keys})
+        np.testing.assert_equal(f["methods"]["ours"], before["methods"]["ours"])
+    assert any("flicker" in f["methods"]["mine"] for f in got["frames"])
+    rows = [r[1] for r in got["tables"]["reconstruction"]]
+    assert rows.count("mine") >= 5 and "unc" in rows
+    assert "mine" in (tmp_path / "eval" / "tables.rst").read_text()
+
+    # a frame's slice missing, a slice of the wrong size, a reserved name: refused
+    (tmp_path / "mine" / "texture_00004.png").unlink()
+    with pytest.raises(ValueError, match=r"'mine'.*no slices for frames \[4\]"):
+        evaluate_results(R, tmp_path / "e1", {"mine": tmp_path / "mine"})
+    small = tmp_path / "small"
+    write_png_slices((np.zeros((8, 8, 3), np.uint8) for _ in ids), ids, small)
+    with pytest.raises(ValueError, match=r"slices are \(8, 8, 3\)"):
+        evaluate_results(R, tmp_path / "e2", {"small": small})
+    with pytest.raises(ValueError, match="method name 'ours'"):
+        evaluate_results(R, tmp_path / "e3", {"ours": small})
+    with pytest.raises(StoreError, match="no texture_<frame>.png"):
+        evaluate_results(R, tmp_path / "e4", {"x": tmp_path})
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(small / "texture_00000.png")
+    with pytest.raises(StoreError, match="8-bit RGB"):
+        TextureSlices(small).read(0)
+    with pytest.raises(ValueError, match="own evaluation folder"):
+        evaluate_results(R, R / "evaluation", {})
+    assert not any((tmp_path / f"e{k}").exists() for k in range(1, 5))
+
+    # the command: every 2nd frame of 2:6, a black method (no texture anywhere)
+    black = tmp_path / "black"
+    write_png_slices((np.zeros_like(ours.read("texture", i)) for i in ids), ids, black)
+    assert main(["evaluate", str(R), "--texture", f"black={black}", "--frames", "2:6",
+                 "--stride", "2", "--out", str(tmp_path / "cli")]) == 0
+    doc = json.loads((tmp_path / "cli" / "evaluation.json").read_text())
+    assert doc["scored_frames"] == [2, 4] and doc["methods"][-1] == "black"
+    assert all(f["methods"]["black"]["coverage_faces"] == 0.0 for f in doc["frames"])
+    assert all(f["methods"]["black"]["psnr"] < f["methods"]["ours"]["psnr"] - 10 for f in doc["frames"])
+    assert main(["evaluate", str(R), "--texture", "black", "--out", str(tmp_path / "cli2")]) == 1
+    assert not (tmp_path / "cli2").exists()
 
 
 def test_blocks_score_every_stride_th_frame_of_the_scene(pipe, tmp_path):
