@@ -150,8 +150,8 @@ class TextureSlices:
         self.path = Path(path)
         if not self.path.exists():
             raise StoreError(f"{self.path}: no such texture folder or store")
-        stores = ([self.path] if (self.path / ".zattrs").exists() or (self.path / "zarr.json").exists()
-                  else sorted(self.path.glob("block_*.zarr")))
+        is_store = any((self.path / f).exists() for f in (".zgroup", ".zattrs", "zarr.json"))
+        stores = [self.path] if is_store else sorted(self.path.glob("block_*.zarr"))
         self._seq = None
         if stores:
             import zarr
@@ -985,7 +985,7 @@ class _Inputs:
             if first.shape != (W, W, 3):
                 raise ValueError(f"method {name!r}: {src.path} slices are {first.shape}, the atlas "
                                  f"({template_path}) is ({W}, {W}, 3)")
-        self.texel_face = (np.asarray(template["texel/face_id"][...], np.int64) if self.others else None)
+        self.texel_face = np.asarray(template["texel/face_id"][...]) if self.others else None
 
     def textures(self, t):
         """Every method's texture slice (W, W, 3) at sequence position t."""
