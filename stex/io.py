@@ -599,6 +599,10 @@ def artifacts_markdown() -> str:
         "- `results/<scene>/evaluation/` — the blocks' records merged "
         "(stex.evaluation.write_evaluation): `evaluation.json` (the records, `summary`, `tables`), "
         "`per_frame.csv`, `table_<name>.csv`, `tables.rst` / `tables.html` and the PNG figures.",
+        "- `stex evaluate RUN --texture NAME=PATH --out DIR` (stex.evaluation.evaluate_results) "
+        "writes the same files into DIR with other methods beside ours (`methods` lists them; "
+        "their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "
+        "(8-bit RGB, the run's atlas size) or a `corrected` / `volume` store.",
         "",
     ]
     return "\n".join(lines)
