@@ -833,8 +833,7 @@ class _Inputs:
 
     def __init__(self, scene_path, frames_paths, masks_paths, template_path, tracking_path,
                  projection_path, labels_path, volume_paths, corrected_paths, params, *,
-                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block,
-                 others=None):
+                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block):
         from stex.io import FrameSequence, StoreError, open_store
         from stex.observations import open_coordinates
         from stex.volume import TexelSampler
@@ -972,7 +971,7 @@ class _Inputs:
                        else np.zeros(F, bool))
 
         # other methods' slices, scored beside ours
-        self.others = _other_methods(others)
+        self.others = _other_methods(p["other_methods"])
         self.methods = METHODS + tuple(self.others)
         want = set(score_ids)
         if truth_paths:  # the flicker of a frame compares it with its predecessor
@@ -1244,8 +1243,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             result does not depend on it.
         others: ``{name: path}`` other methods' texture slices in the template's atlas
             (:class:`TextureSlices`: a folder of ``texture_<frame>.png`` or a texture store),
-            scored by the same code beside ours and shown in every table under ``name``; not
-            with ``records_paths``.
+            scored by the same code beside ours and shown in every table under ``name``: added
+            to the settings' ``other_methods``.
 
     Writes into ``out_dir``: ``evaluation.json`` (params, per-frame records
     ``frames[i] = {frame, position, held_out, motion_mm, methods: {method: {metric: value}}}``,
@@ -1261,14 +1260,14 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
+    if others:
+        params = dict(params or {})
+        params["other_methods"] = {**params.get("other_methods", {}),
+                                   **{k: str(v) for k, v in others.items()}}
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                   projection_path, labels_path, volume_paths, corrected_paths, params,
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
-                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None,
-                  others=others)
-    if inp.others and records_paths is not None:
-        raise ValueError("other methods are scored here, not read from records: give others "
-                         "without records_paths")
+                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None)
     p, ids, T = inp.p, inp.ids, len(inp.ids)
     log.info("evaluation: global texture %s from %d source frames (built in %.1f s)",
              global_texture_path, len(inp.global_sources), inp.seconds_global)

@@ -386,6 +386,36 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     assert not (tmp_path / "cli2").exists()
 
 
+def test_other_methods_from_the_settings_scored_in_blocks(pipe, tmp_path):
+    """evaluation.other_methods (the workflow's way): block jobs score them too, and their
+    merge equals the in-process evaluation with the same methods given as ``others``."""
+    from stex.export import write_png_slices
+
+    ours = FrameSequence(pipe["volume"], "volume")
+    write_png_slices((ours.read("texture", i) for i in ours.frame_ids), ours.frame_ids, tmp_path / "unc")
+    params = {"other_methods": {"unc": str(tmp_path / "unc")}}
+    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
+    paths = []
+    for b, block in enumerate(blocks):
+        P = _block_stores(pipe, [b - 1, b] if b else [b])
+        paths.append(tmp_path / f"block_{b}.json")
+        score_frames(*_args(P), paths[-1], params, global_texture_path=P["global_texture"],
+                     truth_paths=P["truth"], tables_paths=P["tables"], block=block)
+    merged = _evaluate(pipe, tmp_path / "merged", params=params, truth_paths=pipe["truth"],
+                       tables_paths=pipe["tables"], records_paths=paths)
+    direct = _evaluate(pipe, tmp_path / "direct", truth_paths=pipe["truth"],
+                       tables_paths=pipe["tables"], others={"unc": tmp_path / "unc"})
+    assert merged["methods"] == direct["methods"] == list(METHODS) + ["unc"]
+    assert merged["params"]["other_methods"] == direct["params"]["other_methods"]
+    assert merged["frames"] == direct["frames"] and merged["tables"] == direct["tables"]
+    for f in merged["frames"]:
+        assert f["methods"]["unc"]["psnr"] == f["methods"]["ours_uncorrected"]["psnr"]
+    # records scored without the other method do not make up this evaluation
+    with pytest.raises(ValueError, match="other evaluation settings .*other_methods"):
+        _evaluate(pipe, tmp_path / "m", truth_paths=pipe["truth"], tables_paths=pipe["tables"],
+                  records_paths=paths, others={"x": tmp_path / "unc"})
+
+
 def test_blocks_score_every_stride_th_frame_of_the_scene(pipe, tmp_path):
     """With evaluation.stride the frames to score are every k-th of the whole scene, whichever
     block holds them; a block with none of them writes an empty record list."""

@@ -10,6 +10,8 @@ ENV = "../../envs/stex.yaml"
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
 # texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
 COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"
+# other methods' texture slices scored beside ours (evaluation.other_methods: {name: path})
+OTHER_METHODS = list(config["evaluation"].get("other_methods", {}).values())
 
 
 wildcard_constraints:

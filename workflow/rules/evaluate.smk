@@ -18,6 +18,7 @@ rule evaluate_frames:
         volume=evaluation_blocks("volume"),
         corrected=evaluation_blocks("corrected"),
         global_texture=f"{RESULTS}/global_texture.zarr",
+        others=OTHER_METHODS,
     output:
         f"{RESULTS}/evaluation_frames/block_{{block}}.json",
     params:
