@@ -194,7 +194,7 @@ def _other_methods(others) -> dict:
         if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in METHODS or name in ("input", "truth"):
             raise ValueError(f"method name {name!r}: use lower-case letters, digits and '_', "
                              f"not one of {', '.join(METHODS)}, input, truth")
-        out[name] = path if isinstance(path, TextureSlices) else TextureSlices(path)
+        out[name] = TextureSlices(path)
     return out
 
 
