@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import zarr
 
@@ -143,7 +144,7 @@ def _run_evaluate(args) -> int:
     finally:
         log.removeHandler(handler)
     print(f"wrote {args.out}: {len(res['frames'])} frames, methods {', '.join(res['methods'])}")
-    print(open(f"{args.out}/tables.rst").read())
+    print((Path(args.out) / "tables.rst").read_text())
     return 0
 
 

@@ -40,10 +40,11 @@ a screened Poisson solve over the covered texels, per colour channel:
   vector, so two runs of 4 slices differed by 1 grey level in 25 / 107 of their 50 / 201
   million values on the demo / paper scene), 2x faster to set up and about 25 % faster per
   solve at the same 4 iterations a channel (demo block 5 / paper block 6, median of 4 slices:
-  1.71 / 1.67 s a slice -> 1.28 / 1.33 s; the two solvers' slices within 1 grey level). Per slice only the right-hand side changes: the solve
-  is for the correction c = f − f0, ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour
-  differences of boundary pairs minus their guidance g_pq), warm-started at 0, CG-accelerated
-  V-cycles to a relative residual ``tol``.
+  1.71 / 1.67 s a slice -> 1.28 / 1.33 s; the two solvers' slices within 1 grey level).
+  Per slice only the right-hand side changes: the solve is for the correction c = f − f0,
+  ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour differences of boundary pairs minus
+  their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a relative residual
+  ``tol``.
 - Texels without a label (covered, but their face had no source frame) keep no gradients: they
   are screened towards their (filled) value and otherwise interpolated smoothly from their
   surroundings.

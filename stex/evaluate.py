@@ -47,7 +47,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
 
-from stex.render import face_visibility, pixel_texcoords, rasterize, sample_texture
+from stex.render import face_visibility, rasterize, sample_texture, textured_raster
 
 __all__ = [
     "PSNR_CAP",
@@ -602,11 +602,7 @@ class MeshView(NamedTuple):
 def mesh_view(vertices, faces, texcoords, texcoord_faces, K, width, height) -> MeshView:
     """Rasterise a mesh once for :func:`view_texture` / :func:`view_seen` (arguments as
     :func:`render_texture`)."""
-    if np.shape(texcoord_faces)[0] != np.shape(faces)[0]:
-        raise ValueError(f"texcoord_faces has {np.shape(texcoord_faces)[0]} rows but faces has "
-                         f"{np.shape(faces)[0]}")
-    raster = rasterize(vertices, faces, K, width, height)
-    mask, uv = pixel_texcoords(raster, texcoords, texcoord_faces)
+    raster, mask, uv = textured_raster(vertices, faces, texcoords, texcoord_faces, K, width, height)
     return MeshView(raster.face_id, mask, uv)
 
 

@@ -136,15 +136,15 @@ class Atlas(NamedTuple):
 class TextureSlices:
     """Another method's texture slices in the run's atlas, to score beside ours.
 
-    ``path`` is either a folder of PNG files ``texture_{frame:05d}.png`` (what ``stex export
-    --what png`` writes; 8-bit RGB, one per frame id) or a stex texture store: a ``corrected``
+    ``path`` is either a folder of PNG files ``texture_{frame:05d}.png``
+    (:data:`stex.export.PNG_SLICE_NAME`, what ``stex export --what png`` writes; 8-bit RGB, one
+    per frame id) or a stex texture store: a ``corrected``
     or ``volume`` zarr store, or a folder of such block stores (e.g. another run's
     ``corrected/``). Black texels (0, 0, 0) count as "no texture" for the coverage scores.
     """
 
-    PATTERN = "texture_{frame:05d}.png"
-
     def __init__(self, path):
+        from stex.export import PNG_SLICE_NAME
         from stex.io import FrameSequence, StoreError
 
         self.path = Path(path)
@@ -161,9 +161,10 @@ class TextureSlices:
             self._seq = FrameSequence([str(x) for x in stores], kind)
             self.frame_ids = [int(i) for i in self._seq.frame_ids]
         else:
-            import re
-            found = {int(m.group(1)): f for f in self.path.glob("texture_*.png")
-                     if (m := re.fullmatch(r"texture_(\d+)\.png", f.name))}
+            head, tail = PNG_SLICE_NAME.split("{frame:05d}")
+            found = {int(f.name[len(head):-len(tail)]): f for f in self.path.glob(f"{head}*{tail}")
+                     if f.name[len(head):-len(tail)].isdigit()}
+            self._name = PNG_SLICE_NAME
             if not found:
                 raise StoreError(f"{self.path}: no texture_<frame>.png files and no block_*.zarr stores")
             self._files = found
@@ -178,7 +179,7 @@ class TextureSlices:
         from PIL import Image
         f = self._files.get(int(frame_id))
         if f is None:
-            raise StoreError(f"{self.path}: no {self.PATTERN.format(frame=int(frame_id))}")
+            raise StoreError(f"{self.path}: no {self._name.format(frame=int(frame_id))}")
         with Image.open(f) as im:
             if im.mode != "RGB":
                 raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
@@ -536,6 +537,7 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
     rmask = geom["input"].mask
     scored = m & rmask
     photo_blur = reference_blur(img, scored, h_size, blur_interior_px)
+    mask_iou = _iou(m, rmask)
     area = None if face_has_texture is None else ev.face_areas(vertices, a.faces)
     surface = surface_geom = same = None
     if truth is not None:
@@ -561,7 +563,7 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
         rec = views["input"][0]
         s = image_scores(img, rec, scored, patch=patch, radius=radius, h_size=h_size,
                          blur_interior_px=blur_interior_px, reference_scores=photo_blur)
-        s["mask_iou"] = _iou(m, rmask)
+        s["mask_iou"] = mask_iou
         if face_has_texture is not None:
             s.update(coverage_scores(face_has_texture[name], area, seen_faces))
         if truth is not None:
@@ -682,7 +684,7 @@ def table_rows(summaries: dict) -> dict:
             for m in ["global", "ours", "ours_uncorrected"] + others:
                 label = summaries[s].get("held_out_label", "")
                 add(rec, "PSNR, dB (held-out frames)", m, "held_out", "psnr",
-                    name=method_name(m) + (f" {label}" if m.startswith("ours") else ""))
+                    name=method_name(m) + (f" {label}" if m in ("ours", "ours_uncorrected") else ""))
             break
     for m in methods:
         add(rec, "Plain PSNR, dB (every frame)", m, "all", "psnr_plain")
@@ -980,10 +982,7 @@ class _Inputs:
             missing = sorted(want - set(src.frame_ids))
             if missing:
                 raise ValueError(f"method {name!r}: {src.path} has no slices for frames {short_ids(missing)}")
-            first = src.read(score_ids[0] if score_ids else src.frame_ids[0])
-            if first.shape != (W, W, 3):
-                raise ValueError(f"method {name!r}: {src.path} slices are {first.shape}, the atlas "
-                                 f"({template_path}) is ({W}, {W}, 3)")
+            self._other_slice(name, score_ids[0] if score_ids else src.frame_ids[0])  # fail early
         self.texel_face = np.asarray(template["texel/face_id"][...]) if self.others else None
 
     def textures(self, t):
@@ -996,13 +995,18 @@ class _Inputs:
         out = {"ours": self.corrected.read("texture", fid),
                "ours_uncorrected": self.volume.read("texture", fid),
                "global": self.global_tex, "projection": proj_tex}
-        for name, src in self.others.items():
-            tex = src.read(fid)
-            if tex.shape != self.global_tex.shape:
-                raise ValueError(f"method {name!r}: {src.path} slice of frame {fid} is {tex.shape}, "
-                                 f"the atlas is {self.global_tex.shape}")
-            out[name] = tex
+        for name in self.others:
+            out[name] = self._other_slice(name, fid)
         return out
+
+    def _other_slice(self, name, fid):
+        """Other method ``name``'s slice of frame ``fid``, checked against the atlas."""
+        src = self.others[name]
+        tex = src.read(fid)
+        if tex.shape != self.global_tex.shape:
+            raise ValueError(f"method {name!r}: {src.path} slices are {tex.shape} (frame {fid}), "
+                             f"the atlas ({self.template_path}) is {self.global_tex.shape}")
+        return tex
 
     def has_texture(self, t, textures):
         """Every method's faces with texture (F,) bool at position t (``textures``: what
@@ -1370,7 +1374,7 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
     Returns:
         the ``evaluation.json`` content.
     """
-    from stex.io import StoreError, open_store
+    from stex.io import StoreError, open_store, run_block_paths
 
     R = Path(results_dir)
     if not (R / "scene.zarr").exists():
@@ -1378,10 +1382,9 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
     if Path(out_dir).resolve() == (R / "evaluation").resolve():
         raise ValueError(f"{out_dir} is the run's own evaluation folder: write elsewhere")
     scene = open_store(R / "scene.zarr", "scene")
-    n_blocks = len(scene.attrs["frame_blocks"])
 
     def blocks(kind):
-        return [R / kind / f"block_{b:04d}.zarr" for b in range(n_blocks)]
+        return run_block_paths(R, kind, scene)
 
     params = {}
     previous = R / "evaluation" / "evaluation.json"

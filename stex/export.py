@@ -43,7 +43,7 @@ import numpy as np
 
 from stex.camera import Calibration, transform_points
 from stex.evaluate import novel_view, render_texture
-from stex.io import FrameSequence, StoreError, open_store
+from stex.io import FrameSequence, StoreError, open_store, run_block_paths
 from stex.render import vertex_normals
 
 __all__ = [
@@ -129,8 +129,12 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
 # images and videos
 # --------------------------------------------------------------------------------------------
 
+#: File name of a texture slice exported as PNG (also what ``stex evaluate --texture`` reads).
+PNG_SLICE_NAME = "texture_{frame:05d}.png"
+
+
 def write_png_slices(textures: Iterable, frame_ids: Iterable[int], out_dir,
-                     pattern: str = "texture_{frame:05d}.png",
+                     pattern: str = PNG_SLICE_NAME,
                      progress: Progress | None = None) -> list[Path]:
     """Write each texture slice as a lossless PNG.
 
@@ -559,8 +563,6 @@ class _Results:
         if not self.dir.is_dir():
             raise StoreError(f"{self.dir}: no such results folder")
         self.scene = open_store(self.dir / "scene.zarr", "scene")
-        # the scene's block list, not a glob: stale blocks of an earlier run are not read
-        self.n_blocks = len(self.scene.attrs["frame_blocks"])
         self.textures = FrameSequence(self._blocks(source), source)
         template = open_store(self.dir / "template.zarr", "template")
         self.n_vertices = template["vertices"].shape[0]
@@ -571,7 +573,7 @@ class _Results:
         self._frames = None
 
     def _blocks(self, kind: str) -> list[Path]:
-        return [self.dir / kind / f"block_{b:04d}.zarr" for b in range(self.n_blocks)]
+        return run_block_paths(self.dir, kind, self.scene)
 
     @property
     def frame_ids(self) -> list[int]:

@@ -519,6 +519,15 @@ def short_ids(ids) -> str:
     return f"{len(ids)} frames [{ids[0]}..{ids[-1]}]" if len(ids) > 4 else str(ids)
 
 
+def run_block_paths(results_dir, kind: str, scene=None) -> list[Path]:
+    """The ``kind`` frame-block stores of a workflow run, ``results/<scene>/<kind>/block_*.zarr``,
+    one per block of the run's ``scene.zarr`` (its ``frame_blocks``, not a glob: stale blocks of
+    an earlier run with other blocks are not read). ``scene``: the opened scene store, if at hand."""
+    results_dir = Path(results_dir)
+    scene = scene if scene is not None else open_store(results_dir / "scene.zarr", "scene")
+    return [results_dir / kind / f"block_{b:04d}.zarr" for b in range(len(scene.attrs["frame_blocks"]))]
+
+
 class FrameSequence:
     """Frame-block stores of one artifact read as one sequence of frames.
 

@@ -12,10 +12,10 @@ What it computes
   compares against the surface's tangent plane, not a constant depth, so slanted surfaces are
   not mistaken for occluded ones (see the comment above ``_plane_depth_test``).
 - :func:`interpolate_attributes`, :func:`sample_bilinear`, :func:`texcoords_to_pixels`,
-  :func:`pixel_texcoords`, :func:`sample_texture`, :func:`render_textured` — per-pixel attribute
+  :func:`textured_raster`, :func:`sample_texture`, :func:`render_textured` — per-pixel attribute
   interpolation, bilinear image sampling and rendering of a textured mesh (synthetic scenes,
-  evaluation, previews); the last is the first two on one raster, so that several textures on
-  one mesh share the raster.
+  evaluation, previews); the last is the two before it, which several textures on one mesh
+  share.
 
 Conventions
 -----------
@@ -75,7 +75,7 @@ __all__ = [
     "interpolate_attributes",
     "sample_bilinear",
     "texcoords_to_pixels",
-    "pixel_texcoords",
+    "textured_raster",
     "sample_texture",
     "render_textured",
 ]
@@ -714,39 +714,43 @@ def texcoords_to_pixels(texcoords, width, height) -> np.ndarray:
     return out
 
 
-def pixel_texcoords(raster: Raster, texcoords, texcoord_faces) -> tuple[np.ndarray, np.ndarray]:
-    """Texture coordinates of the pixel centres a raster covers.
+def textured_raster(vertices, faces, texcoords, texcoord_faces, K, width, height,
+                    near=1e-3) -> tuple[Raster, np.ndarray, np.ndarray]:
+    """Rasterise a textured mesh and interpolate its texture coordinates at the covered pixel
+    centres: what :func:`render_textured` does before sampling, kept so that several textures
+    on one mesh share it (:func:`sample_texture` per texture).
 
     Args:
-        raster: :class:`Raster` of a mesh (from :func:`rasterize`).
-        texcoords: (Vt, 2) float stex texcoords (see module docstring: v downward, glTF).
-        texcoord_faces: (F, 3) int indices into ``texcoords``, one row per face of the rasterised
-            mesh (may differ from its faces — UV seams).
+        vertices, faces, texcoords, texcoord_faces, K, width, height, near: as
+            :func:`render_textured`.
 
     Returns:
+        raster: :class:`Raster`.
         mask: (H, W) bool, True where a face covers the pixel centre.
         uv: (N, 2) float64 texcoords of the N covered pixels in row-major order (the order of
             ``image[mask]``), interpolated with the raster's perspective-correct barycentrics.
     """
+    V = _check_vertices(vertices)
+    F = _check_faces(faces, V.shape[0])
     tc = np.asarray(texcoords, dtype=np.float64)
     if tc.ndim != 2 or tc.shape[1] != 2:
         raise ValueError(f"texcoords must have shape (Vt, 2), got {tc.shape}")
     TF = _check_faces(texcoord_faces, tc.shape[0], name="texcoord_faces")
+    if TF.shape[0] != F.shape[0]:
+        raise ValueError(f"texcoord_faces has {TF.shape[0]} rows but faces has {F.shape[0]}")
+    raster = rasterize(V, F, K, width, height, near=near)
     mask = raster.face_id >= 0
-    fid = raster.face_id[mask]
-    if fid.size and int(fid.max()) >= TF.shape[0]:
-        raise ValueError(f"texcoord_faces has {TF.shape[0]} rows but the raster shows face {int(fid.max())}")
-    f = TF[fid]
+    f = TF[raster.face_id[mask]]
     b = raster.bary[mask].astype(np.float64)
     uv = b[:, 0:1] * tc[f[:, 0]] + b[:, 1:2] * tc[f[:, 1]] + b[:, 2:3] * tc[f[:, 2]]
-    return mask, uv
+    return raster, mask, uv
 
 
 def sample_texture(mask, uv, texture) -> np.ndarray:
     """An image of ``texture`` sampled bilinearly (clamp-to-edge) at the covered pixels.
 
     Args:
-        mask, uv: from :func:`pixel_texcoords`.
+        mask, uv: from :func:`textured_raster`.
         texture: (Ht, Wt, C) (or (Ht, Wt)) image, any numeric dtype.
 
     Returns:
@@ -765,8 +769,7 @@ def sample_texture(mask, uv, texture) -> np.ndarray:
 def render_textured(vertices, faces, texcoords, texcoord_faces, texture, K, width, height,
                     near=1e-3):
     """Render a textured mesh: rasterise, interpolate texcoords, sample the texture bilinearly
-    (:func:`rasterize`, :func:`pixel_texcoords`, :func:`sample_texture`; to render several
-    textures on one mesh, call those once per mesh and :func:`sample_texture` per texture).
+    (:func:`textured_raster`, then :func:`sample_texture`).
 
     Args:
         vertices: (V, 3) float camera-space positions, metres. faces: (F, 3) int.
@@ -782,16 +785,5 @@ def render_textured(vertices, faces, texcoords, texcoord_faces, texture, K, widt
             barycentrics, then sampled with :func:`sample_bilinear` (clamp-to-edge).
         mask: (H, W) bool, True where a face covers the pixel centre.
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
-    tc = np.asarray(texcoords, dtype=np.float64)
-    if tc.ndim != 2 or tc.shape[1] != 2:
-        raise ValueError(f"texcoords must have shape (Vt, 2), got {tc.shape}")
-    TF = _check_faces(texcoord_faces, tc.shape[0], name="texcoord_faces")
-    if TF.shape[0] != F.shape[0]:
-        raise ValueError(f"texcoord_faces has {TF.shape[0]} rows but faces has {F.shape[0]}")
-    tex = np.asarray(texture)
-    if tex.ndim not in (2, 3):
-        raise ValueError(f"texture must be (Ht, Wt, C) or (Ht, Wt), got shape {tex.shape}")
-    mask, uv = pixel_texcoords(rasterize(V, F, K, width, height, near=near), tc, TF)
-    return sample_texture(mask, uv, tex), mask
+    _, mask, uv = textured_raster(vertices, faces, texcoords, texcoord_faces, K, width, height, near)
+    return sample_texture(mask, uv, texture), mask
