@@ -5,6 +5,7 @@
     stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
     stex tables results/demo results/fox --out tables.html   # the paper's tables, a column per run
     stex evaluate results/demo --texture mine=my_slices/ --out eval_mine/   # another method beside ours
+    stex evaluate results/demo --texture kim=their_out/ --uv-mesh kim=their_mesh.obj --out eval_kim/
 
 Errors (missing or incomplete stores, a frame range outside the sequence) print one line on
 stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
@@ -128,6 +129,13 @@ def _run_evaluate(args) -> int:
         if name in others:
             raise ValueError(f"--texture: method name {name!r} given twice")
         others[name] = path
+    for item in args.uv_mesh:
+        name, sep, mesh = item.partition("=")
+        if not sep or not name or not mesh:
+            raise ValueError(f"--uv-mesh {item!r}: expected NAME=MESH")
+        if name not in others:
+            raise ValueError(f"--uv-mesh {item!r}: no --texture {name}=PATH")
+        others[name] = {"slices": others[name], "uv_mesh": mesh}
     frames = None
     if args.frames is not None:
         ids = open_store(f"{args.results}/scene.zarr", "scene").attrs["frame_ids"]
@@ -193,6 +201,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="another method's slices in the run's atlas: a folder of texture_<frame>.png "
                         "(as 'stex export --what png' writes) or a corrected/volume store or folder "
                         "of block stores; repeatable")
+    p.add_argument("--uv-mesh", action="append", default=[], metavar="NAME=MESH",
+                   help="the slices of --texture NAME are in this mesh's UV layout (OBJ with vt, or "
+                        "glTF; in the run's template coordinates), not the run's atlas: each slice is "
+                        "carried into the run's atlas; repeatable")
     p.add_argument("--out", required=True, help="output folder (not the run's own evaluation/)")
     p.add_argument("--frames", default=None, help=frames_help)
     p.add_argument("--stride", type=int, default=None,

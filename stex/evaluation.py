@@ -30,7 +30,8 @@ What it computes
   as each block's slices exist) and ``write_evaluation(records_paths=...)`` merges them.
 - :func:`evaluate_results` — :func:`write_evaluation` of a finished run's folder with other
   methods' texture slices (:class:`TextureSlices`: PNG files or a texture store in the run's
-  atlas) scored beside ours by the same code (``stex evaluate``).
+  atlas, or in another UV layout carried into it by :mod:`stex.resample`) scored beside ours by
+  the same code (``stex evaluate``).
 - :func:`rst_tables` — reStructuredText tables laid out like the paper's Table 3 (reconstruction
   error and blur per method), coverage, ground truth and timing, over one or several scenes.
 
@@ -134,22 +135,31 @@ class Atlas(NamedTuple):
 
 
 class TextureSlices:
-    """Another method's texture slices in the run's atlas, to score beside ours.
+    """Another method's texture slices, to score beside ours in the run's atlas.
 
     ``path`` is either a folder of PNG files ``texture_{frame:05d}.png``
     (:data:`stex.export.PNG_SLICE_NAME`, what ``stex export --what png`` writes; 8-bit RGB, one
     per frame id) or a stex texture store: a ``corrected``
     or ``volume`` zarr store, or a folder of such block stores (e.g. another run's
     ``corrected/``). Black texels (0, 0, 0) count as "no texture" for the coverage scores.
+
+    Slices in the run's atlas are read as they are. Slices in another UV layout need
+    ``uv_mesh``: that layout's mesh (OBJ with ``vt``, or glTF), in the run's template
+    coordinates; :meth:`into_atlas` then carries every slice into the run's atlas
+    (:mod:`stex.resample`).
     """
 
-    def __init__(self, path):
+    def __init__(self, path, uv_mesh=None):
         from stex.export import PNG_SLICE_NAME
         from stex.io import FrameSequence, StoreError
 
         self.path = Path(path)
         if not self.path.exists():
             raise StoreError(f"{self.path}: no such texture folder or store")
+        self.uv_mesh = None if uv_mesh is None else Path(uv_mesh)
+        if self.uv_mesh is not None and not self.uv_mesh.is_file():
+            raise StoreError(f"{self.uv_mesh}: no such mesh file (the UV layout of {self.path})")
+        self.transfer = None
         is_store = any((self.path / f).exists() for f in (".zgroup", ".zattrs", "zarr.json"))
         stores = [self.path] if is_store else sorted(self.path.glob("block_*.zarr"))
         self._seq = None
@@ -170,32 +180,71 @@ class TextureSlices:
             self._files = found
             self.frame_ids = sorted(found)
 
+    def into_atlas(self, template) -> None:
+        """Carry the slices from ``uv_mesh``'s layout into the atlas of ``template`` (an open
+        ``template`` store) on every :meth:`read` (no-op without ``uv_mesh``)."""
+        from stex.readers.meshes import load_mesh
+        from stex.resample import atlas_transfer
+
+        if self.uv_mesh is None:
+            return
+        mesh = load_mesh(self.uv_mesh)
+        self.transfer = atlas_transfer(
+            template["texel/face_id"][...], template["texel/bary"][...], template["vertices"][...],
+            template["faces"][...], mesh.vertices, mesh.faces, mesh.texcoords, mesh.texcoord_faces,
+            gutter_px=int(template.attrs.get("gutter_px", 0)), where=str(self.uv_mesh))
+
     def read(self, frame_id: int) -> np.ndarray:
-        """(W, W, 3) uint8 slice of ``frame_id``."""
+        """(W, W, 3) uint8 slice of ``frame_id`` (in the run's atlas once :meth:`into_atlas` ran)."""
         from stex.io import StoreError
 
+        if self.uv_mesh is not None and self.transfer is None:
+            raise RuntimeError(f"{self.path}: slices in the layout of {self.uv_mesh}: call into_atlas first")
         if self._seq is not None:
-            return np.asarray(self._seq.read("texture", frame_id), np.uint8)
-        from PIL import Image
-        f = self._files.get(int(frame_id))
-        if f is None:
-            raise StoreError(f"{self.path}: no {self._name.format(frame=int(frame_id))}")
-        with Image.open(f) as im:
-            if im.mode != "RGB":
-                raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
-            return np.asarray(im)
+            tex = np.asarray(self._seq.read("texture", frame_id), np.uint8)
+        else:
+            from PIL import Image
+            f = self._files.get(int(frame_id))
+            if f is None:
+                raise StoreError(f"{self.path}: no {self._name.format(frame=int(frame_id))}")
+            with Image.open(f) as im:
+                if im.mode != "RGB":
+                    raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
+                tex = np.asarray(im)
+        if self.transfer is not None:
+            try:
+                tex = self.transfer.apply(tex)
+            except ValueError as exc:
+                raise ValueError(f"{self.path}, frame {frame_id}: {exc}") from exc
+        return tex
+
+
+def other_method_paths(others) -> dict:
+    """``{name: (slices path, uv mesh path or None)}`` of the setting ``other_methods``, whose
+    values are a path, or ``{slices: path, uv_mesh: path}`` for slices in another UV layout."""
+    out = {}
+    for name, spec in (others or {}).items():
+        if isinstance(spec, dict):
+            unknown = sorted(set(spec) - {"slices", "uv_mesh"})
+            if unknown or "slices" not in spec:
+                raise ValueError(f"other method {name!r}: expected a path or {{slices: path, uv_mesh: path}}, "
+                                 f"got keys {sorted(spec)}")
+            out[name] = (str(spec["slices"]), None if spec.get("uv_mesh") is None else str(spec["uv_mesh"]))
+        else:
+            out[name] = (str(spec), None)
+    return out
 
 
 def _other_methods(others) -> dict:
-    """``{name: TextureSlices}`` of ``{name: path}``, names checked."""
+    """``{name: TextureSlices}`` of the setting ``other_methods``, names checked."""
     import re
 
     out = {}
-    for name, path in (others or {}).items():
+    for name, (path, uv_mesh) in other_method_paths(others).items():
         if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in METHODS or name in ("input", "truth"):
             raise ValueError(f"method name {name!r}: use lower-case letters, digits and '_', "
                              f"not one of {', '.join(METHODS)}, input, truth")
-        out[name] = TextureSlices(path)
+        out[name] = TextureSlices(path, uv_mesh)
     return out
 
 
@@ -979,6 +1028,7 @@ class _Inputs:
         if truth_paths:  # the flicker of a frame compares it with its predecessor
             want |= {ids[self.pos_of[f] - 1] for f in score_ids if self.pos_of[f] > 0}
         for name, src in self.others.items():
+            src.into_atlas(template)
             missing = sorted(want - set(src.frame_ids))
             if missing:
                 raise ValueError(f"method {name!r}: {src.path} has no slices for frames {short_ids(missing)}")
@@ -1246,7 +1296,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
         others: ``{name: path}`` other methods' texture slices in the template's atlas
-            (:class:`TextureSlices`: a folder of ``texture_<frame>.png`` or a texture store),
+            (:class:`TextureSlices`: a folder of ``texture_<frame>.png`` or a texture store), or
+            ``{name: {"slices": path, "uv_mesh": mesh}}`` for slices in that mesh's UV layout,
             scored by the same code beside ours and shown in every table under ``name``: added
             to the settings' ``other_methods``.
 
@@ -1266,8 +1317,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     out_dir = Path(out_dir)
     if others:
         params = dict(params or {})
-        params["other_methods"] = {**params.get("other_methods", {}),
-                                   **{k: str(v) for k, v in others.items()}}
+        params["other_methods"] = {**params.get("other_methods", {}), **{
+            k: ({"slices": p, "uv_mesh": m} if m else p) for k, (p, m) in other_method_paths(others).items()}}
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                   projection_path, labels_path, volume_paths, corrected_paths, params,
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
@@ -1366,7 +1417,8 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
         results_dir: the run's folder (``results/<scene>``).
         out_dir: folder to write (as :func:`write_evaluation`; not the run's own
             ``evaluation``, which the workflow owns).
-        others: ``{name: path}`` other methods' slices (:class:`TextureSlices`).
+        others: ``{name: path or {"slices": path, "uv_mesh": mesh}}`` other methods' slices
+            (:class:`TextureSlices`; :func:`write_evaluation`).
         frames: frame ids to consider, or None (all); every ``stride``-th of them is scored.
         stride: score every k-th frame; None -> the run's setting.
         threads: frames scored at once.

@@ -611,7 +611,9 @@ def artifacts_markdown() -> str:
         "- `stex evaluate RUN --texture NAME=PATH --out DIR` (stex.evaluation.evaluate_results) "
         "writes the same files into DIR with other methods beside ours (`methods` lists them; "
         "their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "
-        "(8-bit RGB, the run's atlas size) or a `corrected` / `volume` store.",
+        "(8-bit RGB, the run's atlas size) or a `corrected` / `volume` store. Slices in another UV "
+        "layout: `--uv-mesh NAME=MESH` (that layout's mesh, in the template's coordinates; "
+        "stex.resample carries each slice into the run's atlas).",
         "",
     ]
     return "\n".join(lines)

@@ -386,6 +386,74 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     assert not (tmp_path / "cli2").exists()
 
 
+def test_other_methods_in_another_uv_layout(pipe, tmp_path):
+    """Slices in another UV layout (here the scene's own mesh and atlas) are carried into the
+    run's atlas through that mesh: ours carried out into it and scored from there score like
+    ours. A mesh elsewhere is refused naming it, and so are such slices read as the run's atlas."""
+    from PIL import Image
+
+    from stex.cli import main
+    from stex.evaluation import evaluate_results
+    from stex.export import write_png_slices
+    from stex.readers.meshes import Mesh, load_mesh, write_obj
+    from stex.resample import atlas_transfer
+    from stex.template import texel_map
+
+    scene = open_store(pipe["scene"], "scene")
+    template = open_store(pipe["template"], "template")
+    V0, F0, T0, TF0 = (np.asarray(scene[f"template/{k}"][...]) for k in
+                       ("vertices", "faces", "texcoords", "texcoord_faces"))
+    out_of_ours = atlas_transfer(*texel_map(T0, TF0, 512), V0, F0, template["vertices"][...],
+                                 template["faces"][...], template["texcoords"][...],
+                                 template["texcoord_faces"][...], gutter_px=4)
+    ours = FrameSequence(pipe["corrected"], "corrected")
+    ids = ours.frame_ids
+    theirs = tmp_path / "theirs"
+    write_png_slices((out_of_ours.apply(ours.read("texture", i)) for i in ids), ids, theirs)
+    write_obj(tmp_path / "theirs.obj", Mesh(V0, F0, T0, TF0))
+    # the same slices carried back by hand (through the mesh as the file holds it: 1 µm
+    # rounding), as PNG files in the run's atlas
+    mesh = load_mesh(tmp_path / "theirs.obj")
+    back = atlas_transfer(template["texel/face_id"][...], template["texel/bary"][...],
+                          template["vertices"][...], template["faces"][...], mesh.vertices,
+                          mesh.faces, mesh.texcoords, mesh.texcoord_faces,
+                          gutter_px=int(template.attrs["gutter_px"]))
+    by_hand = tmp_path / "by_hand"
+    write_png_slices((back.apply(np.asarray(Image.open(theirs / f"texture_{i:05d}.png"))) for i in ids),
+                     ids, by_hand)
+    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    got = evaluate_results(R, tmp_path / "eval", {"theirs": {"slices": str(theirs),
+                                                            "uv_mesh": str(tmp_path / "theirs.obj")},
+                                                 "by_hand": by_hand})
+    assert got["methods"][-2:] == ["theirs", "by_hand"]
+    assert got["params"]["other_methods"]["theirs"]["uv_mesh"] == str(tmp_path / "theirs.obj")
+    for f in got["frames"]:
+        m = f["methods"]
+        assert m["theirs"] == m["by_hand"]
+        # two bilinear resamplings (256 -> 512 -> 256 texels) from ours
+        assert abs(m["theirs"]["psnr"] - m["ours"]["psnr"]) < 1.0
+        assert abs(m["theirs"]["gt_input_psnr_all"] - m["ours"]["gt_input_psnr_all"]) < 1.0
+        assert m["theirs"]["coverage_faces"] == m["ours"]["coverage_faces"]
+
+    # the same slices read as if in the run's atlas: refused by their size
+    with pytest.raises(ValueError, match=r"slices are \(512, 512, 3\)"):
+        evaluate_results(R, tmp_path / "e1", {"theirs": theirs})
+    # a mesh 5 cm away from the template: refused, naming it
+    write_obj(tmp_path / "moved.obj", Mesh(V0 + [0.05, 0.0, 0.0], F0, T0, TF0))
+    with pytest.raises(ValueError, match="moved.obj"):
+        evaluate_results(R, tmp_path / "e2", {"theirs": {"slices": str(theirs),
+                                                          "uv_mesh": str(tmp_path / "moved.obj")}})
+    assert not (tmp_path / "e1").exists() and not (tmp_path / "e2").exists()
+    # the command
+    assert main(["evaluate", str(R), "--texture", f"theirs={theirs}", "--uv-mesh",
+                 f"theirs={tmp_path / 'theirs.obj'}", "--frames", "2:4", "--out", str(tmp_path / "cli")]) == 0
+    doc = json.loads((tmp_path / "cli" / "evaluation.json").read_text())
+    assert doc["methods"][-1] == "theirs" and doc["scored_frames"] == [2, 3]
+    assert main(["evaluate", str(R), "--texture", f"theirs={theirs}", "--uv-mesh",
+                 f"nobody={tmp_path / 'theirs.obj'}", "--out", str(tmp_path / "cli2")]) == 1
+    assert not (tmp_path / "cli2").exists()
+
+
 def test_other_methods_from_the_settings_scored_in_blocks(pipe, tmp_path):
     """evaluation.other_methods (the workflow's way): block jobs score them too, and their
     merge equals the in-process evaluation with the same methods given as ``others``."""

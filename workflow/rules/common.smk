@@ -10,8 +10,10 @@ ENV = "../../envs/stex.yaml"
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
 # texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
 COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"
-# other methods' texture slices scored beside ours (evaluation.other_methods: {name: path})
-OTHER_METHODS = list(config["evaluation"].get("other_methods", {}).values())
+# other methods' texture slices (and the meshes of their UV layouts) scored beside ours
+# (evaluation.other_methods: {name: path or {slices, uv_mesh}})
+OTHER_METHODS = [p for spec in config["evaluation"].get("other_methods", {}).values()
+                 for p in ([spec] if isinstance(spec, str) else [spec["slices"], spec.get("uv_mesh")]) if p]
 
 
 wildcard_constraints:

@@ -1,0 +1,94 @@
+"""stex.resample: exact closest points on a mesh, and textures carried between UV layouts."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from stex.resample import atlas_transfer, closest_surface_points
+from stex.template import build_atlas, texel_map
+
+
+def _brute_force(points, V, F):
+    """Closest distance of each point to each triangle, by trimesh's exact per-triangle routine."""
+    tri = V[F]
+    best = np.full(len(points), np.inf)
+    for j in range(len(F)):
+        q = trimesh.triangles.closest_point(np.repeat(tri[j:j + 1], len(points), 0), points)
+        best = np.minimum(best, np.linalg.norm(q - points, axis=1))
+    return best
+
+
+@pytest.fixture(scope="module")
+def blob():
+    """A lumpy closed mesh (0.1 m), triangles of uneven size."""
+    m = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    V = m.vertices * (1.0 + 0.3 * np.sin(9.0 * m.vertices[:, [1]]) * np.array([[1.0, 0.4, 1.0]]))
+    return V, np.asarray(m.faces)
+
+
+def test_closest_points_are_exact_on_and_off_the_surface(blob):
+    """Equal to a brute-force search over every triangle: points on the surface (how texels are
+    queried), near it, and far from it (the latter answered by the fallback)."""
+    V, F = blob
+    rng = np.random.default_rng(0)
+    f = rng.integers(0, len(F), 300)
+    b = rng.dirichlet(np.ones(3), 300)
+    on = np.einsum("nk,nkd->nd", b, V[F[f]])
+    near = on + rng.normal(0, 0.003, on.shape)
+    far = rng.normal(0, 0.3, (100, 3))
+    P = np.concatenate([on, near, far])
+    face, bary, dist = closest_surface_points(P, V, F)
+    np.testing.assert_allclose(dist, _brute_force(P, V, F), atol=1e-7)
+    assert dist[:300].max() < 1e-9
+    # the returned face and barycentrics give the closest point
+    q = np.einsum("nk,nkd->nd", bary, V[F[face]])
+    np.testing.assert_allclose(np.linalg.norm(q - P, axis=1), dist, atol=1e-9)
+    np.testing.assert_allclose(bary.sum(1), 1.0)
+    assert (bary >= -1e-12).all()
+
+
+def _paint(texel_face, texel_bary, V, F):
+    """A smooth colour field of the 3-D position, painted into an atlas (0 outside charts)."""
+    W = texel_face.shape[0]
+    img = np.zeros((W, W, 3), np.uint8)
+    hit = texel_face >= 0
+    P = np.einsum("nk,nkd->nd", texel_bary[hit].astype(np.float64), V[F[texel_face[hit]]])
+    img[hit] = np.clip(128 + 100 * np.sin(P * np.array([25.0, 31.0, 19.0])), 0, 255).astype(np.uint8)
+    return img
+
+
+def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob):
+    """A colour field of the 3-D position painted in one UV layout, carried into another layout
+    of the same surface, equals the field painted there directly (to the bilinear read), and the
+    new layout's gutter is filled."""
+    V, F = blob
+    uv_a, tf_a = build_atlas(V, F, 256, 2)
+    uv_b, tf_b = build_atlas(V, F, 192, 2)
+    face_a, bary_a = texel_map(uv_a, tf_a, 256)
+    face_b, bary_b = texel_map(uv_b, tf_b, 192)
+    assert (face_b >= 0).any() and not np.array_equal(uv_a, uv_b)
+    tr = atlas_transfer(face_b, bary_b, V, F, V, F, uv_a, tf_a, gutter_px=2)
+    assert tr.reads.sum() == (face_b >= 0).sum()
+    got = tr.apply(_paint(face_a, bary_a, V, F))
+    want = _paint(face_b, bary_b, V, F)
+    hit = face_b >= 0
+    diff = np.abs(got[hit].astype(int) - want[hit])
+    assert diff.mean() < 1.5 and np.percentile(diff, 99) < 8
+    assert got.shape == (192, 192, 3) and got.dtype == np.uint8
+    ring = ~hit & (np.abs(np.diff(hit.astype(int), axis=1, prepend=0)) > 0)   # texels just outside
+    assert got[ring].any(axis=1).mean() > 0.9
+    # a mesh moved 5 cm, or in millimetres, is refused; so is one without texture coordinates
+    with pytest.raises(ValueError, match="median texel"):
+        atlas_transfer(face_b, bary_b, V, F, V + [0.05, 0, 0], F, uv_a, tf_a, where="moved.obj")
+    with pytest.raises(ValueError, match="moved.obj"):
+        atlas_transfer(face_b, bary_b, V, F, V * 1000, F, uv_a, tf_a, where="moved.obj")
+    with pytest.raises(ValueError, match="no texture coordinates"):
+        atlas_transfer(face_b, bary_b, V, F, V, F, None, None)
+    # texels farther than max_distance_m read nothing: black
+    half = V.copy()
+    half[V[:, 0] > 0.03] *= 1.2
+    tr2 = atlas_transfer(face_b, bary_b, V, F, half, F, uv_a, tf_a, max_distance_m=0.002)
+    far = hit & ~tr2.reads
+    assert far.any() and not tr2.apply(_paint(face_a, bary_a, V, F))[far].any()
+    with pytest.raises(ValueError, match="square"):
+        tr.apply(np.zeros((16, 32, 3), np.uint8))
