@@ -199,8 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("results", help="results/<scene> folder of a finished run")
     p.add_argument("--texture", action="append", default=[], metavar="NAME=PATH",
                    help="another method's slices in the run's atlas: a folder of texture_<frame>.png "
-                        "(as 'stex export --what png' writes) or a corrected/volume store or folder "
-                        "of block stores; repeatable")
+                        "(as 'stex export --what png' writes; or the authors' Smooth_/Frame_%%06d.png) "
+                        "or a corrected/volume store or folder of block stores; repeatable")
     p.add_argument("--uv-mesh", action="append", default=[], metavar="NAME=MESH",
                    help="the slices of --texture NAME are in this mesh's UV layout (OBJ with vt, or "
                         "glTF; in the run's template coordinates), not the run's atlas: each slice is "

@@ -134,12 +134,17 @@ class Atlas(NamedTuple):
                    np.asarray(store[prefix + "texcoord_faces"][...], np.int64))
 
 
+# the authors' texture volume files (TextureMappingNonRigid, ColorCorrection), in preference order
+AUTHORS_SLICE_NAMES = ("Smooth_{frame:06d}.png", "Frame_{frame:06d}.png")
+
+
 class TextureSlices:
     """Another method's texture slices, to score beside ours in the run's atlas.
 
     ``path`` is either a folder of PNG files ``texture_{frame:05d}.png``
     (:data:`stex.export.PNG_SLICE_NAME`, what ``stex export --what png`` writes; 8-bit RGB, one
-    per frame id) or a stex texture store: a ``corrected``
+    per frame id; the authors' ``Smooth_{frame:06d}.png``, else ``Frame_{frame:06d}.png``, as
+    their code writes into ``atlas/<atlas_path>/video/``) or a stex texture store: a ``corrected``
     or ``volume`` zarr store, or a folder of such block stores (e.g. another run's
     ``corrected/``). Black texels (0, 0, 0) count as "no texture" for the coverage scores.
 
@@ -171,12 +176,18 @@ class TextureSlices:
             self._seq = FrameSequence([str(x) for x in stores], kind)
             self.frame_ids = [int(i) for i in self._seq.frame_ids]
         else:
-            head, tail = PNG_SLICE_NAME.split("{frame:05d}")
-            found = {int(f.name[len(head):-len(tail)]): f for f in self.path.glob(f"{head}*{tail}")
-                     if f.name[len(head):-len(tail)].isdigit()}
-            self._name = PNG_SLICE_NAME
+            # stex's names, else the authors' texture volume (atlas/<atlas_path>/video/):
+            # Smooth_%06d.png (colour-corrected, what their viewer shows), else Frame_%06d.png
+            for name in (PNG_SLICE_NAME, *AUTHORS_SLICE_NAMES):
+                head, tail = name.split("{frame:")[0], ".png"
+                found = {int(f.name[len(head):-len(tail)]): f for f in self.path.glob(f"{head}*{tail}")
+                         if f.name[len(head):-len(tail)].isdigit()}
+                if found:
+                    break
+            self._name = name
             if not found:
-                raise StoreError(f"{self.path}: no texture_<frame>.png files and no block_*.zarr stores")
+                raise StoreError(f"{self.path}: no texture_<frame>.png files (nor the authors' Smooth_<frame>.png "
+                                 f"or Frame_<frame>.png) and no block_*.zarr stores")
             self._files = found
             self.frame_ids = sorted(found)
 

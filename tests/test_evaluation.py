@@ -435,6 +435,16 @@ def test_other_methods_in_another_uv_layout(pipe, tmp_path):
         assert abs(m["theirs"]["gt_input_psnr_all"] - m["ours"]["gt_input_psnr_all"]) < 1.0
         assert m["theirs"]["coverage_faces"] == m["ours"]["coverage_faces"]
 
+    # the authors' file names (their texture volume folder): Smooth_ preferred over Frame_
+    authors = tmp_path / "authors_video"
+    authors.mkdir()
+    for i in ids:
+        shutil.copy(theirs / f"texture_{i:05d}.png", authors / f"Smooth_{i:06d}.png")
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(authors / f"Frame_{i:06d}.png")
+    src = TextureSlices(authors)
+    assert src.frame_ids == list(ids)
+    np.testing.assert_array_equal(src.read(ids[1]), np.asarray(Image.open(theirs / f"texture_{ids[1]:05d}.png")))
+
     # the same slices read as if in the run's atlas: refused by their size
     with pytest.raises(ValueError, match=r"slices are \(512, 512, 3\)"):
         evaluate_results(R, tmp_path / "e1", {"theirs": theirs})
