@@ -27,7 +27,8 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
 13. ``stex.export``  — PNG slices, MP4, OBJ/glTF per frame, preview videos.
 
 Baselines: ``stex.baseline`` (Kim et al. 2019's global texture, naive projection). Metrics:
-``stex.evaluate``. Shared building blocks: ``stex.camera`` (conventions, projection),
+``stex.evaluate``; the evaluation stage ``stex.evaluation`` (other methods' textures in another
+UV layout carried into the run's atlas by ``stex.resample``). Shared building blocks: ``stex.camera`` (conventions, projection),
 ``stex.render`` (numba rasteriser, visibility, textured rendering), ``stex.io`` (the artifact
 stores and their layout).
 """

@@ -25,7 +25,7 @@ coordinates or units). :func:`atlas_transfer` builds the map once; applying it t
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -203,9 +203,10 @@ class AtlasTransfer:
 
     texel_uv: (W, W, 2) float32 texture coordinates (u right, v down, [0, 1]) in the other
     layout of every covered texel of the run's atlas; NaN where the texel reads nothing.
-    covered: (W, W) bool, texels inside the run's charts. other_covered: the other layout's
-    coverage at the texture size it was built for (None until the first texture), for filling
-    its gutter. distance_m: (W, W) float32, texel to the other mesh (NaN where uncovered).
+    covered: (W, W) bool, texels inside the run's charts. distance_m: (W, W) float32, texel to
+    the other mesh, metres (NaN where uncovered). other_texcoords (Vt', 2), other_texcoord_faces
+    (F', 3): the other layout, rasterised (cached per texture side) to fill its gutter before
+    reading. gutter_px: rings of the run's gutter filled after reading.
     """
 
     texel_uv: np.ndarray
@@ -214,7 +215,7 @@ class AtlasTransfer:
     other_texcoords: np.ndarray
     other_texcoord_faces: np.ndarray
     gutter_px: int = 4
-    _other_covered: dict = None
+    _other_covered: dict = field(default_factory=dict, repr=False)   # texture side -> (S, S) bool
 
     @property
     def reads(self) -> np.ndarray:
@@ -232,8 +233,6 @@ class AtlasTransfer:
             raise ValueError(f"expected a square (S, S, 3) uint8 texture in the other layout, got "
                              f"{tex.shape} {tex.dtype}")
         S = tex.shape[0]
-        if self._other_covered is None:
-            self._other_covered = {}
         if S not in self._other_covered:
             self._other_covered[S] = texel_map(self.other_texcoords, self.other_texcoord_faces, S)[0] >= 0
         other_cov = self._other_covered[S]
