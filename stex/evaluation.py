@@ -807,18 +807,32 @@ def timing_rows(timing: dict) -> list[list[str]]:
     return rows
 
 
-def rst_tables(summaries: dict, timing: dict | None = None) -> str:
+def sampling_rows(steps: list) -> list[list[str]]:
+    """Rows (header first) of the paper's sampling table from
+    :func:`stex.texcoords.sampling_table`'s rows: per key-frame sampling 1/n, the error ratio
+    (final all-frame Eq. 1 energy over that with every frame a key frame), the stage time and
+    the speed-up."""
+    rows = [["Texture-coordinate optimisation"] + [f"1/{r['step']}" for r in steps]]
+    rows.append(["error ratio"] + [_fmt(r["error_ratio"], 4) for r in steps])
+    rows.append(["key frames"] + [str(r["keyframes"]) for r in steps])
+    rows.append(["stage time, s"] + [_fmt(r["seconds"], 1) for r in steps])
+    rows.append(["speed-up"] + [_fmt(r["speedup"], 2) for r in steps])
+    return rows
+
+
+def rst_tables(summaries: dict, timing: dict | None = None, sampling: list | None = None) -> str:
     """reStructuredText (no HTML) tables like the paper's, over scenes ``{scene: summary}``.
 
     Sections: reconstruction error and blur per method (the paper's Table 3: PSNR every frame,
     PSNR on held-out frames, blur), coverage, ground truth (synthetic scenes) and timing per
     stage (``{stage: seconds}`` or ``{scene: {stage: seconds}}``, shown in minutes as the
-    paper's Table 1).
+    paper's Table 1), and the sampling table of one run (:func:`sampling_rows`).
     """
     titles = {"reconstruction": "Texture reconstruction error and blurriness",
               "coverage": "Coverage",
               "ground_truth": "Ground truth (synthetic scenes)",
-              "timing": "Computation time"}
+              "timing": "Computation time",
+              "sampling": "Texture-coordinate optimisation: key-frame sampling"}
     notes = {
         "reconstruction": "PSNR inside the object mask between input photos and renders of the "
                           "texture on the tracked mesh; the patch-shift PSNR translates 32 x 32 "
@@ -833,10 +847,17 @@ def rst_tables(summaries: dict, timing: dict | None = None) -> str:
                         "same texture rendered on the true geometry (the template carried onto "
                         "the true mesh), so that only the texture's own error remains.",
         "timing": "Wall time per stage.",
+        "sampling": "The texture-coordinate stage run with key frames every n-th frame (1/n) and "
+                    "the displacements interpolated between them, then refined over all frames "
+                    "(Kim et al. 2021 §4). Error ratio: the final all-frame Eq. 1 energy divided "
+                    "by that with every frame a key frame (1/1). The runs ran one after another "
+                    "in one job (rule texcoords_sampling).",
     }
     tabs = table_rows(summaries)
     if timing:
         tabs["timing"] = timing_rows(timing)
+    if sampling:
+        tabs["sampling"] = sampling_rows(sampling)
     parts = []
     for name, rows in tabs.items():
         t = titles[name]
@@ -1274,7 +1295,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
                      params: dict | None = None, *, global_texture_path, truth_paths=None,
                      coords_path=None, observations_path=None, tables_paths=None, frames=None,
                      records_paths=None, timing: dict | None = None, threads: int = 1,
-                     others: dict | None = None) -> dict:
+                     others: dict | None = None, sampling_path=None) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
 
     Args:
@@ -1304,6 +1325,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         records_paths: :func:`score_frames` files whose records together cover the frames to
             score (checked: same settings, frames and sources): merged instead of scoring here.
         timing: ``{stage: seconds}`` for the timing table, or None.
+        sampling_path: :func:`stex.texcoords.write_sampling_table`'s JSON -> the paper's
+            sampling table (``sampling`` in ``evaluation.json``, ``table_sampling.csv``), or None.
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
         others: ``{name: path}`` other methods' texture slices in the template's atlas
@@ -1326,6 +1349,12 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
+    sampling = None
+    if sampling_path is not None:
+        try:
+            sampling = json.loads(Path(sampling_path).read_text())["steps"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{sampling_path}: not a sampling table ({exc})") from exc
     if others:
         params = dict(params or {})
         params["other_methods"] = {**params.get("other_methods", {}), **{
@@ -1369,6 +1398,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         "frames": records,
         "summary": summary,
         "tables": tabs,
+        "sampling": sampling,
         "seconds": {"global_texture": inp.seconds_global, "scoring": seconds_scoring},
     }
 
@@ -1380,8 +1410,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
     def write_all(out_dir):
         fig_pos = inp.fig_pos
-        _write_csvs(out_dir, records, tabs, timing)
-        (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing))
+        _write_csvs(out_dir, records, tabs, timing, sampling)
+        (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing, sampling))
         _plot_psnr(out_dir / "psnr_per_frame.png", records)
         _plot_blur_motion(out_dir / "blur_vs_motion.png", records, ids, motion)
         _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, inp.photos, inp.masks,
@@ -1477,7 +1507,7 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
 # files and figures
 # --------------------------------------------------------------------------------------------
 
-def _write_csvs(out_dir: Path, records, tabs, timing):
+def _write_csvs(out_dir: Path, records, tabs, timing, sampling=None):
     keys = list(dict.fromkeys(k for r in records for s in r["methods"].values() for k in s))
     with open(out_dir / "per_frame.csv", "w", newline="") as f:
         w = csv.writer(f)
@@ -1489,6 +1519,8 @@ def _write_csvs(out_dir: Path, records, tabs, timing):
     all_tabs = dict(tabs)
     if timing:
         all_tabs["timing"] = timing_rows(timing)
+    if sampling:
+        all_tabs["sampling"] = sampling_rows(sampling)
     for name, rows in all_tabs.items():
         with open(out_dir / f"table_{name}.csv", "w", newline="") as f:
             csv.writer(f).writerows(rows)

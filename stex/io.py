@@ -607,7 +607,14 @@ def artifacts_markdown() -> str:
         "flicker of the first frame).",
         "- `results/<scene>/evaluation/` — the blocks' records merged "
         "(stex.evaluation.write_evaluation): `evaluation.json` (the records, `summary`, `tables`), "
-        "`per_frame.csv`, `table_<name>.csv`, `tables.rst` / `tables.html` and the PNG figures.",
+        "`per_frame.csv`, `table_<name>.csv`, `tables.rst` / `tables.html` and the PNG figures; "
+        "with the sampling table, `sampling` in `evaluation.json` and `table_sampling.csv`.",
+        "- `results/<scene>/texcoords_sampling.json` — the paper's sampling table "
+        "(stex.texcoords.write_sampling_table; rule texcoords_sampling, when ξ is optimised and "
+        "`sampling_table.steps` is not empty), written atomically: `params` (the texcoords "
+        "settings) and `steps`: one row per key-frame step, `{step, keyframes, energy (the final "
+        "all-frame Eq. 1 energy), seconds, error_ratio (energy / that of step 1), speedup "
+        "(seconds of step 1 / seconds)}`.",
         "- `stex evaluate RUN --texture NAME=PATH --out DIR` (stex.evaluation.evaluate_results) "
         "writes the same files into DIR with other methods beside ours (`methods` lists them; "
         "their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "

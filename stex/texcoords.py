@@ -147,6 +147,7 @@ explained.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -160,7 +161,8 @@ log = logging.getLogger("stex.texcoords")
 
 __all__ = ["SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
            "interpolate_displacements", "photometric_energy", "optimize_level",
-           "optimize_texcoords", "write_texcoords", "texcoords_params", "displacement_picture"]
+           "optimize_texcoords", "write_texcoords", "texcoords_params", "displacement_picture",
+           "stage_inputs", "final_energy", "sampling_table", "write_sampling_table"]
 
 #: the authors' 15 barycentric samples per face (Optimizer.cu L5-7), rows (w0, w1, w2)
 SAMPLE_BARY = np.array([
@@ -1176,8 +1178,8 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
             "objective": objective, "keyframes": keys, "stages": stages}
 
 
-def write_texcoords(scene, template, projection, frames_paths, masks_paths, params: dict, out) -> None:
-    """Texture-coordinate stage: write the ``texcoords`` store.
+def stage_inputs(scene, template, projection, frames_paths, masks_paths) -> dict:
+    """What :func:`optimize_texcoords` reads, from a run's stores.
 
     Args:
         scene: the ``scene`` store (calibration: colour image size).
@@ -1186,23 +1188,20 @@ def write_texcoords(scene, template, projection, frames_paths, masks_paths, para
         frames_paths: the ``frames`` block stores (colour images, read one frame at a time).
         masks_paths: the ``masks`` block stores (foreground masks for the proxy weights); empty =
             every pixel counts as foreground.
-        params: the ``texcoords`` config section.
-        out: path of the store to write.
+
+    Returns:
+        dict with the keyword arguments of :func:`optimize_texcoords` (``load``, ``phi``,
+        ``vertex_visible``, ``face_visible``, ``face_weight``, ``faces``, ``image_size``) and
+        ``frame_ids``.
     """
     from stex.camera import Calibration
-    from stex.io import FrameSequence, create_store, open_store
+    from stex.io import FrameSequence, open_store
 
-    p = texcoords_params(params)
     sc = open_store(scene, "scene")
     cal = Calibration.from_dict(sc.attrs["calibration"])
     W, H = cal.color.width, cal.color.height
-    F = np.asarray(open_store(template, "template")["faces"][...], np.int64)
     proj = open_store(projection, "projection")
     ids = [int(i) for i in proj.attrs["frame_ids"]]
-    phi = np.asarray(proj["phi"][...], np.float64)
-    vvis = np.asarray(proj["vertex_visible"][...], bool)
-    fvis = np.asarray(proj["face_visible"][...], bool)
-    fcos = np.asarray(proj["face_cos"][...], np.float64)
     frames = FrameSequence(list(frames_paths), "frames")
     masks = FrameSequence(list(masks_paths), "masks") if masks_paths else None
 
@@ -1212,11 +1211,27 @@ def write_texcoords(scene, template, projection, frames_paths, masks_paths, para
         m = np.asarray(masks.read("mask", fid), bool) if masks is not None else np.ones((H, W), bool)
         return grey, m
 
+    return {"load": load, "phi": np.asarray(proj["phi"][...], np.float64),
+            "vertex_visible": np.asarray(proj["vertex_visible"][...], bool),
+            "face_visible": np.asarray(proj["face_visible"][...], bool),
+            "face_weight": np.asarray(proj["face_cos"][...], np.float64),
+            "faces": np.asarray(open_store(template, "template")["faces"][...], np.int64),
+            "image_size": (W, H), "frame_ids": ids}
+
+
+def write_texcoords(scene, template, projection, frames_paths, masks_paths, params: dict, out) -> None:
+    """Texture-coordinate stage: write the ``texcoords`` store (arguments: :func:`stage_inputs`;
+    ``params``: the ``texcoords`` config section; ``out``: path of the store to write)."""
+    from stex.io import create_store
+
+    p = texcoords_params(params)
+    inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
+    ids = inputs.pop("frame_ids")
     t0 = time.perf_counter()
-    r = optimize_texcoords(load, phi, vvis, fvis, fcos, F, (W, H), p)
+    r = optimize_texcoords(params=p, **inputs)
     seconds = time.perf_counter() - t0
     attrs = {"frame_ids": ids, "keyframes": [ids[k] for k in r["keyframes"]],
-             "color_size": [W, H], "stages": r["stages"], "seconds": round(seconds, 2),
+             "color_size": list(inputs["image_size"]), "stages": r["stages"], "seconds": round(seconds, 2),
              "energy_rows": [s["name"] for s in r["stages"]]}
     with create_store(out, "texcoords", attrs=attrs, params=p) as store:
         a = store.create("xi", r["xi"].shape)
@@ -1225,6 +1240,73 @@ def write_texcoords(scene, template, projection, frames_paths, masks_paths, para
         store.write("valid", r["valid"])
         e = store.create("energy", r["energy"].shape)
         e[...] = r["energy"]
+
+
+# --------------------------------------------------------------------------------------------
+# the paper's sampling table
+# --------------------------------------------------------------------------------------------
+
+def final_energy(energy) -> float:
+    """The stage's final all-frame energy: the last finite value of ``energy``'s last row (the
+    all-frame refinement; :func:`optimize_texcoords`)."""
+    row = np.asarray(energy, np.float64)[-1]
+    row = row[np.isfinite(row)]
+    return float(row[-1]) if len(row) else math.nan
+
+
+def sampling_table(inputs: dict, params: dict | None, steps) -> list[dict]:
+    """The paper's sampling table (Kim et al. 2021, "error ratio ... depending on the sampling
+    ratio"): the stage run once per key-frame step n in ``steps`` (the other settings as
+    ``params``), one after another in this process so that their times compare.
+
+    The error of a run is its final all-frame Eq. 1 energy (:func:`final_energy`); its ratio is
+    that error divided by the error with every frame a key frame (n = 1, the original Kim et al.
+    2019 scheme, which ``steps`` must hold), and its speed-up the stage time with n = 1 divided
+    by its own.
+
+    Args:
+        inputs: :func:`stage_inputs` (``frame_ids`` ignored).
+        params: the ``texcoords`` config section. steps: key-frame steps (ints >= 1).
+
+    Returns:
+        one dict per step, in ``steps``' order: ``step``, ``keyframes`` (count), ``energy``,
+        ``seconds``, ``error_ratio``, ``speedup``.
+    """
+    steps = [int(n) for n in steps]
+    if 1 not in steps or min(steps) < 1:
+        raise ValueError(f"sampling steps {steps}: need 1 (every frame a key frame, the reference) and no step below 1")
+    p = texcoords_params(params)
+    kw = {k: v for k, v in inputs.items() if k != "frame_ids"}
+    rows = []
+    for n in steps:
+        t0 = time.perf_counter()
+        r = optimize_texcoords(params=dict(p, keyframe_step=n), progress=False, **kw)
+        rows.append({"step": n, "keyframes": int(len(r["keyframes"])), "energy": final_energy(r["energy"]),
+                     "seconds": round(time.perf_counter() - t0, 2)})
+        log.info("texcoords sampling: key frames every %d frame(s): final E %.6g, %.1f s",
+                 n, rows[-1]["energy"], rows[-1]["seconds"])
+    ref = rows[steps.index(1)]
+    for row in rows:
+        row["error_ratio"] = row["energy"] / ref["energy"] if ref["energy"] > 0 else math.nan
+        row["speedup"] = ref["seconds"] / row["seconds"] if row["seconds"] > 0 else math.nan
+    return rows
+
+
+def write_sampling_table(scene, template, projection, frames_paths, masks_paths, params: dict,
+                         steps, out_json) -> None:
+    """:func:`sampling_table` of a run's stores (:func:`stage_inputs`), written as JSON
+    ``{"steps": [rows], "params": the texcoords settings}`` to ``out_json`` (written under a
+    temporary name and renamed when complete)."""
+    import json
+    from pathlib import Path
+
+    inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
+    rows = sampling_table(inputs, params, steps)
+    out = Path(out_json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".partial")
+    tmp.write_text(json.dumps({"steps": rows, "params": texcoords_params(params)}, indent=1))
+    tmp.replace(out)
 
 
 # --------------------------------------------------------------------------------------------

@@ -412,6 +412,39 @@ def test_deterministic(drifted, tmp_path):
     np.testing.assert_array_equal(again["energy"][...], drifted["store"]["energy"][...])
 
 
+def test_sampling_table(drifted, tmp_path):
+    """The paper's sampling table: the stage once per key-frame step; the run with the store's
+    own step reproduces its final energy exactly, 1/1 is the reference (ratio 1, speed-up 1),
+    and it reaches the evaluation's tables (rst and CSV)."""
+    import json
+
+    from stex.evaluation import rst_tables, sampling_rows
+    from stex.texcoords import final_energy, write_sampling_table
+
+    d = drifted["dir"]
+    out = tmp_path / "sampling.json"
+    write_sampling_table(d / "scene.zarr", d / "template.zarr", d / "projection.zarr", drifted["frames"],
+                         drifted["masks"], FAST, [1, 2, 4], out)
+    doc = json.loads(out.read_text())
+    rows = {r["step"]: r for r in doc["steps"]}
+    assert list(rows) == [1, 2, 4] and doc["params"]["keyframe_step"] == FAST["keyframe_step"]
+    T = len(drifted["phi"])
+    assert [rows[n]["keyframes"] for n in (1, 2, 4)] == [len(keyframe_positions(T, n)) for n in (1, 2, 4)]
+    assert rows[1]["keyframes"] == T
+    assert rows[2]["energy"] == final_energy(drifted["store"]["energy"][...])   # FAST's own step
+    assert rows[1]["error_ratio"] == 1.0 and rows[1]["speedup"] == 1.0
+    for r in rows.values():
+        assert r["energy"] > 0 and r["seconds"] > 0
+        assert r["error_ratio"] == pytest.approx(r["energy"] / rows[1]["energy"])
+    table = sampling_rows(doc["steps"])
+    assert table[0] == ["Texture-coordinate optimisation", "1/1", "1/2", "1/4"]
+    assert "key-frame sampling" in rst_tables({}, sampling=doc["steps"])
+    with pytest.raises(ValueError, match="need 1"):
+        write_sampling_table(d / "scene.zarr", d / "template.zarr", d / "projection.zarr", drifted["frames"],
+                             drifted["masks"], FAST, [2, 4], tmp_path / "bad.json")
+    assert not (tmp_path / "bad.json").exists()
+
+
 def test_displacement_picture():
     from stex.texcoords import displacement_picture
     color = np.full((120, 160, 3), 200, np.uint8)

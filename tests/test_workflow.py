@@ -70,7 +70,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
     downstream = {"tracking", "tracking_preview", "poses", "projection", "projection_preview", "texcoords", "observations",
                   "tables", "labeling", "volume", "correction", "labels_preview", "preview_video",
-                  "evaluate_frames", "evaluate", "texcoords_preview", "global_texture"}
+                  "evaluate_frames", "evaluate", "texcoords_preview", "global_texture", "texcoords_sampling"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out
 
@@ -107,6 +107,9 @@ def test_texture_outputs(tiny_run):
     assert (res / "benchmarks" / "labeling.tsv").exists()
     assert (res / "benchmarks" / "evaluate_frames_0001.tsv").exists()
     assert "evaluate_frames" in (res / "evaluation" / "tables.rst").read_text()   # timing table
+    # the paper's sampling table: the texcoords stage once per key-frame step, in the evaluation
+    sampling = json.loads((res / "texcoords_sampling.json").read_text())["steps"]
+    assert [r["step"] for r in sampling] == [1, 2, 3, 4, 5] and evaluation["sampling"] == sampling
 
 
 def test_report_holds_the_tables(tiny_run):
@@ -119,7 +122,8 @@ def test_report_holds_the_tables(tiny_run):
     html = report.read_text()
     embedded = "".join(base64.b64decode(m).decode("utf-8", "replace")
                        for m in re.findall(r"data:text/html;[^,]*base64,([A-Za-z0-9+/=]+)", html))
-    for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage"):
+    for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage",
+                "key-frame sampling", "error ratio"):
         assert row in embedded, (row, embedded[:2000])
     # the tracking-fit plot is in the report, with its caption
     assert "tracking_fit.png" in html and "min_silhouette_iou" in html

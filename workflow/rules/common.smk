@@ -10,6 +10,8 @@ ENV = "../../envs/stex.yaml"
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
 # texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
 COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"
+# the paper's sampling table (the texcoords stage again per key-frame step), in the evaluation
+SAMPLING = [f"{RESULTS}/texcoords_sampling.json"] if OPTIMISED and config["sampling_table"]["steps"] else []
 # other methods' texture slices (and the meshes of their UV layouts) scored beside ours
 # (evaluation.other_methods: {name: path or {slices, uv_mesh}})
 OTHER_METHODS = [p for spec in config["evaluation"].get("other_methods", {}).values()

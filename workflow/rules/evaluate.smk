@@ -51,6 +51,7 @@ rule evaluate:
         corrected=expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS),
         global_texture=f"{RESULTS}/global_texture.zarr",
         records=expand(f"{RESULTS}/evaluation_frames/block_{{block}}.json", block=BLOCK_IDS),
+        sampling=SAMPLING,
     output:
         report(
             directory(f"{RESULTS}/evaluation"),

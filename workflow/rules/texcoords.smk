@@ -40,3 +40,26 @@ rule texcoords_preview:
         ENV
     script:
         "../scripts/texcoords_preview.py"
+
+
+rule texcoords_sampling:
+    input:
+        scene=f"{RESULTS}/scene.zarr",
+        template=f"{RESULTS}/template.zarr",
+        projection=f"{RESULTS}/projection.zarr",
+        frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
+        masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
+    output:
+        f"{RESULTS}/texcoords_sampling.json",
+    params:
+        texcoords=config["texcoords"],
+        steps=config["sampling_table"]["steps"],
+    log:
+        f"{RESULTS}/logs/texcoords_sampling.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/texcoords_sampling.tsv",
+    threads: 2
+    conda:
+        ENV
+    script:
+        "../scripts/texcoords_sampling.py"
