@@ -287,9 +287,25 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     TF = np.asarray(other_texcoord_faces, np.int64)
     T = np.asarray(other_texcoords, np.float64)
     idx = np.flatnonzero(tf.ravel() >= 0)
+    bary_flat = np.asarray(texel_bary).reshape(-1, 3)
+
+    def median_distance(sel):
+        P = _interpolate(bary_flat[sel].astype(np.float64), F[tf.ravel()[sel]], V)
+        return float(np.median(closest_surface_points(P, other_vertices, other_faces)[2]))
+
+    def refuse(med):
+        raise ValueError(f"{where}: the template's surface is {1000 * med:.1f} mm from it at the median "
+                         f"texel (over {1000 * max_distance_m:.1f} mm): is it in the template's coordinates "
+                         f"and units (depth-camera metres)?")
+
+    # a mesh elsewhere (other coordinates or units) is refused from a few texels first: its
+    # points are all off the surface, which the exact search answers slowly
+    if len(idx):
+        first = median_distance(idx[:: max(1, len(idx) // 4096)])
+        if first > max_distance_m:
+            refuse(first)
     texel_uv = np.full((W * W, 2), np.nan, np.float32)
     distance = np.full(W * W, np.nan, np.float32)
-    bary_flat = np.asarray(texel_bary).reshape(-1, 3)
     for start in range(0, len(idx), CHUNK_TEXELS):   # in chunks: bounded memory at 4096²
         sl = idx[start:start + CHUNK_TEXELS]
         P = _interpolate(bary_flat[sl].astype(np.float64), F[tf.ravel()[sl]], V)
@@ -301,9 +317,7 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     dist = distance[idx]
     med = float(np.median(dist)) if len(dist) else 0.0
     if med > max_distance_m:
-        raise ValueError(f"{where}: the template's surface is {1000 * med:.1f} mm from it at the median "
-                         f"texel (over {1000 * max_distance_m:.1f} mm): is it in the template's coordinates "
-                         f"and units (depth-camera metres)?")
+        refuse(med)
     far = int((dist > max_distance_m).sum())
     if far:
         log.warning("%s: %d of %d texels are over %.1f mm from it and read nothing", where, far, len(idx),
