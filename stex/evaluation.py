@@ -807,26 +807,41 @@ def timing_rows(timing: dict) -> list[list[str]]:
     return rows
 
 
-def sampling_rows(steps: list) -> list[list[str]]:
-    """Rows (header first) of the paper's sampling table from
-    :func:`stex.texcoords.sampling_table`'s rows: per key-frame sampling 1/n, the error ratio
-    (final all-frame Eq. 1 energy over that with every frame a key frame), the stage time and
-    the speed-up."""
-    rows = [["Texture-coordinate optimisation"] + [f"1/{r['step']}" for r in steps]]
-    rows.append(["error ratio"] + [_fmt(r["error_ratio"], 4) for r in steps])
-    rows.append(["key frames"] + [str(r["keyframes"]) for r in steps])
-    rows.append(["stage time, s"] + [_fmt(r["seconds"], 1) for r in steps])
-    rows.append(["speed-up"] + [_fmt(r["speedup"], 2) for r in steps])
+def sampling_rows(steps) -> list[list[str]]:
+    """Rows (header first) of the paper's sampling table from :func:`stex.texcoords.sampling_table`'s
+    rows of one run (a list), or of several runs (``{run: rows}``: a row per run and measure, and
+    the error ratio averaged over the runs, as the paper averages its datasets): per key-frame
+    sampling 1/n, the error ratio (final all-frame Eq. 1 energy over that with every frame a key
+    frame), the key frames, the stage time and the speed-up."""
+    runs = steps if isinstance(steps, dict) else {"": steps}
+    order = sorted({int(r["step"]) for rows in runs.values() for r in rows})
+    rows = [["Texture-coordinate optimisation"] + [f"1/{n}" for n in order]]
+
+    def row(label, rs, key, digits):
+        by = {int(r["step"]): r for r in rs}
+        return [label] + [str(by[n][key]) if digits is None and n in by else
+                          _fmt(by[n][key] if n in by else math.nan, digits) for n in order]
+
+    for name, rs in runs.items():
+        prefix = f"{name}: " if name else ""
+        rows.append(row(prefix + "error ratio", rs, "error_ratio", 4))
+        rows.append(row(prefix + "key frames", rs, "keyframes", None))
+        rows.append(row(prefix + "stage time, s", rs, "seconds", 1))
+        rows.append(row(prefix + "speed-up", rs, "speedup", 2))
+    if len(runs) > 1:
+        mean = [float(np.nanmean([next((r["error_ratio"] for r in rs if int(r["step"]) == n), math.nan)
+                                  for rs in runs.values()])) for n in order]
+        rows.append(["mean error ratio over the runs"] + [_fmt(v, 4) for v in mean])
     return rows
 
 
-def rst_tables(summaries: dict, timing: dict | None = None, sampling: list | None = None) -> str:
+def rst_tables(summaries: dict, timing: dict | None = None, sampling=None) -> str:
     """reStructuredText (no HTML) tables like the paper's, over scenes ``{scene: summary}``.
 
     Sections: reconstruction error and blur per method (the paper's Table 3: PSNR every frame,
     PSNR on held-out frames, blur), coverage, ground truth (synthetic scenes) and timing per
     stage (``{stage: seconds}`` or ``{scene: {stage: seconds}}``, shown in minutes as the
-    paper's Table 1), and the sampling table of one run (:func:`sampling_rows`).
+    paper's Table 1), and the sampling table of one run or several (:func:`sampling_rows`).
     """
     titles = {"reconstruction": "Texture reconstruction error and blurriness",
               "coverage": "Coverage",

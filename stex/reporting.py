@@ -55,7 +55,7 @@ def runs_tables(run_dirs) -> str:
     """
     from stex.evaluation import nan_for_none, rst_tables
 
-    summaries, timing = {}, {}
+    summaries, timing, sampling = {}, {}, {}
     for d in map(Path, run_dirs):
         path = d / "evaluation" / "evaluation.json"
         if not path.is_file():
@@ -70,6 +70,8 @@ def runs_tables(run_dirs) -> str:
             raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")
         summaries[name] = nan_for_none(summary)
         timing[name] = stage_timings(d / "benchmarks")
+        if doc.get("sampling"):
+            sampling[name] = nan_for_none(doc["sampling"])
     if not summaries:
         raise ValueError("no runs given")
-    return rst_tables(summaries, timing if any(timing.values()) else None)
+    return rst_tables(summaries, timing if any(timing.values()) else None, sampling or None)

@@ -1,3 +1,5 @@
+import shutil
+
 import numpy as np
 
 from stex.cli import main
@@ -93,9 +95,10 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
 # stex tables: the paper-style tables over runs
 # --------------------------------------------------------------------------------------------
 
-def _fake_run(d, scene, psnr, held_out=()):
+def _fake_run(d, scene, psnr, held_out=(), sampling=None):
     """A results/<scene> folder with an evaluation.json of 4 frames (ours at ``psnr`` dB, the
-    global texture 2 dB below; no flicker, stored as null) and one job's benchmark file."""
+    global texture 2 dB below; no flicker, stored as null; ``sampling``: its sampling-table
+    rows) and one job's benchmark file."""
     import json
     import math
 
@@ -108,14 +111,27 @@ def _fake_run(d, scene, psnr, held_out=()):
     summary.update(n_held_out=len(held_out), held_out_label="(1/2)" if held_out else "")
     (d / "evaluation").mkdir(parents=True)
     (d / "evaluation" / "evaluation.json").write_text(
-        json.dumps(_finite_or_none({"scene": scene, "summary": summary})))
+        json.dumps(_finite_or_none({"scene": scene, "summary": summary, "sampling": sampling})))
     (d / "benchmarks").mkdir()
     (d / "benchmarks" / "labeling.tsv").write_text("s\th:m:s\n120.0\t0:02:00\n")
     return d
 
 
+def _sampling(ratios):
+    return [{"step": n, "keyframes": 12 // n, "energy": r, "seconds": 60.0 / n, "error_ratio": r,
+             "speedup": float(n)} for n, r in zip((1, 2, 4), ratios)]
+
+
 def test_tables_over_runs(tmp_path, capsys):
-    a = _fake_run(tmp_path / "demo", "demo", 30.0)
+    a = _fake_run(tmp_path / "demo", "demo", 30.0, sampling=_sampling((1.0, 1.02, 1.04)))
+    other = _fake_run(tmp_path / "paper", "paper", 20.0, sampling=_sampling((1.0, 1.0, 1.08)))
+    assert main(["tables", str(a), str(other)]) == 0
+    rst = capsys.readouterr().out
+    # the sampling table: a row per run and measure, and the mean over the runs as the paper's
+    assert "| demo: error ratio " in rst and "| paper: speed-up " in rst
+    mean = next(line for line in rst.splitlines() if "mean error ratio over the runs" in line)
+    assert mean.split("|")[2:5] == [" 1.0000 ", " 1.0100 ", " 1.0600 "]
+    shutil.rmtree(other)
     b = _fake_run(tmp_path / "demo_heldout", "demo_heldout", 25.0, held_out=(1, 3))
     assert main(["tables", str(a), str(b)]) == 0
     rst = capsys.readouterr().out
