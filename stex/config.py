@@ -92,3 +92,20 @@ def section_params(section: str, params: dict | None = None) -> dict:
         where = "/".join(str(p) for p in e.path)
         raise ValueError(f"config error at {where}: {e.message}")
     return cfg[section]
+
+
+def other_method_paths(others) -> dict:
+    """``{name: (slices path, uv mesh path or None)}`` of the setting ``evaluation.other_methods``,
+    whose values are a path, or ``{slices: path, uv_mesh: path}`` for slices in another UV layout
+    (read here once for the evaluation and for the workflow's inputs)."""
+    out = {}
+    for name, spec in (others or {}).items():
+        if isinstance(spec, dict):
+            unknown = sorted(set(spec) - {"slices", "uv_mesh"})
+            if unknown or "slices" not in spec:
+                raise ValueError(f"other method {name!r}: expected a path or {{slices: path, uv_mesh: path}}, "
+                                 f"got keys {sorted(spec)}")
+            out[name] = (str(spec["slices"]), None if spec.get("uv_mesh") is None else str(spec["uv_mesh"]))
+        else:
+            out[name] = (str(spec), None)
+    return out

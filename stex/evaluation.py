@@ -74,7 +74,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stex import evaluate as ev
-from stex.io import short_ids
+from stex.io import short_ids, write_json
 from stex.camera import Calibration, transform_points
 from stex.preview import pyplot
 
@@ -230,27 +230,13 @@ class TextureSlices:
         return tex
 
 
-def other_method_paths(others) -> dict:
-    """``{name: (slices path, uv mesh path or None)}`` of the setting ``other_methods``, whose
-    values are a path, or ``{slices: path, uv_mesh: path}`` for slices in another UV layout."""
-    out = {}
-    for name, spec in (others or {}).items():
-        if isinstance(spec, dict):
-            unknown = sorted(set(spec) - {"slices", "uv_mesh"})
-            if unknown or "slices" not in spec:
-                raise ValueError(f"other method {name!r}: expected a path or {{slices: path, uv_mesh: path}}, "
-                                 f"got keys {sorted(spec)}")
-            out[name] = (str(spec["slices"]), None if spec.get("uv_mesh") is None else str(spec["uv_mesh"]))
-        else:
-            out[name] = (str(spec), None)
-    return out
-
-
 def _other_methods(others) -> dict:
     """``{name: TextureSlices}`` of the setting ``other_methods``, names checked."""
     import re
 
     out = {}
+    from stex.config import other_method_paths
+
     for name, (path, uv_mesh) in other_method_paths(others).items():
         if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in METHODS or name in ("input", "truth"):
             raise ValueError(f"method name {name!r}: use lower-case letters, digits and '_', "
@@ -1262,11 +1248,7 @@ def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_
                            "frame_ids": inp.ids, "source_frames": inp.sources,
                            "scored_frames": inp.score_ids, "frames": records,
                            "seconds": time.perf_counter() - t_start})
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    partial = out_path.with_name(out_path.name + ".partial")
-    partial.write_text(json.dumps(doc, indent=1))
-    os.replace(partial, out_path)
+    write_json(out_path, doc)
     log.info("evaluation: %d frames of block %s scored in %.1f s; written to %s", len(records),
              block, doc["seconds"], out_path)
     return doc
@@ -1372,6 +1354,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             raise ValueError(f"{sampling_path}: not a sampling table ({exc})") from exc
     if others:
         params = dict(params or {})
+        from stex.config import other_method_paths
+
         params["other_methods"] = {**params.get("other_methods", {}), **{
             k: ({"slices": p, "uv_mesh": m} if m else p) for k, (p, m) in other_method_paths(others).items()}}
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,

@@ -433,6 +433,18 @@ def _check_complete(group: zarr.Group, artifact: str, where: str) -> None:
                 raise StoreError(f"{where}: array {name!r} has {sym}={n}, other arrays have {sym}={sizes[sym]}")
 
 
+def write_json(path: str | os.PathLike, doc) -> None:
+    """Write ``doc`` as JSON to ``path`` atomically: built in ``<path>.partial`` and moved into
+    place, so a file at ``path`` is complete."""
+    import json
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, path)
+
+
 @contextlib.contextmanager
 def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = None,
                  params: dict | None = None) -> Iterator[StoreWriter]:

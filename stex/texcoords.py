@@ -1296,17 +1296,12 @@ def write_sampling_table(scene, template, projection, frames_paths, masks_paths,
                          steps, out_json) -> None:
     """:func:`sampling_table` of a run's stores (:func:`stage_inputs`), written as JSON
     ``{"steps": [rows], "params": the texcoords settings}`` to ``out_json`` (written under a
-    temporary name and renamed when complete)."""
-    import json
-    from pathlib import Path
+    temporary name and renamed when complete: :func:`stex.io.write_json`)."""
+    from stex.io import write_json
 
     inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
     rows = sampling_table(inputs, params, steps)
-    out = Path(out_json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".partial")
-    tmp.write_text(json.dumps({"steps": rows, "params": texcoords_params(params)}, indent=1))
-    tmp.replace(out)
+    write_json(out_json, {"steps": rows, "params": texcoords_params(params)})
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
 # Paths, frame blocks and parameter sections shared by the rules.
+from stex.config import other_method_paths
 from stex.ingest import count_frames, frame_blocks
 
 RESULTS = f"{config['results']}/{config['scene']}"
@@ -14,8 +15,8 @@ COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.za
 SAMPLING = [f"{RESULTS}/texcoords_sampling.json"] if OPTIMISED and config["sampling_table"]["steps"] else []
 # other methods' texture slices (and the meshes of their UV layouts) scored beside ours
 # (evaluation.other_methods: {name: path or {slices, uv_mesh}})
-OTHER_METHODS = [p for spec in config["evaluation"].get("other_methods", {}).values()
-                 for p in ([spec] if isinstance(spec, str) else [spec["slices"], spec.get("uv_mesh")]) if p]
+OTHER_METHODS = [p for pair in other_method_paths(config["evaluation"].get("other_methods")).values()
+                 for p in pair if p]
 
 
 wildcard_constraints:
