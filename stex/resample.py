@@ -12,14 +12,15 @@ surface point:
    distances over the triangles near each small cube of points, each answer proven exact by a
    distance bound or else taken from trimesh);
 3. that point's texture coordinates in the other layout, interpolated with its barycentrics;
-4. per texture, a bilinear read there (:meth:`AtlasTransfer.apply`) after the other texture's
+4. per texture, a bilinear read there (:meth:`AtlasTransfer.apply`, the renderer's
+   clamp-to-edge lookup) after the other texture's
    empty texels next to its charts took their nearest chart colour (so bilinear reads at a chart's
    border do not mix in the background).
 
 Texels farther than ``max_distance_m`` from the other mesh read nothing (black: untextured for
 the coverage scores); a mesh farther than that from most of the template is refused (wrong
 coordinates or units). :func:`atlas_transfer` builds the map once; applying it to a slice is one
-``cv2.remap``.
+bilinear lookup per texel (:func:`stex.render.sample_bilinear`, as the renderer reads textures).
 """
 
 from __future__ import annotations
@@ -27,9 +28,10 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from numba import njit, prange
+
+from stex.render import sample_bilinear, texcoords_to_pixels
 
 log = logging.getLogger("stex.resample")
 
@@ -239,11 +241,10 @@ class AtlasTransfer:
         src = np.array(tex, order="C", copy=True)
         fill_gutter(src, other_cov, other_cov, GUTTER_FILL_PX)
         reads = self.reads
-        u = np.where(reads, self.texel_uv[..., 0] * S - 0.5, -1.0).astype(np.float32)
-        v = np.where(reads, self.texel_uv[..., 1] * S - 0.5, -1.0).astype(np.float32)
-        out = cv2.remap(src, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        out[~reads] = 0
-        out = np.ascontiguousarray(out)
+        # the renderer's bilinear clamp-to-edge lookup, rounded to grey levels
+        vals = sample_bilinear(src, texcoords_to_pixels(self.texel_uv[reads], S, S))
+        out = np.zeros(self.texel_uv.shape[:2] + (3,), np.uint8)
+        out[reads] = np.clip(np.floor(vals + 0.5), 0, 255).astype(np.uint8)
         # the gutter around the run's charts (texels that read nothing stay black)
         fill_gutter(out, self.covered, self.covered, self.gutter_px)
         return out
