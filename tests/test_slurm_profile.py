@@ -1,0 +1,70 @@
+"""The workflow's SLURM profile, run through the real snakemake-executor-plugin-slurm against a
+stand-in cluster on this machine (tests/fake_slurm.py): the jobs are submitted with their
+rule's threads as CPUs, the profile's memory and time, and they produce the stores."""
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from conftest import REPO, TINY_SYNTHETIC
+from stex.io import open_store
+
+pytest.importorskip("snakemake_executor_plugin_slurm")
+
+import fake_slurm  # noqa: E402
+
+
+def rule_threads():
+    """threads declared by each rule of the workflow (1 where none is declared)."""
+    import re
+
+    threads = {}
+    for smk in (REPO / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"^\s*rule ", smk.read_text(), flags=re.M)[1:]:
+            name = block.split(":", 1)[0].strip()
+            m = re.search(r"^\s+threads:\s*(\d+)", block, flags=re.M)
+            threads[name] = int(m.group(1)) if m else 1
+    return threads
+
+
+def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
+    work = tmp_path / "wf"
+    work.mkdir()
+    cfg = {"scene": "tiny", "results": str(work / "results"), "frame_block": 4,
+           "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+           "template": {"atlas_size": 256},
+           "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10}}
+    (work / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    env = fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
+    res = work / "results" / "tiny"
+    cmd = [sys.executable, "-m", "snakemake", str(res / "poses.zarr"), str(res / "texcoords.zarr"),
+           "--snakefile", str(REPO / "Snakefile"),
+           "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"),
+           "--directory", str(work), "--configfile", str(work / "tiny.yaml"),
+           "--slurm-init-seconds-before-status-checks", "1",
+           # account and partition as the profile and the README say: a command-line
+           # --default-resources replaces the profile's list, so its values are repeated
+           "--default-resources", "mem_mb=4000", "runtime=60", "slurm_account=acct",
+           "slurm_partition=part"]
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+    out = run.stdout + run.stderr
+    assert run.returncode == 0, out[-4000:]
+
+    submitted = {}
+    for args in fake_slurm.submissions(tmp_path / "slurm"):
+        rule = args[args.index("--comment") + 1].removeprefix("rule_").split("_wildcards_")[0]
+        cpus = [a for a in args if a.startswith("--cpus-per-task=")]
+        submitted[rule] = (cpus, args[args.index("--mem") + 1], args[args.index("-t") + 1],
+                           args[args.index("-A") + 1], args[args.index("-p") + 1])
+    threads = rule_threads()
+    expected = {"ingest_scene", "ingest_block", "masks", "template", "tracking", "poses",
+                "projection", "texcoords"}
+    assert expected <= set(submitted), submitted
+    assert threads["texcoords"] == threads["poses"] == 2
+    for rule, (cpus, mem, minutes, account, partition) in submitted.items():
+        assert cpus == [f"--cpus-per-task={threads[rule]}"], (rule, cpus)
+        assert (mem, minutes, account, partition) == ("4000", "60", "acct", "part"), rule
+    # the jobs ran on the stand-in nodes and wrote complete stores
+    assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)
+    assert open_store(res / "texcoords.zarr", "texcoords")["xi"].shape[0] == 6
