@@ -38,15 +38,18 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     (work / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     env = fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
     res = work / "results" / "tiny"
+    profile = REPO / "workflow" / "profiles" / "slurm"
+    defaults = yaml.safe_load((profile / "config.yaml").read_text())["default-resources"]
+    assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     cmd = [sys.executable, "-m", "snakemake", str(res / "poses.zarr"), str(res / "texcoords.zarr"),
            "--snakefile", str(REPO / "Snakefile"),
-           "--workflow-profile", str(REPO / "workflow" / "profiles" / "slurm"),
+           "--workflow-profile", str(profile),
            "--directory", str(work), "--configfile", str(work / "tiny.yaml"),
            "--slurm-init-seconds-before-status-checks", "1",
            # account and partition as the profile and the README say: a command-line
            # --default-resources replaces the profile's list, so its values are repeated
-           "--default-resources", "mem_mb=4000", "runtime=60", "slurm_account=acct",
-           "slurm_partition=part"]
+           "--default-resources", *[f"{k}={v}" for k, v in defaults.items()],
+           "slurm_account=acct", "slurm_partition=part"]
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     out = run.stdout + run.stderr
     assert run.returncode == 0, out[-4000:]
@@ -64,7 +67,8 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     assert threads["texcoords"] == threads["poses"] == 2
     for rule, (cpus, mem, minutes, account, partition) in submitted.items():
         assert cpus == [f"--cpus-per-task={threads[rule]}"], (rule, cpus)
-        assert (mem, minutes, account, partition) == ("4000", "60", "acct", "part"), rule
+        assert (int(mem), int(minutes)) == (defaults["mem_mb"], defaults["runtime"]), rule
+        assert (account, partition) == ("acct", "part"), rule
     # the jobs ran on the stand-in nodes and wrote complete stores
     assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)
     assert open_store(res / "texcoords.zarr", "texcoords")["xi"].shape[0] == 6
