@@ -39,7 +39,8 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     env = fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
     res = work / "results" / "tiny"
     profile = REPO / "workflow" / "profiles" / "slurm"
-    defaults = yaml.safe_load((profile / "config.yaml").read_text())["default-resources"]
+    settings = yaml.safe_load((profile / "config.yaml").read_text())
+    defaults, per_rule = settings["default-resources"], settings.get("set-resources", {})
     assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     cmd = [sys.executable, "-m", "snakemake", str(res / "poses.zarr"), str(res / "texcoords.zarr"),
            "--snakefile", str(REPO / "Snakefile"),
@@ -65,9 +66,11 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
                 "projection", "texcoords"}
     assert expected <= set(submitted), submitted
     assert threads["texcoords"] == threads["poses"] == 2
+    assert per_rule["tracking"]["runtime"] > defaults["runtime"]  # a sequence-long job
     for rule, (cpus, mem, minutes, account, partition) in submitted.items():
         assert cpus == [f"--cpus-per-task={threads[rule]}"], (rule, cpus)
-        assert (int(mem), int(minutes)) == (defaults["mem_mb"], defaults["runtime"]), rule
+        wanted = {**defaults, **per_rule.get(rule, {})}
+        assert (int(mem), int(minutes)) == (wanted["mem_mb"], wanted["runtime"]), rule
         assert (account, partition) == ("acct", "part"), rule
     # the jobs ran on the stand-in nodes and wrote complete stores
     assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)
