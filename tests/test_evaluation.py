@@ -597,3 +597,34 @@ def test_pipeline_tables_rank_with_the_observed_strain(pipe):
     E = strain_similarity(strain, t, tables.attrs["params"]["str_clip"])
     f = np.nonzero(ok)[0]
     np.testing.assert_allclose(tables["e_str"][t][ok], E[cand[ok], f], atol=1e-6)
+
+
+def test_labeling_reads_the_tables_a_frame_at_a_time(pipe):
+    """The labeling reads each frame's candidates and data term from the tables blocks when it
+    solves that frame (TableRows), instead of holding every frame's (T, F, K) rows; the rows and
+    the labels are those of the whole arrays read at once."""
+    from stex.labeling import TableRows, label_sequence, labeling_inputs
+    from stex.tables import unary_terms
+
+    args = labeling_inputs(pipe["observations"], pipe["tables"], pipe["template"], {})
+    args.pop("frame_ids"), args.pop("never_seen")
+    assert isinstance(args["cand"], TableRows) and isinstance(args["unary"], TableRows)
+    blocks = [open_store(p, "tables") for p in pipe["tables"]]
+    tp = blocks[0].attrs["params"]
+    cand = np.concatenate([b["candidates"][...] for b in blocks])
+    unary = np.concatenate([unary_terms(b["e_qual"][...], b["e_glo"][...], b["e_loc"][...],
+                                        tp["omega_g"], tp["similarity"], b["e_str"][...],
+                                        tp["omega_str"]) for b in blocks]).astype(np.float32)
+    assert args["cand"].shape == cand.shape and len(blocks) > 1
+    for t in range(len(cand)):
+        assert np.array_equal(args["cand"][t], cand[t])
+        assert np.array_equal(args["unary"][t], unary[t])
+    with pytest.raises(IndexError):
+        args["cand"][len(cand)]
+    lazy = label_sequence(**args, threads=2)
+    whole = label_sequence(**dict(args, cand=cand, unary=unary), threads=2)
+    assert np.array_equal(lazy["labels"], whole["labels"])
+    assert np.array_equal(lazy["energy"], whole["energy"])
+    stored = open_store(pipe["labels"], "labels")["labels"][...]
+    glimpsed = open_store(pipe["labels"], "labels")["glimpse_source"][...] >= 0
+    assert np.array_equal(stored[:, ~glimpsed], lazy["labels"][:, ~glimpsed])
