@@ -56,6 +56,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from stex import mrf
+from stex.tables import unary_terms
 
 log = logging.getLogger("stex.labeling")
 
@@ -344,6 +345,9 @@ class TableRows:
     """
 
     def __init__(self, blocks, what: str, params: dict | None = None):
+        if what not in ("candidates", "unary") or (what == "unary" and params is None):
+            raise ValueError(f"TableRows reads 'candidates', or 'unary' with the tables' params; "
+                             f"got {what!r}")
         self.blocks, self.what, self.params = blocks, what, params
         sizes = [b["candidates"].shape[0] for b in blocks]
         self.start = np.cumsum([0] + sizes)
@@ -353,8 +357,6 @@ class TableRows:
         return self.shape[0]
 
     def __getitem__(self, t: int) -> np.ndarray:
-        from stex.tables import unary_terms
-
         if not 0 <= t < self.shape[0]:
             raise IndexError(f"frame position {t} outside 0..{self.shape[0] - 1}")
         k = int(np.searchsorted(self.start, t, side="right")) - 1
