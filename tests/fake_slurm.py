@@ -65,7 +65,7 @@ print(jobid)
 SACCT = r'''#!{python}
 import os
 
-states = {{}}
+states = {}
 path = os.path.join(os.environ["FAKE_SLURM_STATE"], "jobs")
 if os.path.exists(path):
     with open(path) as f:
@@ -90,7 +90,7 @@ def install(bin_dir: Path, state_dir: Path) -> dict:
     bin_dir.mkdir(parents=True, exist_ok=True)
     state_dir.mkdir(parents=True, exist_ok=True)
     scripts = {"sbatch": SBATCH.replace("{python}", sys.executable),
-               "sacct": SACCT.format(python=sys.executable), "srun": SRUN,
+               "sacct": SACCT.replace("{python}", sys.executable), "srun": SRUN,
                "sinfo": NOTHING, "scontrol": NOTHING, "sacctmgr": NOTHING, "sshare": NOTHING}
     for name, text in scripts.items():
         path = bin_dir / name
