@@ -10,6 +10,11 @@ through the calibration (depth -> colour extrinsic, colour intrinsics), and beco
   between the two cameras make depth unreliable;
 - sure background: everything else (out-of-range or invalid depth far from the object).
 
+A real object rarely floats: it stands on a table or the floor, which is in range too and
+touches it. Optionally (``support_plane_tolerance_m``), that support is removed from the
+in-range depth points before they become seeds (:func:`object_depth_pixels`): the dominant
+plane of those points, found by RANSAC (``skimage.measure.ransac``), with everything beyond it.
+
 GrabCut (OpenCV) then places the boundary on colour edges. Large images are segmented at a
 reduced size (``max_pixels``) and the result is upsampled.
 """
@@ -25,9 +30,93 @@ from stex.camera import Calibration, backproject_depth, project_points, transfor
 GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD = cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD
 
 
+class PlaneModel:
+    """A plane n·p + d = 0 (unit n) for ``skimage.measure.ransac``: three points define it, the
+    residual of a point is its distance (m). Both of skimage's model interfaces (``from_estimate``,
+    0.26+, and the older ``estimate``)."""
+
+    def __init__(self, normal=None, offset=0.0):
+        self.normal = None if normal is None else np.asarray(normal, np.float64)
+        self.offset = float(offset)
+
+    def __bool__(self):
+        return self.normal is not None
+
+    @classmethod
+    def from_estimate(cls, points):
+        model = cls()
+        model.estimate(points)
+        return model
+
+    def estimate(self, points) -> bool:
+        """Least-squares plane through ``points`` (N >= 3, 3); False if they are collinear."""
+        P = np.asarray(points, np.float64)
+        centre = P.mean(0)
+        _, sv, vt = np.linalg.svd(P - centre, full_matrices=False)
+        if sv.shape[0] < 2 or sv[1] <= 1e-9 * max(sv[0], 1e-300):
+            self.normal = None
+            return False
+        self.normal = vt[-1]
+        self.offset = -float(self.normal @ centre)
+        return True
+
+    def residuals(self, points):
+        return np.abs(np.asarray(points, np.float64) @ self.normal + self.offset)
+
+
+def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, max_points: int = 5000,
+                  trials: int = 200) -> tuple[np.ndarray, float, float]:
+    """The dominant plane of (N, 3) camera-space points (metres) by RANSAC.
+
+    RANSAC (``skimage.measure.ransac``, ``trials`` draws of 3 points, inliers within
+    ``tolerance_m``) runs on at most ``max_points`` of the points, evenly spaced; the plane is
+    then refitted to its inliers.
+
+    Returns:
+        (normal (3,) float64 unit, offset float m, inlier fraction float): the plane
+        normal·p + offset = 0, oriented so that the camera centre is on its positive side
+        (offset > 0). The signed distance of a point p from the plane is normal·p + offset.
+    """
+    from skimage.measure import ransac
+
+    P = np.asarray(points, np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
+        raise ValueError(f"support_plane needs (N >= 3, 3) points, got shape {P.shape}")
+    sample = P[np.linspace(0, len(P) - 1, min(len(P), max_points)).astype(np.int64)]
+    model, inliers = ransac(sample, PlaneModel, min_samples=3, residual_threshold=tolerance_m,
+                            max_trials=trials, rng=np.random.default_rng(seed))
+    if model is None or not model:
+        raise ValueError("support_plane: no plane found (the points are collinear?)")
+    n, d = model.normal, model.offset
+    if d < 0:  # the camera centre (origin) on the positive side
+        n, d = -n, -d
+    return n, d, float(np.mean(inliers))
+
+
+def object_depth_pixels(depth_mm: np.ndarray, K: np.ndarray, near_m: float, far_m: float,
+                        plane_tolerance_m: float = 0.0, seed: int = 0) -> np.ndarray:
+    """(Hd, Wd) bool: the depth pixels taken for the object.
+
+    Valid depth inside [near_m, far_m]; with ``plane_tolerance_m`` > 0, minus the support plane
+    (:func:`support_plane` of those points, RANSAC seeded with ``seed``) and everything on its
+    far side, i.e. every point whose signed distance from the plane is at most
+    ``plane_tolerance_m``.
+    """
+    if depth_mm.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got shape {depth_mm.shape}")
+    d = depth_mm.astype(np.float64) / 1000.0
+    keep = (d >= near_m) & (d <= far_m)
+    if plane_tolerance_m > 0 and keep.sum() >= 3:
+        P = backproject_depth(d, K)
+        n, off, _ = support_plane(P[keep], plane_tolerance_m, seed=seed)
+        keep &= (P @ n + off) > plane_tolerance_m
+    return keep
+
+
 def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m: float,
-                          far_m: float) -> np.ndarray:
-    """(Hc, Wc) bool: colour pixels covered by depth points inside [near_m, far_m].
+                          far_m: float, select: np.ndarray | None = None) -> np.ndarray:
+    """(Hc, Wc) bool: colour pixels covered by depth points inside [near_m, far_m] (and, if
+    given, in the (Hd, Wd) bool ``select``, e.g. :func:`object_depth_pixels`).
 
     Each depth pixel is splatted as a square of the size it covers in the colour image, so the
     region has no gaps when the colour image is finer than the depth image.
@@ -36,6 +125,8 @@ def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m
         raise ValueError(f"depth must be (H, W), got shape {depth_mm.shape}")
     d = depth_mm.astype(np.float64) / 1000.0
     inside = (d >= near_m) & (d <= far_m)
+    if select is not None:
+        inside &= np.asarray(select, bool)
     c = calibration.color
     region = np.zeros((c.height, c.width), np.uint8)
     if not inside.any():
@@ -114,9 +205,14 @@ def compute_mask(color: np.ndarray, depth_mm: np.ndarray, calibration: Calibrati
     """Foreground mask of one frame: returns (mask (Hc, Wc) bool, seeds (Hc, Wc) uint8).
 
     ``params`` is the validated ``masks`` config section (depth_near_m, depth_far_m,
-    sure_erode_px, bg_margin_px, iterations, max_pixels).
+    support_plane_tolerance_m, sure_erode_px, bg_margin_px, iterations, max_pixels).
     """
-    region = depth_region_in_color(depth_mm, calibration, params["depth_near_m"], params["depth_far_m"])
+    near, far = params["depth_near_m"], params["depth_far_m"]
+    plane_tol = params["support_plane_tolerance_m"]
+    select = None
+    if plane_tol > 0:
+        select = object_depth_pixels(depth_mm, calibration.depth.K, near, far, plane_tol, seed=seed)
+    region = depth_region_in_color(depth_mm, calibration, near, far, select)
     seeds = grabcut_seeds(region, params["sure_erode_px"], params["bg_margin_px"])
     return grabcut_mask(color, seeds, params["iterations"], params["max_pixels"], seed), seeds
 
@@ -157,9 +253,11 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
             else:
                 m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid)
             if not m.any():
-                raise ValueError(
-                    f"{frames_path}: frame {fid}: empty mask (no depth inside "
-                    f"[{params['depth_near_m']}, {params['depth_far_m']}] m; check masks.depth_near_m/depth_far_m)")
+                why = (f"no depth inside [{params['depth_near_m']}, {params['depth_far_m']}] m"
+                       + (" off the support plane" if params["support_plane_tolerance_m"] > 0 else ""))
+                raise ValueError(f"{frames_path}: frame {fid}: empty mask ({why}; check masks.depth_near_m/"
+                                 "depth_far_m" + (", support_plane_tolerance_m"
+                                                  if params["support_plane_tolerance_m"] > 0 else "") + ")")
             mask[k] = m
             seed[k] = s
             log.info("masks: frame %d (%d/%d, %.2f frames/s)", fid, k + 1, n, (k + 1) / (time.perf_counter() - t0))

@@ -263,13 +263,15 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
 def mask_in_depth(mask_color: np.ndarray, depth_mm: np.ndarray, calibration) -> np.ndarray:
     """(Hd, Wd) bool: depth pixels whose 3-D point lands on the colour-resolution mask."""
     d = depth_mm.astype(np.float64) / 1000.0
-    P = backproject_depth(d, calibration.depth.K)
-    uv, z = project_points(transform_points(calibration.depth_to_color, P.reshape(-1, 3)), calibration.color.K)
-    px = np.rint(uv).astype(np.int64)
+    valid = np.flatnonzero(d.ravel() > 0)  # invalid depth projects to no pixel (0/0)
+    P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[valid]
+    uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
     Hc, Wc = mask_color.shape
-    ok = (d.ravel() > 0) & (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < Wc) & (px[:, 1] >= 0) & (px[:, 1] < Hc)
+    ok = (z > 0) & np.isfinite(uv).all(1)
+    px = np.rint(uv[ok]).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < Wc) & (px[:, 1] >= 0) & (px[:, 1] < Hc)
     out = np.zeros(d.size, bool)
-    out[ok] = mask_color[px[ok, 1], px[ok, 0]]
+    out[valid[ok][inside]] = mask_color[px[inside, 1], px[inside, 0]]
     return out.reshape(d.shape)
 
 
@@ -1179,10 +1181,17 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                 f"(previews/masks.png; if they are known to be loose, lower tracking.min_silhouette_iou)")
         if poor:
             worst = int(np.argmin(iou))
+            if poor[0] == frames.frame_ids[0]:
+                # at the first frame nothing has been lost yet: the mesh itself misses part of the object
+                why = (f"already at the first frame (IoU {iou[0]:.2f}), so the mesh does not cover the whole object "
+                       f"(a partial template, e.g. built from one depth image) or the masks are loose "
+                       f"(previews/masks.png); later frames can be no better")
+            else:
+                why = "the mesh has likely lost part of the object there"
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
-                        "frames, first at frame %d, worst %.2f at frame %d: the mesh has likely lost part of the "
-                        "object there, and texture taken from those frames will be misplaced (frames: %s)",
-                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], _runs(poor))
+                        "frames, first at frame %d, worst %.2f at frame %d: %s, and texture taken from those frames "
+                        "will be misplaced (frames: %s)",
+                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], why, _runs(poor))
         store.attrs["poorly_fitted_frames"] = poor
         store.write("silhouette_iou", iou)
         store.write("depth_fit_m", fit)

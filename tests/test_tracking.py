@@ -482,7 +482,12 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     iou, fit = bad["silhouette_iou"][...], bad["depth_fit_m"][...]
     assert (iou[[2, 3]] < 0.85).all() and (iou[[0, 1, 4, 5]] == good["silhouette_iou"][...][[0, 1, 4, 5]]).all()
     assert (fit[[2, 3]] > good["depth_fit_m"][...][[2, 3]]).all()
-    assert f"frames: {ids[2]}-{ids[3]}" in caplog.text
+    assert f"frames: {ids[2]}-{ids[3]}" in caplog.text and "lost part of the object" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stex.tracking"):  # poor from the first frame: not a loss
+        write_tracking(with_scene("first", move([0, 1])), P["template"], P["frames"], P["masks"], params,
+                       tmp_path / "first_tracking.zarr")
+    assert "already at the first frame" in caplog.text and "lost part" not in caplog.text
     with pytest.raises(ValueError, match="every frame.*depth-camera coordinates"):
         write_tracking(with_scene("all", move(slice(None))), P["template"], P["frames"], P["masks"], params,
                        tmp_path / "all_tracking.zarr")
