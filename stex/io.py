@@ -155,6 +155,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings)",
             "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
+            "origin": "str: 'source' (the scene's template/*; embedding/* refer to it) or 'depth of frame N' "
+                      "(template.from_depth: built from that frame's depth inside its mask; embedding/* refer to that mesh)",
         },
     ),
     "tracking": ArtifactSpec(

@@ -426,6 +426,16 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     texcoords = texcoords.astype(np.float32)
     tfaces = idx2.astype(np.int32)
     flipped = uv_flipped(texcoords, tfaces)
+    # A triangle that pass 1 flattened to a sliver (near-collinear UVs: seen on a mesh from depth)
+    # comes back from the repack as a chart of its own, sometimes mirrored. Its corners are its
+    # own, so mirroring it inside its own box fixes it without touching any other chart.
+    sizes = np.bincount(uv_charts(tfaces, len(texcoords)))[uv_charts(tfaces, len(texcoords))]
+    lone = np.flatnonzero(flipped & (sizes == 1))
+    for f in lone:
+        u = texcoords[tfaces[f], 0]
+        texcoords[tfaces[f], 0] = u.min() + u.max() - u
+    info["lone_mirrored"] = int(len(lone))
+    flipped = uv_flipped(texcoords, tfaces)
     if flipped.any():
         raise RuntimeError(f"{int(flipped.sum())} UV triangles still mirrored after the fix")
     if texcoords.min() < 0 or texcoords.max() > 1:
@@ -644,19 +654,132 @@ def prepare_template(mesh, params: dict) -> dict:
     }
 
 
-def write_template(scene_path, params: dict, out) -> None:
-    """Read the template mesh from the ``scene`` store, run the stage, write the ``template`` store."""
+def hidden_from_color(depth_m, calibration, select, tolerance_m: float = 0.05) -> np.ndarray:
+    """(Hd, Wd) bool: depth pixels in ``select`` that the colour camera cannot see, because a
+    selected point more than ``tolerance_m`` nearer lands within a depth pixel's footprint of them
+    in the colour image.
+
+    The two cameras are a few centimetres apart, so background just beside the object in the depth
+    image can land behind the object in the colour image, inside its mask. The tolerance keeps the
+    object's own receding sides (tiny scene, stride 1: 2 cm drops 18 % of its silhouette, 5 cm 6 %,
+    and the background strip either way).
+    """
+    import cv2
+
+    from stex.camera import backproject_depth, project_points, transform_points
+
+    idx = np.flatnonzero(np.asarray(select, bool).ravel() & (depth_m.ravel() > 0))
+    out = np.zeros(depth_m.size, bool)
+    if idx.size == 0:
+        return out.reshape(depth_m.shape)
+    P = backproject_depth(depth_m, calibration.depth.K).reshape(-1, 3)[idx]
+    uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
+    c = calibration.color
+    px = np.rint(uv).astype(np.int64)
+    ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
+    zbuf = np.full((c.height, c.width), np.inf, np.float32)
+    np.minimum.at(zbuf, (px[ok, 1], px[ok, 0]), z[ok].astype(np.float32))
+    # a depth pixel covers about this many colour pixels: the nearest surface over that footprint
+    k = 2 * int(np.ceil(c.fx / calibration.depth.fx)) + 1
+    zbuf = cv2.erode(zbuf, np.ones((k, k), np.uint8))
+    occluded = np.zeros(idx.size, bool)
+    occluded[ok] = z[ok] > zbuf[px[ok, 1], px[ok, 0]] + tolerance_m
+    out[idx] = occluded
+    return out.reshape(depth_m.shape)
+
+
+def template_from_frame(depth_mm, mask_color, calibration, stride: int = 2, max_jump_m: float = 0.05):
+    """A template from one frame: the surface its depth image sees inside its colour mask.
+
+    The mask is carried into the depth image (:func:`stex.tracking.mask_in_depth`), without the
+    points the colour camera cannot see (:func:`hidden_from_color`: background behind the object
+    that lands in its mask); depth pixels without a value are carried into the colour image at the
+    object's median depth and kept where they land in the mask; the region is closed and its holes
+    filled. Pixels without a value in it get
+    the depth of their nearest valid pixel in the mask, then a 5-px median smooths the result.
+    :func:`template_from_depth` turns it into triangles (``stride`` depth px apart; no triangle
+    across a depth jump of ``max_jump_m``, e.g. a nose in front of a chest).
+
+    Args:
+        depth_mm: (Hd, Wd) uint16 depth, millimetres, 0 = invalid. mask_color: (Hc, Wc) bool.
+        calibration: :class:`stex.camera.Calibration`.
+
+    Returns:
+        (vertices (V, 3) float64 depth-camera metres, faces (F, 3) int32), faces towards the camera.
+    """
+    import cv2
+    from scipy import ndimage
+
+    from stex.camera import backproject_depth, project_points, transform_points
+    from stex.tracking import mask_in_depth
+
+    mask_color = np.asarray(mask_color, bool)
+    d = np.asarray(depth_mm).astype(np.float64) / 1000.0
+    seen = mask_in_depth(mask_color, np.asarray(depth_mm), calibration)
+    seen &= ~hidden_from_color(d, calibration, seen)
+    if not seen.any():
+        raise ValueError("template_from_frame: no valid depth inside the mask")
+    # depth pixels without a value cannot be carried into the colour image by their own depth:
+    # they are carried at the object's median depth (the parallax error is small at its distance)
+    H, W = d.shape
+    grid = np.full((H, W), float(np.median(d[seen])))
+    uv, _ = project_points(transform_points(calibration.depth_to_color,
+                                            backproject_depth(grid, calibration.depth.K).reshape(-1, 3)),
+                           calibration.color.K)
+    px = np.rint(uv).astype(np.int64)
+    Hc, Wc = mask_color.shape
+    inside = (px[:, 0] >= 0) & (px[:, 0] < Wc) & (px[:, 1] >= 0) & (px[:, 1] < Hc)
+    no_depth = np.zeros(H * W, bool)
+    no_depth[inside] = mask_color[px[inside, 1], px[inside, 0]]
+    no_depth = no_depth.reshape(H, W) & (d <= 0)
+    k = 2 * stride + 1
+    region = ndimage.binary_fill_holes(cv2.morphologyEx((seen | no_depth).astype(np.uint8), cv2.MORPH_CLOSE,
+                                                        np.ones((k, k), np.uint8)) > 0)
+    # every pixel takes its nearest object depth before the median, so that the median at the
+    # silhouette does not mix in the background or zeros
+    nearest = ndimage.distance_transform_edt(~seen, return_distances=False, return_indices=True)
+    filled = np.where(region, cv2.medianBlur(d[tuple(nearest)].astype(np.float32), 5), 0.0)
+    return template_from_depth(filled, calibration.depth.K, region, stride=stride, max_jump_m=max_jump_m)
+
+
+def write_template(scene_path, params: dict, out, frames_path=None, masks_path=None) -> None:
+    """Read the template mesh from the ``scene`` store, run the stage, write the ``template`` store.
+
+    With ``params['from_depth']`` the mesh is instead :func:`template_from_frame` of the first
+    frame of ``frames_path`` (a ``frames`` store) inside its mask from ``masks_path``.
+    """
+    from stex.camera import Calibration
     from stex.io import create_store, open_store
     from stex.readers.meshes import Mesh
 
     scene = open_store(scene_path, "scene")
-    if not scene.attrs.get("has_template", False) or "template/vertices" not in scene:
+    has_template = scene.attrs.get("has_template", False) and "template/vertices" in scene
+    if params.get("from_depth", False):
+        if frames_path is None or masks_path is None:
+            raise ValueError("template.from_depth needs the first frame block and its masks")
+        frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
+        fid = int(frames.attrs["frame_ids"][0])
+        if has_template:
+            log.warning("template: template.from_depth is set, so the source's template mesh is not used")
+        if "given/vertices" in scene:
+            log.warning("template: the source's per-frame meshes refer to its own template, not to one from "
+                        "depth; tracking.mode given cannot use them")
+        V, F = template_from_frame(frames["depth"][0], masks["mask"][0],
+                                   Calibration.from_dict(scene.attrs["calibration"]),
+                                   stride=int(params["from_depth_stride_px"]))
+        log.info("template: %d faces from the depth of frame %d", len(F), fid)
+        mesh, origin = Mesh(V, F), f"depth of frame {fid}"
+    elif has_template:
+        mesh = Mesh(np.asarray(scene["template/vertices"][...], np.float64),
+                    np.asarray(scene["template/faces"][...], np.int32))
+        origin = "source"
+    else:
         kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
-        raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template")
-    mesh = Mesh(np.asarray(scene["template/vertices"][...], np.float64),
-                np.asarray(scene["template/faces"][...], np.int32))
+        raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
+                         f"template.from_depth to build one from the first frame's depth (one view only)")
     result = prepare_template(mesh, params)
     attrs = result.pop("attrs")
+    attrs["origin"] = origin
     with create_store(out, "template", attrs=attrs, params=params) as store:
         for name, arr in result.items():
             store.write(name, arr)

@@ -1150,6 +1150,10 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
         if mode == "given":
             if "given/vertices" not in scene:
                 raise ValueError(f"{scene_path}: tracking.mode is 'given' but the source supplied no per-frame meshes")
+            if template.attrs.get("origin", "source") != "source":
+                raise ValueError(f"{template_path}: tracking.mode given: the template was built from the "
+                                 f"{template.attrs['origin']} (template.from_depth), and the source's per-frame "
+                                 f"meshes refer to the source's template; use tracking.mode track")
             given = scene["given/vertices"]
             orig_faces = np.asarray(scene["template/faces"][...])
             ef, eb = template["embedding/face"][...], template["embedding/bary"][...]

@@ -1,6 +1,7 @@
 """The whole workflow on a real capture: KillingFusion's Snoopy (Kinect v1, two frames), read as a
 folder dataset in stex's layout, with GrabCut masks that leave out the table (the support plane)
-and a template built from the first frame's depth. Skipped without the shared data samples."""
+and the template built from the first frame's depth (template.from_depth). Skipped without the
+shared data samples."""
 import json
 import subprocess
 import sys
@@ -17,15 +18,8 @@ pytestmark = pytest.mark.skipif(not SNOOPY.is_dir(), reason="shared data samples
 
 
 def snoopy_dataset(root):
-    """Write the two Snoopy frames in stex's folder layout under ``root``: colour, depth (registered
-    to colour, so one camera and an identity extrinsic), and a template from frame 0's depth
-    inside its object mask, with the depth's holes filled from their nearest valid pixel."""
-    import cv2
-    import trimesh
-    from scipy import ndimage
-
-    from stex.template import template_from_depth
-
+    """Write the two Snoopy frames in stex's folder layout under ``root``: colour and depth
+    (registered to colour, so one camera and an identity extrinsic); no masks, no template."""
     for sub in ("color", "depth"):
         (root / sub).mkdir(parents=True)
     for i in (0, 1):
@@ -34,15 +28,6 @@ def snoopy_dataset(root):
     cam = {"fx": 517.0, "fy": 517.0, "cx": 320.0, "cy": 240.0, "width": 640, "height": 480}
     (root / "calibration.json").write_text(json.dumps({"color": cam, "depth": cam,
                                                        "depth_to_color": np.eye(4).tolist()}))
-    depth = cv2.imread(str(SNOOPY / "depth_000000.png"), cv2.IMREAD_UNCHANGED) / 1000.0
-    omask = cv2.imread(str(SNOOPY / "omask_000000.png"), cv2.IMREAD_UNCHANGED) > 0
-    nearest = ndimage.distance_transform_edt(depth <= 0, return_distances=False, return_indices=True)
-    filled = cv2.medianBlur(depth[tuple(nearest)].astype(np.float32), 5)
-    region = ndimage.binary_fill_holes(cv2.morphologyEx(omask.astype(np.uint8), cv2.MORPH_CLOSE,
-                                                        np.ones((9, 9), np.uint8)))
-    K = np.array([[517.0, 0, 320], [0, 517.0, 240], [0, 0, 1]])
-    V, F = template_from_depth(filled, K, region, stride=2, max_jump_m=0.05)
-    trimesh.Trimesh(V, F, process=False).export(root / "template.obj")
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +37,7 @@ def real_run(tmp_path_factory):
     cfg = {"scene": "snoopy", "results": str(work / "results"), "frame_block": 2,
            "source": {"kind": "folder", "folder": {"path": str(work / "snoopy"), "layout": "stex"}},
            "masks": {"support_plane_tolerance_m": 0.01},
-           "template": {"atlas_size": 512},
+           "template": {"atlas_size": 512, "from_depth": True},
            "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10}}
     (work / "snoopy.yaml").write_text(yaml.safe_dump(cfg))
     cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(work),
@@ -74,6 +59,10 @@ def test_real_capture_runs_through_and_every_store_is_complete(real_run):
         assert 10_000 < masks.read("mask", t).sum() < 30_000
     texture = corrected.read("texture", 1)
     assert texture.shape == (512, 512, 3) and texture.std() > 10
+    template = open_store(real_run / "template.zarr", "template")
+    assert template.attrs["origin"] == "depth of frame 0" and template.attrs["gutter_conflicts"] == 0
+    # the template from frame 0's depth covers that frame's mask
+    assert open_store(real_run / "tracking.zarr", "tracking")["silhouette_iou"][0] > 0.85
 
 
 def test_real_capture_scores(real_run):

@@ -4,6 +4,12 @@
 rule template:
     input:
         scene=f"{RESULTS}/scene.zarr",
+        # template.from_depth: the first frame's depth and mask
+        first=(
+            [f"{RESULTS}/frames/block_{BLOCK_IDS[0]}.zarr", f"{RESULTS}/masks/block_{BLOCK_IDS[0]}.zarr"]
+            if config["template"]["from_depth"]
+            else []
+        ),
     output:
         directory(f"{RESULTS}/template.zarr"),
     params:

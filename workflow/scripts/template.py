@@ -3,4 +3,5 @@ from stex.logs import setup_logging
 from stex.template import write_template
 
 setup_logging(snakemake.log[0])
-write_template(snakemake.input.scene, snakemake.params.template, snakemake.output[0])
+first = list(snakemake.input.first) or [None, None]  # template.from_depth: frames and masks of block 0
+write_template(snakemake.input.scene, snakemake.params.template, snakemake.output[0], *first)
