@@ -5,9 +5,11 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
 
 1. ``stex.ingest``   — read a folder dataset, an Azure Kinect .mkv or a synthetic scene into
    the ``scene`` and per-block ``frames`` stores (``stex.readers``, ``stex.synth``).
-2. ``stex.masks``    — GrabCut foreground masks at colour resolution, seeded from depth.
-3. ``stex.template`` — clean and decimate (or subdivide) the template, build its UV atlas
-   (xatlas, mirrored charts fixed), face adjacency and the texel -> face map.
+2. ``stex.masks``    — GrabCut foreground masks at colour resolution, seeded from depth
+   (optionally without the support plane the object stands on).
+3. ``stex.template`` — clean and decimate (or subdivide) the template (or build one from the
+   first frame's depth), build its UV atlas (xatlas, mirrored charts fixed), face adjacency and
+   the texel -> face map.
 4. ``stex.tracking`` — template vertices at every frame: embedded deformation with the L0
    motion regulariser through the depth stream (plus an optical-flow term), or given meshes.
 5. ``stex.poses``    — rigid poses K_{t->t'} between all frame pairs (RANSAC + ICP).
