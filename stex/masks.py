@@ -79,14 +79,18 @@ def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, max_poi
         normal·p + offset = 0, oriented so that the camera centre is on its positive side
         (offset > 0). The signed distance of a point p from the plane is normal·p + offset.
     """
+    import warnings
+
     from skimage.measure import ransac
 
     P = np.asarray(points, np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
         raise ValueError(f"support_plane needs (N >= 3, 3) points, got shape {P.shape}")
     sample = P[np.linspace(0, len(P) - 1, min(len(P), max_points)).astype(np.int64)]
-    model, inliers = ransac(sample, PlaneModel, min_samples=3, residual_threshold=tolerance_m,
-                            max_trials=trials, rng=np.random.default_rng(seed))
+    with warnings.catch_warnings():  # skimage warns "No inliers found"; the error below says more
+        warnings.simplefilter("ignore", UserWarning)
+        model, inliers = ransac(sample, PlaneModel, min_samples=3, residual_threshold=tolerance_m,
+                                max_trials=trials, rng=np.random.default_rng(seed))
     if model is None or not model:
         raise ValueError("support_plane: no plane found (the points are collinear?)")
     n, d = model.normal, model.offset
@@ -267,7 +271,10 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
                 m = frames["mask"][k]
                 s = np.where(m, GC_FGD, GC_BGD).astype(np.uint8)
             else:
-                m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid)
+                try:
+                    m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid)
+                except ValueError as e:
+                    raise ValueError(f"{frames_path}: frame {fid}: {e}") from e
             if not m.any():
                 why = (f"no depth inside [{params['depth_near_m']}, {params['depth_far_m']}] m"
                        + (" off the support plane" if params["support_plane_tolerance_m"] > 0 else ""))

@@ -79,6 +79,18 @@ def test_masks_block_rejects_empty_depth_range(tmp_path, tiny_config):
     with pytest.raises(ValueError, match="frame 0: empty mask"):
         write_masks_block(tmp_path / "scene.zarr", tmp_path / "f.zarr", params, tmp_path / "m.zarr")
     assert not (tmp_path / "m.zarr").exists()
+    # three in-range points on a line: no plane to remove, and the error names the frame
+    line = np.zeros((90, 100), np.uint16)
+    line[40, 10:13] = 1000
+    import zarr
+    z = zarr.open_group(str(tmp_path / "f.zarr"), mode="r+")
+    d = z["depth"][...]
+    d[1] = line
+    z["depth"][...] = d
+    with pytest.raises(ValueError, match=r"f\.zarr: frame 1: support_plane: no plane found"):
+        write_masks_block(tmp_path / "scene.zarr", tmp_path / "f.zarr",
+                          dict(tiny_config["masks"], support_plane_tolerance_m=0.01), tmp_path / "m.zarr")
+    assert not (tmp_path / "m.zarr").exists()
     with pytest.raises(ValueError, match="supplied no masks"):
         write_masks_block(tmp_path / "scene.zarr", tmp_path / "f.zarr", dict(tiny_config["masks"], use_given=True), tmp_path / "m.zarr")
 
