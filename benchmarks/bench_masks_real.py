@@ -73,7 +73,43 @@ def main() -> int:
             dt = time.perf_counter() - t0
             print(f"{t:5d}  {tol:9.3f}  {m[omask].mean():13.3f}  {outline[m].mean():15.3f}  "
                   f"{mask_iou(m, filled):17.3f}  {dt:7.2f}")
+    deepdeform(a.samples)
     return 0
+
+
+def deepdeform(samples: Path) -> None:
+    """A capture with no support in range: DeepDeform's person holding up a shirt (depth range
+    up to 2.05 m, the wall beyond). The dominant plane of the in-range points is the shirt; the
+    support test (the object on the plane's camera side) must not take it."""
+    import cv2
+
+    from stex.masks import dominant_plane
+
+    folder = samples / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017"
+    if not folder.is_dir():
+        return
+    K = np.loadtxt(folder / "intrinsics.txt")[:3, :3]
+    cam = Intrinsics(K=K, width=640, height=480)
+    cal = Calibration(color=cam, depth=cam, depth_to_color=np.eye(4))
+    params = dict(load_config(overrides={})["masks"], depth_far_m=2.05)
+    print("\nDeepDeform seq017 (no support in range), depth_far_m 2.05:")
+    for f in ("000300", "000600"):
+        color = cv2.cvtColor(cv2.imread(str(folder / "color" / f"{f}.jpg")), cv2.COLOR_BGR2RGB)
+        depth = cv2.imread(str(folder / "depth" / f"{f}.png"), cv2.IMREAD_UNCHANGED)
+        d = depth / 1000.0
+        inside = (d >= params["depth_near_m"]) & (d <= params["depth_far_m"])
+        P = backproject_depth(d, K)[inside]
+        n, off = dominant_plane(P, 0.01)
+        dist = P @ n + off
+        on = np.abs(dist) <= 0.01
+        plain, _ = compute_mask(color, depth, cal, params, seed=0)
+        info = {}
+        m, _ = compute_mask(color, depth, cal, dict(params, support_plane_tolerance_m=0.01), seed=0, info=info)
+        print(f"  frame {f}: dominant plane normal {np.round(n, 3)}, {on.mean():.3f} of the points on it, "
+              f"{(dist[~on] < 0).mean():.3f} of the others beyond it; support taken: "
+              f"{'none' if info['support_plane'] is None else np.round(info['support_plane'], 3).tolist()}; "
+              f"mask {m.sum()} px, {plain[m].mean():.3f} of it and {m[plain].mean():.3f} of the mask "
+              f"without the option in common")
 
 
 if __name__ == "__main__":

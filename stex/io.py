@@ -121,7 +121,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "mask": ArraySpec(("T", "Hc", "Wc"), "bool", "1", "object foreground at colour resolution", (1, "Hc", "Wc")),
             "seed": ArraySpec(("T", "Hc", "Wc"), "uint8", "cv2.GC_*", "GrabCut seed labels from depth (0 bg, 1 fg, 2 probable bg, 3 probable fg)", (1, "Hc", "Wc")),
         },
-        attrs={"frame_ids": "list[int]"},
+        attrs={"frame_ids": "list[int]",
+               "support_planes": "list (per frame) of [nx, ny, nz, offset m, fraction of the in-range depth points on it] "
+                                 "or null: the support plane removed (masks.support_plane_tolerance_m > 0; null = none "
+                                 "qualified, nothing removed); absent when the option is off or the masks are the source's"},
     ),
     "template": ArtifactSpec(
         description="The template mesh of the whole sequence (stex.template): the scene's template "

@@ -66,18 +66,18 @@ class PlaneModel:
         return np.abs(np.asarray(points, np.float64) @ self.normal + self.offset)
 
 
-def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, max_points: int = 5000,
-                  trials: int = 200) -> tuple[np.ndarray, float, float]:
-    """The dominant plane of (N, 3) camera-space points (metres) by RANSAC.
+def dominant_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, max_points: int = 5000,
+                   trials: int = 200) -> tuple[np.ndarray, float]:
+    """The plane through most of the (N, 3) points (metres), by RANSAC.
 
     RANSAC (``skimage.measure.ransac``, ``trials`` draws of 3 points, inliers within
     ``tolerance_m``) runs on at most ``max_points`` of the points, evenly spaced; the plane is
     then refitted to its inliers.
 
     Returns:
-        (normal (3,) float64 unit, offset float m, inlier fraction float): the plane
-        normal·p + offset = 0, oriented so that the camera centre is on its positive side
-        (offset > 0). The signed distance of a point p from the plane is normal·p + offset.
+        (normal (3,) float64 unit, offset float m): the plane normal·p + offset = 0, oriented so
+        that the camera centre is on its positive side (offset > 0). The signed distance of a
+        point p from the plane is normal·p + offset.
     """
     import warnings
 
@@ -85,28 +85,67 @@ def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, max_poi
 
     P = np.asarray(points, np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
-        raise ValueError(f"support_plane needs (N >= 3, 3) points, got shape {P.shape}")
+        raise ValueError(f"a plane needs (N >= 3, 3) points, got shape {P.shape}")
     sample = P[np.linspace(0, len(P) - 1, min(len(P), max_points)).astype(np.int64)]
     with warnings.catch_warnings():  # skimage warns "No inliers found"; the error below says more
         warnings.simplefilter("ignore", UserWarning)
-        model, inliers = ransac(sample, PlaneModel, min_samples=3, residual_threshold=tolerance_m,
-                                max_trials=trials, rng=np.random.default_rng(seed))
+        model, _ = ransac(sample, PlaneModel, min_samples=3, residual_threshold=tolerance_m,
+                          max_trials=trials, rng=np.random.default_rng(seed))
     if model is None or not model:
         raise ValueError("support_plane: no plane found (the points are collinear?)")
     n, d = model.normal, model.offset
     if d < 0:  # the camera centre (origin) on the positive side
         n, d = -n, -d
-    return n, d, float(np.mean(inliers))
+    return n, d
+
+
+def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, candidates: int = 3,
+                  max_beyond: float = 0.2, min_fraction: float = 0.05):
+    """The plane the object stands on, among the (N, 3) in-range points (metres), or None.
+
+    The dominant plane (:func:`dominant_plane`) is not always the support: a flat object (a
+    shirt held up) can hold more points than the floor. A support has the object on its camera
+    side, so a plane is taken only if at most ``max_beyond`` of the points off it lie beyond it
+    (a shirt has the person behind it); otherwise the next dominant plane of the points off it is
+    tried, up to ``candidates`` planes. A plane holding less than ``min_fraction`` of the points
+    ends the search.
+
+    Returns:
+        (normal (3,), offset m, fraction of the points on the plane), as :func:`dominant_plane`
+        orients it; or None when no plane qualifies.
+    """
+    P = np.asarray(points, np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
+        raise ValueError(f"a plane needs (N >= 3, 3) points, got shape {P.shape}")
+    rest = P
+    for k in range(candidates):
+        if len(rest) < 3:
+            return None
+        try:
+            n, d = dominant_plane(rest, tolerance_m, seed=seed + k)
+        except ValueError:
+            if k == 0:
+                raise
+            return None
+        dist = P @ n + d
+        on = np.abs(dist) <= tolerance_m
+        if on.mean() < min_fraction:
+            return None
+        if not (~on).any() or (dist[~on] < 0).mean() <= max_beyond:
+            return n, d, float(on.mean())
+        rest = rest[np.abs(rest @ n + d) > tolerance_m]
+    return None
 
 
 def object_depth_pixels(depth_mm: np.ndarray, K: np.ndarray, near_m: float, far_m: float,
-                        plane_tolerance_m: float = 0.0, seed: int = 0) -> np.ndarray:
+                        plane_tolerance_m: float = 0.0, seed: int = 0, info: dict | None = None) -> np.ndarray:
     """(Hd, Wd) bool: the depth pixels taken for the object.
 
     Valid depth inside [near_m, far_m]; with ``plane_tolerance_m`` > 0, minus the support plane
-    (:func:`support_plane` of those points, RANSAC seeded with ``seed``) and everything on its
-    far side, i.e. every point whose signed distance from the plane is at most
-    ``plane_tolerance_m``.
+    (:func:`support_plane` of those points, RANSAC seeded with ``seed``; none if no plane
+    qualifies) and everything on its far side, i.e. every point whose signed distance from the
+    plane is at most ``plane_tolerance_m``. ``info``, if given, receives ``support_plane``:
+    [nx, ny, nz, offset m, fraction of the in-range points on it], or None.
     """
     if depth_mm.ndim != 2:
         raise ValueError(f"depth must be (H, W), got shape {depth_mm.shape}")
@@ -114,8 +153,12 @@ def object_depth_pixels(depth_mm: np.ndarray, K: np.ndarray, near_m: float, far_
     keep = (d >= near_m) & (d <= far_m)
     if plane_tolerance_m > 0 and keep.sum() >= 3:
         P = backproject_depth(d, K)
-        n, off, _ = support_plane(P[keep], plane_tolerance_m, seed=seed)
-        keep &= (P @ n + off) > plane_tolerance_m
+        plane = support_plane(P[keep], plane_tolerance_m, seed=seed)
+        if info is not None:
+            info["support_plane"] = None if plane is None else [*map(float, plane[0]), plane[1], plane[2]]
+        if plane is not None:
+            n, off, _ = plane
+            keep &= (P @ n + off) > plane_tolerance_m
     return keep
 
 
@@ -220,15 +263,16 @@ def grabcut_mask(color: np.ndarray, seeds: np.ndarray, iterations: int = 5,
 
 
 def compute_mask(color: np.ndarray, depth_mm: np.ndarray, calibration: Calibration, params: dict,
-                 seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                 seed: int = 0, info: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Foreground mask of one frame: returns (mask (Hc, Wc) bool, seeds (Hc, Wc) uint8).
 
     ``params`` is the validated ``masks`` config section (depth_near_m, depth_far_m,
-    support_plane_tolerance_m, sure_erode_px, bg_margin_px, iterations, max_pixels).
+    support_plane_tolerance_m, sure_erode_px, bg_margin_px, iterations, max_pixels). ``info``, if
+    given, receives the support plane (:func:`object_depth_pixels`).
     """
     near, far = params["depth_near_m"], params["depth_far_m"]
     select = object_depth_pixels(depth_mm, calibration.depth.K, near, far, params["support_plane_tolerance_m"],
-                                 seed=seed)
+                                 seed=seed, info=info)
     region = depth_region_in_color(depth_mm, calibration, near, far, select)
     # where valid depth is not the object's (beyond the range, or the support), a hole in the
     # object's outline is an opening to keep, not a gap to fill
@@ -262,6 +306,7 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
     if params["use_given"] and "mask" not in frames:
         raise ValueError(f"{frames_path}: masks.use_given is set but the source supplied no masks")
     t0 = time.perf_counter()
+    planes = []
     with create_store(out, "masks", attrs={"frame_ids": ids}, params=params) as store:
         mask = store.create("mask", (n, cal.color.height, cal.color.width))
         seed = store.create("seed", (n, cal.color.height, cal.color.width))
@@ -271,10 +316,13 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
                 m = frames["mask"][k]
                 s = np.where(m, GC_FGD, GC_BGD).astype(np.uint8)
             else:
+                info = {}
                 try:
-                    m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid)
+                    m, s = compute_mask(frames["color"][k], depth, cal, params, seed=fid, info=info)
                 except ValueError as e:
                     raise ValueError(f"{frames_path}: frame {fid}: {e}") from e
+                if "support_plane" in info:
+                    planes.append(info["support_plane"])
             if not m.any():
                 why = (f"no depth inside [{params['depth_near_m']}, {params['depth_far_m']}] m"
                        + (" off the support plane" if params["support_plane_tolerance_m"] > 0 else ""))
@@ -284,6 +332,13 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
             mask[k] = m
             seed[k] = s
             log.info("masks: frame %d (%d/%d, %.2f frames/s)", fid, k + 1, n, (k + 1) / (time.perf_counter() - t0))
+        if planes:
+            store.attrs["support_planes"] = planes
+            missing = [fid for fid, pl in zip(ids, planes) if pl is None]
+            if missing:
+                log.warning("masks: no support plane at %d of %d frames (%s): no plane of their in-range depth has "
+                            "the object on its camera side, so the depth range alone seeded GrabCut there",
+                            len(missing), n, ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else ""))
 
 
 def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | None, out, n_show: int = 6) -> None:

@@ -110,6 +110,20 @@ def test_support_plane_is_found_and_faces_the_camera():
         support_plane(table[:2], 0.01)
 
 
+def test_support_plane_is_not_a_flat_object_with_something_behind_it():
+    """A panel held up in front of a body (a shirt in front of a person) holds the most points, but
+    the body lies beyond it: the floor the person stands on is the support, and without a floor
+    there is none."""
+    rng = np.random.default_rng(1)
+    panel = np.column_stack([rng.uniform(-0.3, 0.3, 3000), rng.uniform(-0.3, 0.3, 3000), np.full(3000, 1.0)])
+    body = np.column_stack([rng.uniform(-0.2, 0.2, 1500), rng.uniform(-0.5, 0.85, 1500), rng.uniform(1.1, 1.3, 1500)])
+    floor = np.column_stack([rng.uniform(-0.6, 0.6, 700), np.full(700, 0.9), rng.uniform(1.0, 1.6, 700)])
+    n, off, fraction = support_plane(np.concatenate([panel, body, floor]), 0.01)
+    np.testing.assert_allclose(n, [0, -1, 0], atol=0.01)
+    assert off == pytest.approx(0.9, abs=0.003) and fraction == pytest.approx(700 / 5200, abs=0.01)
+    assert support_plane(np.concatenate([panel, body]), 0.01) is None
+
+
 def test_object_depth_pixels_remove_the_table_the_object_stands_on():
     import trimesh
 
@@ -126,7 +140,9 @@ def test_object_depth_pixels_remove_the_table_the_object_stands_on():
     on_box = (r.face_id >= 0) & (r.face_id < len(box.faces))
     in_range = object_depth_pixels(depth_mm, K, 0.3, 3.0)
     assert in_range[~on_box & (depth_mm > 0)].all()  # without the option the floor is taken too
-    kept = object_depth_pixels(depth_mm, K, 0.3, 3.0, plane_tolerance_m=0.01)
+    info = {}
+    kept = object_depth_pixels(depth_mm, K, 0.3, 3.0, plane_tolerance_m=0.01, info=info)
+    np.testing.assert_allclose(info["support_plane"][:4], [0, -1, 0, 0.3], atol=1e-3)
     assert not kept[~on_box].any()
     assert kept[on_box].mean() > 0.9  # all but the box's bottom centimetre
     np.testing.assert_array_equal(kept, object_depth_pixels(depth_mm, K, 0.3, 3.0, plane_tolerance_m=0.01))
