@@ -238,6 +238,12 @@ def test_template_from_the_first_frames_depth(tmp_path):
     # centres: compared inside the silhouette's outer pixel
     inner = ndimage.binary_erosion(silhouette)
     assert covered[inner].mean() > 0.9 and silhouette[covered].mean() > 0.98, (covered[inner].mean(), silhouette[covered].mean())
+    # the source's per-frame meshes refer to its own template: 'given' tracking refuses this one
+    from stex.tracking import write_tracking
+    with pytest.raises(ValueError, match="template.from_depth.*use tracking.mode track"):
+        write_tracking(tmp_path / "scene.zarr", tmp_path / "template.zarr", [tmp_path / "f.zarr"],
+                       [tmp_path / "m.zarr"], dict(cfg["tracking"], mode="given"), tmp_path / "tracking.zarr")
+    assert not (tmp_path / "tracking.zarr").exists()
 
 
 def test_low_poly_meshes_are_subdivided_without_changing_shape():
