@@ -5,20 +5,20 @@ is not (valid depth beyond the range). Those depth pixels are carried into the c
 through the calibration (depth -> colour extrinsic, colour intrinsics), and become GrabCut seeds:
 
 - sure foreground: the in-range region, eroded by ``sure_erode_px``;
-- probable foreground: the in-range region, its holes filled except where the depth shows the
-  background through them (an opening: a mug's handle, an arm on a hip; :func:`fill_holes`);
+- probable foreground: the in-range region (holes filled);
 - probable background: a band of ``bg_margin_px`` around it, where depth edges and parallax
   between the two cameras make depth unreliable;
 - sure background: everything else (out-of-range or invalid depth far from the object).
 
 A real object rarely floats: it stands on a table or the floor, which is in range too and
 touches it. Optionally (``support_plane_tolerance_m``), that support is removed from the
-in-range depth points before they become seeds (:func:`object_depth_pixels`): the dominant
-plane of those points, found by RANSAC (``skimage.measure.ransac``), with everything beyond it.
+in-range depth points before they become seeds (:func:`object_depth_pixels`): the plane the
+object stands on (:func:`support_plane`: of the dominant planes of those points, found by RANSAC,
+``skimage.measure.ransac``, the first with the object on its camera side), with everything
+beyond it.
 
-GrabCut (OpenCV) then places the boundary on colour edges; the holes of its result are filled
-by the same rule. Large images are segmented at a reduced size (``max_pixels``) and the result
-is upsampled.
+GrabCut (OpenCV) then places the boundary on colour edges. Large images are segmented at a
+reduced size (``max_pixels``) and the result is upsampled.
 """
 
 from __future__ import annotations
@@ -192,20 +192,9 @@ def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m
     return region.astype(bool)
 
 
-def fill_holes(mask: np.ndarray, background: np.ndarray | None = None) -> np.ndarray:
-    """``mask`` with its holes filled, except hole pixels in ``background`` (depth shows the
-    background there: a real opening, such as a mug's handle or an arm on a hip)."""
-    filled = ndimage.binary_fill_holes(mask)
-    if background is not None:
-        filled &= mask | ~np.asarray(background, bool)
-    return filled
-
-
-def grabcut_seeds(region: np.ndarray, sure_erode_px: int, bg_margin_px: int,
-                  background: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) uint8 GrabCut labels (cv2.GC_*) from a bool in-range region (its holes filled,
-    except where ``background``: see :func:`fill_holes`)."""
-    region = fill_holes(region, background)
+def grabcut_seeds(region: np.ndarray, sure_erode_px: int, bg_margin_px: int) -> np.ndarray:
+    """(H, W) uint8 GrabCut labels (cv2.GC_*) from a bool in-range region."""
+    region = ndimage.binary_fill_holes(region)
     seeds = np.full(region.shape, GC_BGD, np.uint8)
     if not region.any():
         return seeds
@@ -220,13 +209,11 @@ def grabcut_seeds(region: np.ndarray, sure_erode_px: int, bg_margin_px: int,
 
 
 def grabcut_mask(color: np.ndarray, seeds: np.ndarray, iterations: int = 5,
-                 max_pixels: int = 500_000, seed: int = 0, background: np.ndarray | None = None) -> np.ndarray:
+                 max_pixels: int = 500_000, seed: int = 0) -> np.ndarray:
     """(H, W) bool foreground from GrabCut on an (H, W, 3) uint8 RGB image with seed labels.
 
-    The components with sure foreground are kept and their holes filled, except hole pixels in
-    the bool ``background`` (:func:`fill_holes`). Returns all-False if there is no foreground
-    seed. Deterministic for a given ``seed`` (OpenCV's GMM initialisation uses its global RNG,
-    which is reseeded here).
+    Returns all-False if there is no foreground seed. Deterministic for a given ``seed``
+    (OpenCV's GMM initialisation uses its global RNG, which is reseeded here).
     """
     if color.shape[:2] != seeds.shape:
         raise ValueError(f"colour {color.shape[:2]} and seeds {seeds.shape} differ in size")
@@ -259,7 +246,7 @@ def grabcut_mask(color: np.ndarray, seeds: np.ndarray, iterations: int = 5,
     keep = keep[keep > 0]
     if keep.size:
         fg = np.isin(lbl, keep)
-    return fill_holes(fg, background)
+    return ndimage.binary_fill_holes(fg)
 
 
 def compute_mask(color: np.ndarray, depth_mm: np.ndarray, calibration: Calibration, params: dict,
@@ -274,11 +261,8 @@ def compute_mask(color: np.ndarray, depth_mm: np.ndarray, calibration: Calibrati
     select = object_depth_pixels(depth_mm, calibration.depth.K, near, far, params["support_plane_tolerance_m"],
                                  seed=seed, info=info)
     region = depth_region_in_color(depth_mm, calibration, near, far, select)
-    # where valid depth is not the object's (beyond the range, or the support), a hole in the
-    # object's outline is an opening to keep, not a gap to fill
-    background = depth_region_in_color(depth_mm, calibration, 0.0, np.inf, (depth_mm > 0) & ~select)
-    seeds = grabcut_seeds(region, params["sure_erode_px"], params["bg_margin_px"], background)
-    return grabcut_mask(color, seeds, params["iterations"], params["max_pixels"], seed, background), seeds
+    seeds = grabcut_seeds(region, params["sure_erode_px"], params["bg_margin_px"])
+    return grabcut_mask(color, seeds, params["iterations"], params["max_pixels"], seed), seeds
 
 
 def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
