@@ -429,8 +429,8 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     # A triangle that pass 1 flattened to a sliver (near-collinear UVs: seen on a mesh from depth)
     # comes back from the repack as a chart of its own, sometimes mirrored. Its corners are its
     # own, so mirroring it inside its own box fixes it without touching any other chart.
-    sizes = np.bincount(uv_charts(tfaces, len(texcoords)))[uv_charts(tfaces, len(texcoords))]
-    lone = np.flatnonzero(flipped & (sizes == 1))
+    chart2 = uv_charts(tfaces, len(texcoords))
+    lone = np.flatnonzero(flipped & (np.bincount(chart2)[chart2] == 1))
     for f in lone:
         u = texcoords[tfaces[f], 0]
         texcoords[tfaces[f], 0] = u.min() + u.max() - u
@@ -695,8 +695,8 @@ def template_from_frame(depth_mm, mask_color, calibration, stride: int = 2, max_
     points the colour camera cannot see (:func:`hidden_from_color`: background behind the object
     that lands in its mask); depth pixels without a value are carried into the colour image at the
     object's median depth and kept where they land in the mask; the region is closed and its holes
-    filled. Pixels without a value in it get
-    the depth of their nearest valid pixel in the mask, then a 5-px median smooths the result.
+    filled. Pixels without a value in it get the depth of their nearest valid pixel in the mask,
+    then a 5-px median smooths the result.
     :func:`template_from_depth` turns it into triangles (``stride`` depth px apart; no triangle
     across a depth jump of ``max_jump_m``, e.g. a nose in front of a chest).
 
@@ -764,9 +764,12 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         if "given/vertices" in scene:
             log.warning("template: the source's per-frame meshes refer to its own template, not to one from "
                         "depth; tracking.mode given cannot use them")
-        V, F = template_from_frame(frames["depth"][0], masks["mask"][0],
-                                   Calibration.from_dict(scene.attrs["calibration"]),
-                                   stride=int(params["from_depth_stride_px"]))
+        try:
+            V, F = template_from_frame(frames["depth"][0], masks["mask"][0],
+                                       Calibration.from_dict(scene.attrs["calibration"]),
+                                       stride=int(params["from_depth_stride_px"]))
+        except ValueError as e:
+            raise ValueError(f"{frames_path}: frame {fid}: template.from_depth: {e}") from e
         log.info("template: %d faces from the depth of frame %d", len(F), fid)
         mesh, origin = Mesh(V, F), f"depth of frame {fid}"
     elif has_template:
