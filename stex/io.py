@@ -581,6 +581,13 @@ class FrameSequence:
         b, i = self._where[frame_id]
         return self.groups[b][name][i]
 
+    def frame_attr(self, name: str, frame_id: int, default=None):
+        """Entry ``frame_id`` of a per-frame list attr of its block (e.g. masks' support_planes),
+        or ``default`` if the block has no such attr."""
+        b, i = self._where[frame_id]
+        values = self.groups[b].attrs.get(name)
+        return default if values is None else values[i]
+
     def __contains__(self, name: str) -> bool:
         return name in self.groups[0]
 

@@ -325,14 +325,28 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
                             len(missing), n, ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else ""))
 
 
-def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | None, out, n_show: int = 6) -> None:
-    """Write a PNG montage of masks over colour for ``n_show`` frames spread over the sequence."""
-    from stex.io import FrameSequence
-    from stex.preview import mask_overlay, montage, write_png
+def plane_in_color(depth_mm: np.ndarray, calibration: Calibration, plane, tolerance_m: float) -> np.ndarray:
+    """(Hc, Wc) bool: colour pixels covered by depth points within ``tolerance_m`` of ``plane``
+    ([nx, ny, nz, offset m, ...], depth-camera coordinates), e.g. the support plane removed."""
+    d = depth_mm.astype(np.float64) / 1000.0
+    P = backproject_depth(d, calibration.depth.K)
+    on = (d > 0) & (np.abs(P @ np.asarray(plane[:3], np.float64) + plane[3]) <= tolerance_m)
+    return depth_region_in_color(depth_mm, calibration, 0.0, np.inf, on)
+
+
+def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | None, out, n_show: int = 6,
+                  scene_path=None) -> None:
+    """Write a PNG montage of masks over colour for ``n_show`` frames spread over the sequence.
+
+    With ``scene_path`` (for the calibration), the support plane each frame's mask left out
+    (masks' ``support_planes``) is tinted blue."""
+    from stex.io import FrameSequence, open_store
+    from stex.preview import _label, mask_overlay, montage, write_png
 
     frames = FrameSequence(frames_paths, "frames")
     masks = FrameSequence(masks_paths, "masks")
     truth = FrameSequence(truth_paths, "truth") if truth_paths else None
+    cal = Calibration.from_dict(open_store(scene_path, "scene").attrs["calibration"]) if scene_path else None
     ids = frames.frame_ids
     pick = [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, min(n_show, len(ids))).round().astype(int))]
     tiles = []
@@ -341,5 +355,12 @@ def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | Non
         title = f"frame {fid}"
         if truth is not None:
             title += f"  IoU {mask_iou(m, truth.read('mask', fid)):.3f}"
-        tiles.append(mask_overlay(frames.read("color", fid), m, title))
+        tile = mask_overlay(frames.read("color", fid), m)
+        plane = masks.frame_attr("support_planes", fid)
+        if cal is not None and plane is not None:
+            tol = masks.attrs["params"]["support_plane_tolerance_m"]
+            blue = plane_in_color(frames.read("depth", fid), cal, plane, tol) & ~m
+            tile[blue] = (0.5 * tile[blue] + [0, 40, 120]).astype(np.uint8)
+            title += "  support plane (blue) left out"
+        tiles.append(_label(tile, title))
     write_png(out, montage(tiles))

@@ -113,6 +113,12 @@ def test_object_depth_pixels_remove_the_table_the_object_stands_on():
     np.testing.assert_allclose(info["support_plane"][:4], [0, -1, 0, 0.3], atol=1e-3)
     assert not kept[~on_box].any()
     assert kept[on_box].mean() > 0.9  # all but the box's bottom centimetre
+    # the preview's tint of the plane removed: the floor, not the box
+    from stex.camera import Calibration, Intrinsics
+    from stex.masks import plane_in_color
+    cam = Intrinsics(K=K, width=320, height=240)
+    floor = plane_in_color(depth_mm, Calibration(color=cam, depth=cam), info["support_plane"], 0.01)
+    assert floor[~on_box & (depth_mm > 0)].mean() > 0.95 and floor[on_box].mean() < 0.1
     np.testing.assert_array_equal(kept, object_depth_pixels(depth_mm, K, 0.3, 3.0, plane_tolerance_m=0.01))
 
 

@@ -60,6 +60,7 @@ def test_real_capture_runs_through_and_every_store_is_complete(real_run):
     # the support plane removed at each frame is the table: normal upwards (y is down)
     planes = open_store(real_run / "masks" / "block_0000.zarr", "masks").attrs["support_planes"]
     assert len(planes) == 2 and all(p is not None and p[1] < -0.9 and p[4] > 0.5 for p in planes)
+    assert (real_run / "previews" / "masks.png").stat().st_size > 10_000
     texture = corrected.read("texture", 1)
     assert texture.shape == (512, 512, 3) and texture.std() > 10
     template = open_store(real_run / "template.zarr", "template")

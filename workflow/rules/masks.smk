@@ -21,6 +21,7 @@ rule masks:
 
 rule masks_preview:
     input:
+        scene=f"{RESULTS}/scene.zarr",
         frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
         masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
         truth=expand(f"{RESULTS}/truth/block_{{block}}.zarr", block=BLOCK_IDS) if SYNTHETIC else [],
