@@ -173,6 +173,31 @@ def backproject_depth(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
+def depth_pixels_in_color(depth_m: np.ndarray, calibration: "Calibration", select=None):
+    """Where the depth pixels land in the colour image (through depth_to_color and the colour K).
+
+    Args:
+        depth_m: (Hd, Wd) depth in metres, 0 = invalid. select: optional (Hd, Wd) bool.
+
+    Returns:
+        idx (N,) int64 flat indices of the depth pixels with depth > 0 (and in ``select``) whose
+        point lands in front of the colour camera and inside its image; px (N, 2) int64 their
+        nearest colour pixel (column, row); z (N,) float64 their colour-camera depth, metres.
+    """
+    d = np.asarray(depth_m, np.float64)
+    valid = d > 0
+    if select is not None:
+        valid &= np.asarray(select, bool)
+    idx = np.flatnonzero(valid)
+    P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[idx]
+    uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
+    c = calibration.color
+    ok = (z > 0) & np.isfinite(uv).all(1)
+    px = np.rint(uv[ok]).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
+    return idx[ok][inside], px[inside], z[ok][inside]
+
+
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     """4x4 world->camera transform for an OpenCV camera at ``eye`` looking at ``target``.
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from stex.camera import Calibration, backproject_depth, project_points, transform_points
+from stex.camera import Calibration, backproject_depth, depth_pixels_in_color
 
 GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD = cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD
 
@@ -115,18 +115,14 @@ def support_plane(points: np.ndarray, tolerance_m: float, seed: int = 0, candida
         orients it; or None when no plane qualifies.
     """
     P = np.asarray(points, np.float64)
-    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 3:
-        raise ValueError(f"a plane needs (N >= 3, 3) points, got shape {P.shape}")
     rest = P
     for k in range(candidates):
-        if len(rest) < 3:
-            return None
         try:
             n, d = dominant_plane(rest, tolerance_m, seed=seed + k)
         except ValueError:
-            if k == 0:
+            if k == 0:  # the points themselves hold no plane: say so
                 raise
-            return None
+            return None  # what the earlier planes left holds none
         dist = P @ n + d
         on = np.abs(dist) <= tolerance_m
         if on.mean() < min_fraction:
@@ -180,13 +176,10 @@ def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m
     region = np.zeros((c.height, c.width), np.uint8)
     if not inside.any():
         return region.astype(bool)
-    pts = backproject_depth(d, calibration.depth.K)[inside]
-    uv, z = project_points(transform_points(calibration.depth_to_color, pts), c.K)
-    px = np.rint(uv).astype(np.int64)
-    ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
-    region[px[ok, 1], px[ok, 0]] = 1
+    _, px, z = depth_pixels_in_color(d, calibration, inside)
+    region[px[:, 1], px[:, 0]] = 1
     # Footprint of a depth pixel in the colour image, in colour pixels.
-    scale = c.fx / calibration.depth.fx * float(np.median(z[ok]) if ok.any() else 1.0) / float(np.median(pts[:, 2]))
+    scale = c.fx / calibration.depth.fx * float(np.median(z) if len(z) else 1.0) / float(np.median(d[inside]))
     k = int(np.ceil(scale)) + 1
     region = cv2.morphologyEx(region, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
     return region.astype(bool)
@@ -308,11 +301,11 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
                 if "support_plane" in info:
                     planes.append(info["support_plane"])
             if not m.any():
-                why = (f"no depth inside [{params['depth_near_m']}, {params['depth_far_m']}] m"
-                       + (" off the support plane" if params["support_plane_tolerance_m"] > 0 else ""))
-                raise ValueError(f"{frames_path}: frame {fid}: empty mask ({why}; check masks.depth_near_m/"
-                                 "depth_far_m" + (", support_plane_tolerance_m"
-                                                  if params["support_plane_tolerance_m"] > 0 else "") + ")")
+                plane = params["support_plane_tolerance_m"] > 0
+                raise ValueError(
+                    f"{frames_path}: frame {fid}: empty mask (no depth inside [{params['depth_near_m']}, "
+                    f"{params['depth_far_m']}] m{' off the support plane' if plane else ''}; check "
+                    f"masks.depth_near_m/depth_far_m{', support_plane_tolerance_m' if plane else ''})")
             mask[k] = m
             seed[k] = s
             log.info("masks: frame %d (%d/%d, %.2f frames/s)", fid, k + 1, n, (k + 1) / (time.perf_counter() - t0))

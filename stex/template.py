@@ -666,25 +666,19 @@ def hidden_from_color(depth_m, calibration, select, tolerance_m: float = 0.05) -
     """
     import cv2
 
-    from stex.camera import backproject_depth, project_points, transform_points
+    from stex.camera import depth_pixels_in_color
 
-    idx = np.flatnonzero(np.asarray(select, bool).ravel() & (depth_m.ravel() > 0))
     out = np.zeros(depth_m.size, bool)
+    idx, px, z = depth_pixels_in_color(depth_m, calibration, select)
     if idx.size == 0:
         return out.reshape(depth_m.shape)
-    P = backproject_depth(depth_m, calibration.depth.K).reshape(-1, 3)[idx]
-    uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
     c = calibration.color
-    px = np.rint(uv).astype(np.int64)
-    ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < c.width) & (px[:, 1] >= 0) & (px[:, 1] < c.height)
     zbuf = np.full((c.height, c.width), np.inf, np.float32)
-    np.minimum.at(zbuf, (px[ok, 1], px[ok, 0]), z[ok].astype(np.float32))
+    np.minimum.at(zbuf, (px[:, 1], px[:, 0]), z.astype(np.float32))
     # a depth pixel covers about this many colour pixels: the nearest surface over that footprint
     k = 2 * int(np.ceil(c.fx / calibration.depth.fx)) + 1
     zbuf = cv2.erode(zbuf, np.ones((k, k), np.uint8))
-    occluded = np.zeros(idx.size, bool)
-    occluded[ok] = z[ok] > zbuf[px[ok, 1], px[ok, 0]] + tolerance_m
-    out[idx] = occluded
+    out[idx] = z > zbuf[px[:, 1], px[:, 0]] + tolerance_m
     return out.reshape(depth_m.shape)
 
 
@@ -710,7 +704,7 @@ def template_from_frame(depth_mm, mask_color, calibration, stride: int = 2, max_
     import cv2
     from scipy import ndimage
 
-    from stex.camera import backproject_depth, project_points, transform_points
+    from stex.camera import depth_pixels_in_color
     from stex.tracking import mask_in_depth
 
     mask_color = np.asarray(mask_color, bool)
@@ -721,17 +715,10 @@ def template_from_frame(depth_mm, mask_color, calibration, stride: int = 2, max_
         raise ValueError("template_from_frame: no valid depth inside the mask")
     # depth pixels without a value cannot be carried into the colour image by their own depth:
     # they are carried at the object's median depth (the parallax error is small at its distance)
-    H, W = d.shape
-    grid = np.full((H, W), float(np.median(d[seen])))
-    uv, _ = project_points(transform_points(calibration.depth_to_color,
-                                            backproject_depth(grid, calibration.depth.K).reshape(-1, 3)),
-                           calibration.color.K)
-    px = np.rint(uv).astype(np.int64)
-    Hc, Wc = mask_color.shape
-    inside = (px[:, 0] >= 0) & (px[:, 0] < Wc) & (px[:, 1] >= 0) & (px[:, 1] < Hc)
-    no_depth = np.zeros(H * W, bool)
-    no_depth[inside] = mask_color[px[inside, 1], px[inside, 0]]
-    no_depth = no_depth.reshape(H, W) & (d <= 0)
+    idx, px, _ = depth_pixels_in_color(np.full(d.shape, float(np.median(d[seen]))), calibration)
+    no_depth = np.zeros(d.size, bool)
+    no_depth[idx] = mask_color[px[:, 1], px[:, 0]]
+    no_depth = no_depth.reshape(d.shape) & (d <= 0)
     k = 2 * stride + 1
     region = ndimage.binary_fill_holes(cv2.morphologyEx((seen | no_depth).astype(np.uint8), cv2.MORPH_CLOSE,
                                                         np.ones((k, k), np.uint8)) > 0)

@@ -46,7 +46,7 @@ from numba import njit
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import LinearOperator, cg
 
-from stex.camera import backproject_depth, project_points, transform_points
+from stex.camera import backproject_depth, depth_pixels_in_color, project_points, transform_points
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
 
 log = logging.getLogger("stex.tracking")
@@ -263,15 +263,9 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
 def mask_in_depth(mask_color: np.ndarray, depth_mm: np.ndarray, calibration) -> np.ndarray:
     """(Hd, Wd) bool: depth pixels whose 3-D point lands on the colour-resolution mask."""
     d = depth_mm.astype(np.float64) / 1000.0
-    valid = np.flatnonzero(d.ravel() > 0)  # invalid depth projects to no pixel (0/0)
-    P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[valid]
-    uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
-    Hc, Wc = mask_color.shape
-    ok = (z > 0) & np.isfinite(uv).all(1)
-    px = np.rint(uv[ok]).astype(np.int64)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < Wc) & (px[:, 1] >= 0) & (px[:, 1] < Hc)
+    idx, px, _ = depth_pixels_in_color(d, calibration)
     out = np.zeros(d.size, bool)
-    out[valid[ok][inside]] = mask_color[px[inside, 1], px[inside, 0]]
+    out[idx] = mask_color[px[:, 1], px[:, 0]]
     return out.reshape(d.shape)
 
 
