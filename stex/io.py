@@ -319,10 +319,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
     ),
     "volume": ArtifactSpec(
         description="Texture volume of one frame block (stex.volume): for every frame t one W×W "
-        "slice of the fixed template atlas, each covered texel sampled bilinearly from the colour "
-        "image of its face's label l_{f,t} at the optimised texture coordinates ξ_l; gutter texels "
-        "dilated (attr gutter_px) so bilinear lookups and mip-maps do not bleed black. Slices are "
-        "stored in compressed tiles. label_map holds the source frame of every texel.",
+        "slice of the fixed template atlas, each covered texel sampled (bicubic, or bilinear: "
+        "volume.interpolation) from the colour image of its face's label l_{f,t} at the "
+        "optimised texture coordinates ξ_l; gutter texels dilated (attr gutter_px) so bilinear "
+        "lookups and mip-maps do not bleed black. Slices are stored in compressed tiles. label_map holds the source frame of every texel.",
         path="volume/block_{block}.zarr",
         arrays={
             "texture": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "texture slice of each frame in the template atlas (template.zarr texcoords), RGB, row 0 = v 0", (1, 1024, 1024, 3)),

@@ -27,7 +27,7 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
-  as a reprojection term; and optionally a silhouette term (:func:`silhouette_field`): rim
+  as a reprojection term; and a silhouette term (on by default, ``w_silhouette``) (:func:`silhouette_field`): rim
   vertices onto the mask's boundary, and no visible vertex outside the mask.
 
 The frame is initialised from the previous frame's mesh, or with ``constant_velocity`` from it
