@@ -43,6 +43,13 @@ class Source:
 
     def template(self) -> Mesh | None: ...
     def given_vertices(self, position: int) -> np.ndarray | None: ...
+
+    def files(self, start: int | None = None, stop: int | None = None) -> list[Path]:
+        """The files ingest reads: with no range, those :func:`write_scene` reads (calibration,
+        template, per-frame meshes); else those :func:`write_frames_block` reads for the frame
+        positions [start, stop). The workflow makes them the ingest rules' inputs, so a dataset
+        file changed after a run (a frame replaced, the calibration fixed) re-runs what read it."""
+        ...
     def frames(self, start: int, stop: int):
         """Yield (position, color uint8 RGB, depth uint16 mm, mask bool or None, timestamp s)."""
         ...
@@ -63,6 +70,10 @@ class SyntheticSource(Source):
 
     def given_vertices(self, position: int) -> np.ndarray:
         return self.scene.given_vertices(position)
+
+    def files(self, start: int | None = None, stop: int | None = None) -> list[Path]:
+        # a glTF asset is read by every job; the procedural body reads nothing
+        return [Path(self.cfg["gltf"]["path"])] if self.cfg["object"] == "gltf" else []
 
     def true_vertices(self, position: int) -> np.ndarray:
         return self.scene.true_vertices(position)
@@ -101,6 +112,17 @@ class FolderSource(Source):
             check_same_topology(tmpl.faces, len(tmpl.vertices), mesh, str(self.ds.mesh_path(fid)))
         return mesh.vertices
 
+    def files(self, start: int | None = None, stop: int | None = None) -> list[Path]:
+        out = [self.ds.calibration_path]
+        if start is None:
+            template = self.ds.template_path(self.cfg.get("template"))
+            meshes = [self.ds.mesh_path(fid) for fid in self.frame_ids]
+            # dict: the stex layout's default template is the first given mesh, listed once
+            return list(dict.fromkeys(out + ([template] if template else []) + [p for p in meshes if p]))
+        for fid in self.frame_ids[start:stop]:
+            out += self.ds.frame_files(fid)
+        return out
+
     def frames(self, start: int, stop: int):
         for pos in range(start, stop):
             fid = self.frame_ids[pos]
@@ -131,6 +153,10 @@ class MkvSource(Source):
 
     def given_vertices(self, position: int) -> None:
         return None
+
+    def files(self, start: int | None = None, stop: int | None = None) -> list[Path]:
+        template = [Path(self.cfg["template"])] if start is None and self.cfg.get("template") else []
+        return [self.path] + template
 
     def frames(self, start: int, stop: int):
         from stex.readers.kinect_mkv import open_kinect_mkv

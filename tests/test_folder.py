@@ -309,6 +309,62 @@ def test_ingest_stores_equal_the_files(tmp_path, datasets, synth, layout):
         assert f["timestamps"].shape == (stop - start,) and np.isfinite(f["timestamps"][:]).all()
 
 
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_source_files_are_what_ingest_reads(datasets, layout):
+    root = datasets[layout]
+    src = FolderSource(folder_cfg(root, layout)["folder"])
+    cal = root / ("conf.json" if layout == "authors" else "calibration.json")
+    scene = src.files()
+    assert scene[0] == cal and len(scene) == len(set(scene))
+    # the template, then every given mesh (the stex layout's template is its own file here)
+    assert len(scene) == 2 + N and all(p.is_file() for p in scene)
+    block = src.files(1, 3)
+    assert block[0] == cal and len(block) == 1 + 2 * 3  # colour, depth, mask of 2 frames
+    assert {p.name for p in block[1:]} == ({f"Frame_{i:06d}.png" for i in IDS[1:3]} if layout == "authors"
+                                           else {f"{i:06d}.png" for i in IDS[1:3]})
+
+
+def test_a_dataset_file_changed_after_a_run_reruns_the_ingest_jobs_that_read_it(tmp_path, authors):
+    """The dataset's files are the ingest rules' inputs: a frame replaced after a run re-runs its
+    block's ingest, a fixed calibration every ingest job, and nothing else is touched."""
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    from conftest import REPO
+
+    res = tmp_path / "results" / "ds"
+    (tmp_path / "ds.yaml").write_text(yaml.safe_dump({
+        "scene": "ds", "results": str(tmp_path / "results"), "frame_block": 2,
+        "source": {"kind": "folder", "folder": {"path": str(authors), "layout": "authors"}}}))
+    targets = [str(res / "scene.zarr"), str(res / "frames" / "block_0000.zarr"), str(res / "frames" / "block_0001.zarr")]
+
+    def snakemake(*args):
+        cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+               "--configfile", str(tmp_path / "ds.yaml"), "--cores", "1", *args, *targets]
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-3000:]
+        return run.stdout + run.stderr
+
+    def planned():
+        out = snakemake("-n")
+        return sorted((rule, m.group(1) if (m := re.search(r"block=(\d{4})", body)) else None)
+                      for rule, body in re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=\n\n|\n\[|\Z)", out, re.M | re.S))
+
+    snakemake()
+    assert planned() == []
+
+    time.sleep(1.1)  # past the outputs' mtimes; Snakemake also compares the contents (a touch alone is no change)
+    depth = authors / "stream" / "depth" / f"Frame_{IDS[3]:06d}.png"  # a frame of block 1
+    assert cv2.imwrite(str(depth), cv2.imread(str(depth), cv2.IMREAD_UNCHANGED) + np.uint16(1))
+    assert planned() == [("ingest_block", "0001")]
+    conf = authors / "conf.json"
+    conf.write_text(json.dumps(json.loads(conf.read_text()), indent=2))
+    assert planned() == [("ingest_block", "0000"), ("ingest_block", "0001"), ("ingest_scene", None)]
+
+
 def test_folder_source_needs_a_path():
     cfg = load_config(overrides={"source": {"kind": "folder"}})["source"]
     with pytest.raises(ValueError, match="source.folder.path"):

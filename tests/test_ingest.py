@@ -38,6 +38,12 @@ def test_mkv_ingest_of_a_written_recording(synthetic_mkv, tmp_path):  # noqa: F8
     assert np.array_equal(frames["depth"][0], depth)
     assert np.array_equal(frames["color"][0], color)
     assert frames["timestamps"][0] == pytest.approx(ts * 1e-6)
+    # what the workflow makes the ingest rules' inputs: the recording (and a template, if named)
+    from stex.ingest import open_source
+    assert open_source(src).files() == open_source(src).files(3, 5) == [synthetic_mkv]
+    src_t = _mkv_source(synthetic_mkv, undistort=False, template=str(tmp_path / "t.obj"))
+    assert open_source(src_t).files() == [synthetic_mkv, tmp_path / "t.obj"]
+    assert open_source(src_t).files(0, 2) == [synthetic_mkv]
 
 
 @pytest.mark.skipif(not REAL_MKV.is_file(), reason="shared data samples absent")

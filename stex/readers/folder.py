@@ -58,11 +58,12 @@ class FolderDataset:
         self.template_hint: str | None = None
         self._mesh_base: int | None = None  # authors: frame id of mesh/Frame_000 (conf.json start_idx)
         if layout == "authors":
+            self.calibration_path = self.root / "conf.json"
             self.calibration = self._authors_calibration()
             self._color_dir, self._depth_dir, self._mask_dir = (self.root / "stream" / d for d in ("color", "depth", "mask"))
             self._pattern = re.compile(r"^Frame_(\d+)\.png$")
         else:
-            path = self.root / "calibration.json"
+            path = self.calibration_path = self.root / "calibration.json"
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: missing (stex layout needs calibration.json)")
             try:
@@ -221,6 +222,11 @@ class FolderDataset:
             if first is not None:
                 candidates.append(first)
         return next((p for p in candidates if p.is_file()), None)
+
+    def frame_files(self, frame_id: int) -> list[Path]:
+        """The image files of ``frame_id``: colour, depth and, when the dataset has them, mask."""
+        files = [self._color_files[frame_id], self._depth_files[frame_id]]
+        return files + ([self._mask_files[frame_id]] if self.has_masks else [])
 
     def load_given_mesh(self, frame_id: int) -> Mesh | None:
         p = self.mesh_path(frame_id)

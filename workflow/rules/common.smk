@@ -1,11 +1,12 @@
 # Paths, frame blocks and parameter sections shared by the rules.
 from stex.config import other_method_paths
-from stex.ingest import count_frames, frame_blocks
+from stex.ingest import frame_blocks, open_source
 
 RESULTS = f"{config['results']}/{config['scene']}"
 SOURCE = config["source"]
 SYNTHETIC = SOURCE["kind"] == "synthetic"
-BLOCKS = frame_blocks(count_frames(SOURCE), config["frame_block"])
+_SOURCE = open_source(SOURCE)
+BLOCKS = frame_blocks(len(_SOURCE.frame_ids), config["frame_block"])
 BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
 ENV = "../../envs/stex.yaml"
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
@@ -26,6 +27,16 @@ wildcard_constraints:
 def block_range(wildcards):
     """[start, stop) frame positions of a frame block."""
     return list(BLOCKS[int(wildcards.block)])
+
+
+def scene_source_files(wildcards):
+    """The dataset files the scene store is read from (calibration, template, given meshes)."""
+    return [str(p) for p in _SOURCE.files()]
+
+
+def block_source_files(wildcards):
+    """The dataset files a frame block is read from (its frames' images; the calibration)."""
+    return [str(p) for p in _SOURCE.files(*BLOCKS[int(wildcards.block)])]
 
 
 def all_outputs():

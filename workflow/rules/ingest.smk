@@ -1,7 +1,10 @@
 # Ingest: the source (synthetic scene, folder dataset or Azure Kinect .mkv) into zarr stores.
+# The dataset files each job reads are its inputs: a file changed after a run re-runs that job.
 
 
 rule ingest_scene:
+    input:
+        scene_source_files,
     output:
         directory(f"{RESULTS}/scene.zarr"),
     params:
@@ -20,6 +23,8 @@ rule ingest_scene:
 if SYNTHETIC:
 
     rule ingest_block:
+        input:
+            block_source_files,
         output:
             frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
             truth=directory(f"{RESULTS}/truth/block_{{block}}.zarr"),
@@ -38,6 +43,8 @@ if SYNTHETIC:
 else:
 
     rule ingest_block:
+        input:
+            block_source_files,
         output:
             frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
         params:
