@@ -44,6 +44,10 @@ class Intrinsics:
             raise ValueError(f"camera matrix needs finite positive focal lengths, got fx={fx}, fy={fy}")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        cx, cy = K[0, 2], K[1, 2]
+        if not (-0.5 <= cx <= int(self.width) - 0.5 and -0.5 <= cy <= int(self.height) - 0.5):
+            raise ValueError(f"principal point ({cx:g}, {cy:g}) lies outside the {int(self.width)}x{int(self.height)} "
+                             f"image (intrinsics of another resolution, or cx/cy swapped?)")
         dist = np.zeros(8)
         d = np.asarray(self.distortion, dtype=np.float64).ravel()
         if d.size > 8:
@@ -102,6 +106,11 @@ class Intrinsics:
                               d.get("distortion", ()))
 
 
+# The colour and depth cameras of an RGB-D sensor sit 1-6 cm apart (Kinect v1/v2, Azure Kinect,
+# RealSense); a larger translation is a unit mistake, not a rig.
+MAX_BASELINE_M = 0.5
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Colour and depth cameras of one RGB-D sensor.
@@ -124,6 +133,10 @@ class Calibration:
         R = T[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
             raise ValueError("depth_to_color rotation is not a proper rotation matrix")
+        baseline = float(np.linalg.norm(T[:3, 3]))
+        if baseline > MAX_BASELINE_M:
+            raise ValueError(f"depth_to_color translation is {baseline:.3g} m, but the two cameras of one RGB-D "
+                             f"sensor are centimetres apart: is it in millimetres? It must be in metres")
         object.__setattr__(self, "depth_to_color", T)
 
     def to_dict(self) -> dict:
@@ -136,7 +149,19 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Calibration":
-        return cls(Intrinsics.from_dict(d["color"]), Intrinsics.from_dict(d["depth"]),
+        cams = []
+        for which in ("color", "depth"):
+            if which not in d:
+                raise ValueError(f"no '{which}' camera")
+            try:
+                cams.append(Intrinsics.from_dict(d[which]))
+            except KeyError as e:
+                raise ValueError(f"{which} camera: missing key {e}") from None
+            except (ValueError, TypeError) as e:
+                raise ValueError(f"{which} camera: {e}") from None
+        if "depth_to_color" not in d:
+            raise ValueError("no 'depth_to_color' transform")
+        return cls(*cams,
                    np.asarray(d["depth_to_color"], dtype=np.float64))
 
 

@@ -45,7 +45,16 @@ def validate_config(config: dict, schema: dict | None = None) -> dict:
         e = errors[0]
         where = "/".join(str(p) for p in e.path) or "<top level>"
         raise ValueError(f"config error at {where}: {e.message}")
+    check_relations(cfg)
     return cfg
+
+
+def check_relations(config: dict) -> None:
+    """Rules between settings that the JSON schema cannot state; ValueError naming the keys."""
+    masks = config.get("masks") or {}
+    near, far = masks.get("depth_near_m"), masks.get("depth_far_m")
+    if near is not None and far is not None and near >= far:
+        raise ValueError(f"config error at masks: depth_near_m ({near:g} m) must be below depth_far_m ({far:g} m)")
 
 
 def deep_update(base: dict, override: dict) -> dict:
@@ -91,6 +100,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
         e = errors[0]
         where = "/".join(str(p) for p in e.path)
         raise ValueError(f"config error at {where}: {e.message}")
+    check_relations(cfg)
     return cfg[section]
 
 

@@ -137,7 +137,8 @@ class MkvSource(Source):
             raise ValueError("source.mkv.path must name the .mkv recording")
         self.cfg = cfg
         self.path = Path(cfg["path"])
-        with open_kinect_mkv(self.path) as rec:
+        self._allow_truncated = bool(cfg.get("allow_truncated", False))
+        with open_kinect_mkv(self.path, allow_truncated=self._allow_truncated) as rec:
             raw_cal = rec.calibration
             n = rec.n_frames
         stop = n if cfg["stop"] is None else min(cfg["stop"], n)
@@ -161,7 +162,7 @@ class MkvSource(Source):
     def frames(self, start: int, stop: int):
         from stex.readers.kinect_mkv import open_kinect_mkv
         first = self.frame_ids[0]
-        with open_kinect_mkv(self.path) as rec:
+        with open_kinect_mkv(self.path, allow_truncated=self._allow_truncated) as rec:
             for idx, ts_us, color, depth in rec.frames(first + start, first + stop):
                 if self._undistort is not None:
                     color, depth = self._undistort(color, depth)
@@ -213,7 +214,9 @@ def write_scene(source_cfg: dict, block: int, out: str | Path) -> None:
             for pos in range(1, T):
                 v = src.given_vertices(pos)
                 if v is None:
-                    raise ValueError(f"given mesh missing for frame {src.frame_ids[pos]} (frame {src.frame_ids[0]} has one)")
+                    where = src.description.get("path", "the source")
+                    raise ValueError(f"{where}: given mesh missing for frame {src.frame_ids[pos]} "
+                                     f"(frame {src.frame_ids[0]} has one: every frame needs one, or none)")
                 if v.shape != first.shape:
                     raise ValueError(f"given mesh of frame {src.frame_ids[pos]} has {len(v)} vertices, frame {src.frame_ids[0]} has {len(first)}")
                 if not np.isfinite(v).all():
@@ -249,6 +252,7 @@ def write_frames_block(source_cfg: dict, start: int, stop: int, out_frames: str 
         depth = store.create("depth", (n, cal.depth.height, cal.depth.width))
         stamps = np.zeros(n)
         mask_arr = None
+        no_depth = []
         k = -1
         for k, (pos, c, d, m, ts, extra) in enumerate(src.frames(start, stop)):
             fid = src.frame_ids[pos]
@@ -256,6 +260,10 @@ def write_frames_block(source_cfg: dict, start: int, stop: int, out_frames: str 
                 raise ValueError(f"frame {fid}: colour shape {c.shape} does not match the calibration")
             if d.shape != (cal.depth.height, cal.depth.width):
                 raise ValueError(f"frame {fid}: depth shape {d.shape} does not match the calibration")
+            if d.dtype != np.uint16:  # a float array would be cast silently: NaN to 0, metres to 0/1 mm
+                raise ValueError(f"frame {fid}: depth must be uint16 millimetres, got {d.dtype}")
+            if not d.any():
+                no_depth.append(fid)
             color[k] = c
             depth[k] = d
             stamps[k] = ts
@@ -278,4 +286,6 @@ def write_frames_block(source_cfg: dict, start: int, stop: int, out_frames: str 
             log.info("ingest: frame %d (%d/%d in block, %.1f frames/s)", fid, k + 1, n, rate)
         if k + 1 != n:
             raise ValueError(f"source delivered {k + 1} of the {n} frames of block [{start}, {stop})")
+        if no_depth:  # a dropped depth frame: the masks stage refuses it, given masks and the tracker coast
+            log.warning("ingest: frame(s) %s have no valid depth pixel (all 0): a dropped depth frame?", no_depth)
         store.write("timestamps", stamps)

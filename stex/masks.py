@@ -185,6 +185,31 @@ def depth_region_in_color(depth_mm: np.ndarray, calibration: Calibration, near_m
     return region.astype(bool)
 
 
+def why_no_object_depth(depth_mm: np.ndarray, calibration: Calibration, params: dict) -> str:
+    """Why a frame's depth seeds no mask, in words naming the setting or input to check: no
+    valid depth at all, none in the depth range (with the range the depth does span: a unit
+    mistake shows there), none left off the support plane, or in-range depth that lands outside
+    the colour image (the calibration). ``params`` is the ``masks`` config section."""
+    near, far = params["depth_near_m"], params["depth_far_m"]
+    d = np.asarray(depth_mm, np.float64) / 1000.0
+    valid = d > 0
+    if not valid.any():
+        return "the depth image has no valid pixel (all 0: a dropped depth frame?)"
+    inside = valid & (d >= near) & (d <= far)
+    lo, med, hi = np.percentile(d[valid], [1, 50, 99])
+    if not inside.any():
+        return (f"no depth inside masks.depth_near_m..depth_far_m = [{near:g}, {far:g}] m; this frame's valid "
+                f"depth spans {lo:.3g}-{hi:.3g} m, median {med:.3g} m; check the range, and that depth is in "
+                f"millimetres")
+    if not len(depth_pixels_in_color(d, calibration, inside)[0]):
+        return (f"the {int(inside.sum())} depth pixels inside [{near:g}, {far:g}] m all land outside the colour "
+                f"image: check the calibration (depth and colour intrinsics, depth_to_color in metres)")
+    if params["support_plane_tolerance_m"] > 0:
+        return (f"nothing in [{near:g}, {far:g}] m is left off the support plane; lower "
+                f"masks.support_plane_tolerance_m, or set it to 0 when nothing stands on a support in view")
+    return f"GrabCut took none of the in-range depth's region; check masks.depth_near_m/depth_far_m = [{near:g}, {far:g}] m"
+
+
 def grabcut_seeds(region: np.ndarray, sure_erode_px: int, bg_margin_px: int) -> np.ndarray:
     """(H, W) uint8 GrabCut labels (cv2.GC_*) from a bool in-range region."""
     region = ndimage.binary_fill_holes(region)
@@ -274,7 +299,10 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
 
     from stex.io import create_store, open_store
 
+    from stex.config import section_params
+
     log = logging.getLogger("stex.masks")
+    params = section_params("masks", params)
     scene = open_store(scene_path, "scene")
     frames = open_store(frames_path, "frames")
     cal = Calibration.from_dict(scene.attrs["calibration"])
@@ -301,11 +329,8 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
                 if "support_plane" in info:
                     planes.append(info["support_plane"])
             if not m.any():
-                plane = params["support_plane_tolerance_m"] > 0
-                raise ValueError(
-                    f"{frames_path}: frame {fid}: empty mask (no depth inside [{params['depth_near_m']}, "
-                    f"{params['depth_far_m']}] m{' off the support plane' if plane else ''}; check "
-                    f"masks.depth_near_m/depth_far_m{', support_plane_tolerance_m' if plane else ''})")
+                raise ValueError(f"{frames_path}: frame {fid}: empty mask: "
+                                 f"{why_no_object_depth(depth, cal, params)}")
             mask[k] = m
             seed[k] = s
             log.info("masks: frame %d (%d/%d, %.2f frames/s)", fid, k + 1, n, (k + 1) / (time.perf_counter() - t0))

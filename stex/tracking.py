@@ -1071,6 +1071,19 @@ def depth_residual(vertices, faces, target: DepthTarget, clip_m: float = 0.05, u
     return float(diff.mean())
 
 
+def depth_scale_ratio(vertices, faces, target: DepthTarget, min_pixels: int = 20) -> float | None:
+    """Median rendered depth over median observed depth on the pixels both the mesh and the
+    foreground depth cover, or None where they share fewer than ``min_pixels``: about 1 for a mesh
+    in metres in the depth camera's coordinates, 1000 for one in millimetres. The silhouette
+    cannot tell (a mesh 1000 times larger and farther projects the same), the depth can."""
+    H, W = target.valid.shape
+    d = rasterize(vertices, faces, target.K, W, H).depth
+    both = (d > 0) & target.valid
+    if both.sum() < min_pixels:
+        return None
+    return float(np.median(d[both]) / np.median(target.points[..., 2][both]))
+
+
 def silhouette_iou(vertices, faces, mask, calibration) -> float:
     """Intersection over union of the mesh's silhouette in the colour camera and ``mask``.
 
@@ -1157,7 +1170,13 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                                     texcoords=template["texcoords"][...], texcoord_faces=template["texcoord_faces"][...])
         else:
             raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
+        no_depth = []  # frames without foreground depth: the mesh there is carried by colour and prior only
         for k, V, st in solved:
+            if k == 0:
+                _check_depth_scale(V, F, last[0].target, frames.frame_ids[0],
+                                   template_path if mode == "track" else scene_path)
+            if not last[0].target.valid.any() or (st is not None and st["n_corr"] == 0):
+                no_depth.append(int(frames.frame_ids[k]))
             verts[k] = V
             # how well the mesh explains the frame, measured alike in both modes (no truth needed;
             # the tracker's frame guard has already measured the depth fit of the mesh it keeps)
@@ -1190,12 +1209,28 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                         "frames, first at frame %d, worst %.2f at frame %d: %s, and texture taken from those frames "
                         "will be misplaced (frames: %s)",
                         threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], why, _runs(poor))
+        if no_depth:
+            log.warning("tracking: no depth of the object to fit at %d of %d frames (%s): no valid depth inside "
+                        "the mask, or none near the mesh; the mesh there is carried by the colour terms and the "
+                        "prior only (check those frames' depth images)", len(no_depth), T, _runs(no_depth))
         store.attrs["poorly_fitted_frames"] = poor
         store.write("silhouette_iou", iou)
         store.write("depth_fit_m", fit)
         store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
         store.write("n_correspondences", n_corr)
         store.write("seconds", seconds)
+
+
+def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, where) -> None:
+    """Refuse a mesh whose depth at the first frame is off by more than 1.5x from the observed
+    depth (:func:`depth_scale_ratio`): a template or given meshes in millimetres or centimetres, or
+    not in the depth camera's coordinates, would otherwise be tracked without one correspondence."""
+    ratio = depth_scale_ratio(vertices, faces, target)
+    if ratio is not None and not 1 / 1.5 < ratio < 1.5:
+        raise ValueError(
+            f"{where}: at frame {frame_id} the mesh lies {ratio:.{0 if ratio >= 10 else 2}f} times as far from the depth camera as the "
+            f"depth image reads where they overlap: the mesh must be in metres (millimetres give 1000, "
+            f"centimetres 100) and in the depth camera's coordinates")
 
 
 def _runs(ids) -> str:

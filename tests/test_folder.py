@@ -411,7 +411,21 @@ def test_conf_json_missing_intrinsic_key(authors, synth):
     bad = _intr(synth.cal.color)
     del bad["fy"]
     _set_mapper(authors, color_intrinsic=bad)
-    with pytest.raises(ValueError, match=r"conf\.json: invalid camera settings.*fy"):
+    with pytest.raises(ValueError, match=r"conf\.json: invalid camera settings \(color_intrinsic: missing key 'fy'"):
+        FolderDataset(authors)
+
+
+def test_intrinsics_of_another_resolution_and_an_extrinsic_in_millimetres(authors, synth):
+    """A principal point outside its image (intrinsics for another resolution) and a depth-to-colour
+    translation in millimetres are refused when the calibration is read, naming the camera, not
+    later as an empty mask."""
+    _set_mapper(authors, depth_intrinsic=dict(_intr(synth.cal.depth), cx=synth.cal.depth.width * 2.0))
+    with pytest.raises(ValueError, match=r"conf\.json: .*depth_intrinsic: principal point .* outside the 80x72 image"):
+        FolderDataset(authors)
+    T = synth.cal.depth_to_color[:3].copy()
+    T[:, 3] = [-32.0, -2.0, 4.0]  # mm
+    _set_mapper(authors, depth_intrinsic=_intr(synth.cal.depth), d_c_extrinsic=T.ravel().tolist())
+    with pytest.raises(ValueError, match=r"conf\.json: .*translation is 32.3 m.*millimetres"):
         FolderDataset(authors)
 
 
@@ -547,10 +561,25 @@ def test_empty_mask_at_ingest(tmp_path, authors):
     bad = authors / "stream" / "mask" / f"Frame_{FIRST + 1:06d}.png"
     cv2.imwrite(str(bad), np.zeros((120, 160), np.uint8))
     out = tmp_path / "frames" / "block_0000.zarr"
-    with pytest.raises(ValueError, match=rf"frame {FIRST + 1}: the source's mask is empty"):
+    with pytest.raises(ValueError, match=re.escape(bad.name) + r": the mask is empty"):
         write_frames_block(folder_cfg(authors), 0, N, out)
     assert not out.exists() and not out.with_name(out.name + ".partial").exists()
     assert not any((tmp_path / "frames").iterdir())
+
+
+def test_a_dropped_depth_frame_is_named_and_float_depth_refused(tmp_path, authors, monkeypatch, caplog):
+    """A depth frame with no valid pixel (a dropped frame) is ingested with a warning naming it;
+    depth that is not uint16 millimetres (a reader returning float metres or NaN) is refused
+    instead of being cast to 0 or 1 mm."""
+    cv2.imwrite(str(authors / "stream" / "depth" / f"Frame_{FIRST + 2:06d}.png"), np.zeros((72, 80), np.uint16))
+    with caplog.at_level("WARNING", logger="stex.ingest"):
+        write_frames_block(folder_cfg(authors), 0, N, tmp_path / "f.zarr")
+    assert f"frame(s) [{FIRST + 2}] have no valid depth pixel" in caplog.text
+    metres = FolderDataset.depth
+    monkeypatch.setattr(FolderDataset, "depth", lambda self, fid: metres(self, fid) / np.float32(1000.0))
+    with pytest.raises(ValueError, match=rf"frame {FIRST}: depth must be uint16 millimetres, got float32"):
+        write_frames_block(folder_cfg(authors), 0, N, tmp_path / "g.zarr")
+    assert not (tmp_path / "g.zarr").exists()
 
 
 def test_given_mesh_with_other_topology(tmp_path, authors, synth):

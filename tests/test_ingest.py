@@ -46,6 +46,20 @@ def test_mkv_ingest_of_a_written_recording(synthetic_mkv, tmp_path):  # noqa: F8
     assert open_source(src_t).files(0, 2) == [synthetic_mkv]
 
 
+def test_a_truncated_recording_is_read_with_source_mkv_allow_truncated(synthetic_mkv, tmp_path):  # noqa: F811
+    path, _ = synthetic_mkv
+    cut = tmp_path / "cut.mkv"
+    cut.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
+    with pytest.raises(ValueError, match=r"truncated Matroska file.*set source\.mkv\.allow_truncated: true"):
+        count_frames(_mkv_source(cut, undistort=False))
+    with pytest.warns(UserWarning, match="truncated"):
+        n = count_frames(_mkv_source(cut, undistort=False, allow_truncated=True, stop=3))
+    assert n == 3
+    with pytest.warns(UserWarning, match="truncated"):
+        write_frames_block(_mkv_source(cut, undistort=False, allow_truncated=True, stop=3), 0, 3, tmp_path / "f.zarr")
+    assert open_store(tmp_path / "f.zarr", "frames").attrs["frame_ids"] == [0, 1, 2]
+
+
 @pytest.mark.skipif(not REAL_MKV.is_file(), reason="shared data samples absent")
 def test_mkv_ingest_of_the_real_recording(tmp_path):
     src = _mkv_source(REAL_MKV)

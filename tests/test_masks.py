@@ -63,6 +63,27 @@ def test_masks_block_rejects_empty_depth_range(tmp_path, tiny_config):
         write_masks_block(tmp_path / "scene.zarr", tmp_path / "f.zarr", dict(tiny_config["masks"], use_given=True), tmp_path / "m.zarr")
 
 
+def test_an_empty_mask_says_why(tiny_config):
+    """The empty-mask error names the cause: no depth, depth out of range (with the range the
+    depth spans, so millimetres read as metres show), depth that lands outside the colour image
+    (a calibration mistake), or everything in range on the support plane."""
+    from stex.camera import Calibration
+    from stex.masks import why_no_object_depth
+    from stex.synth.scene import SyntheticScene
+    scene = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal, depth = scene.calibration, scene.render_frame(0).depth_mm
+    params = tiny_config["masks"]
+    assert "no valid pixel" in why_no_object_depth(np.zeros_like(depth), cal, params)
+    # depth in 0.1 mm units: 10x too far for the range
+    too_far = why_no_object_depth(np.minimum(depth.astype(np.int64) * 10, 65535).astype(np.uint16), cal, params)
+    assert "no depth inside" in too_far and "millimetres" in too_far and "median 22 m" in too_far  # the wall, 2.2 m
+    # a colour principal point at the image's corner and a camera rotated away: nothing lands inside
+    d = cal.to_dict()
+    d["depth_to_color"] = [[1, 0, 0, 0.0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]  # 90 degrees about x
+    assert "land outside the colour image" in why_no_object_depth(depth, Calibration.from_dict(d), params)
+    assert "support plane" in why_no_object_depth(depth, cal, dict(params, support_plane_tolerance_m=0.01))
+
+
 def test_support_plane_is_found_and_faces_the_camera():
     rng = np.random.default_rng(0)
     # a table 0.3 m below the camera (y down): y = 0.3, normal towards the camera = -y

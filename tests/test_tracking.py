@@ -1,4 +1,6 @@
 """Embedded-deformation tracking with the L0 regulariser."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -500,3 +502,46 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     with pytest.raises(ValueError, match="every frame"):
         write_tracking(with_scene("focal", wrong_focal), P["template"], P["frames"], P["masks"], params,
                        tmp_path / "focal_tracking.zarr")
+
+
+def test_tracking_stage_refuses_a_mesh_in_millimetres_and_names_frames_without_depth(tmp_path, caplog):
+    """A template (track) or given meshes (given) in millimetres project like metres, so the
+    silhouette cannot tell; the depth can, and the stage refuses them at the first frame. A frame
+    whose depth is all invalid is named in a warning: there the mesh has nothing to fit."""
+    import shutil
+
+    import zarr
+
+    from conftest import run_stages, tiny_scene_config
+    from stex.io import FrameSequence, open_store
+    from stex.tracking import write_tracking
+
+    cfg = tiny_scene_config(template={"atlas_size": 128})
+    P = run_stages(cfg, tmp_path)
+    ids = open_store(P["scene"], "scene").attrs["frame_ids"]
+
+    def copy_edit(path, name, key, edit):
+        out = tmp_path / name
+        shutil.copytree(path, out)
+        z = zarr.open_group(str(out), mode="r+")
+        z[key][...] = edit(z[key][...])
+        return out
+
+    in_mm = copy_edit(P["template"], "mm_template.zarr", "vertices", lambda v: v * 1000)
+    with pytest.raises(ValueError, match=r"mm_template\.zarr: at frame .* (9\d\d|1\d\d\d) times as far .* metres"):
+        write_tracking(P["scene"], in_mm, P["frames"], P["masks"], dict(cfg["tracking"], mode="track"),
+                       tmp_path / "mm_tracking.zarr")
+    assert not (tmp_path / "mm_tracking.zarr").exists()
+    given_mm = copy_edit(P["scene"], "mm_scene.zarr", "given/vertices", lambda v: v * 1000)
+    with pytest.raises(ValueError, match=r"mm_scene\.zarr: at frame .* (9\d\d|1\d\d\d) times as far"):
+        write_tracking(given_mm, P["template"], P["frames"], P["masks"], dict(cfg["tracking"], mode="given"),
+                       tmp_path / "mm_given.zarr")
+
+    blocks = [Path(p) for p in P["frames"]]
+    dropped = [copy_edit(b, f"f{i}.zarr", "depth", (lambda d: np.concatenate([d[:1], 0 * d[1:2], d[2:]]))
+                         if i == 0 else (lambda d: d)) for i, b in enumerate(blocks)]
+    assert FrameSequence(dropped, "frames").read("depth", 1).max() == 0
+    with caplog.at_level("WARNING", logger="stex.tracking"):
+        write_tracking(P["scene"], P["template"], dropped, P["masks"], dict(cfg["tracking"], mode="given"),
+                       tmp_path / "dropped.zarr")
+    assert f"no depth of the object to fit at 1 of {len(ids)} frames ({ids[1]})" in caplog.text

@@ -39,6 +39,18 @@ from stex.readers.meshes import Mesh, load_mesh
 _MESH_EXT = (".off", ".obj", ".ply")
 
 
+def _intrinsics(mapper: dict, key: str) -> Intrinsics:
+    """``mapper[key]`` as a camera; errors name the key (colour or depth)."""
+    if key not in mapper:
+        raise ValueError(f"mapper4D has no {key!r}")
+    try:
+        return Intrinsics.from_dict(mapper[key])
+    except KeyError as e:
+        raise ValueError(f"{key}: missing key {e}") from None
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{key}: {e}") from None
+
+
 class FolderDataset:
     """Random access to the frames of a folder dataset.
 
@@ -119,8 +131,7 @@ class FolderDataset:
             conf = json.loads(path.read_text())
             case = next(v for v in conf.values() if isinstance(v, dict) and "mapper4D" in v)
             m = case["mapper4D"]
-            color = Intrinsics.from_dict(m["color_intrinsic"])
-            depth = Intrinsics.from_dict(m["depth_intrinsic"])
+            color, depth = (_intrinsics(m, key) for key in ("color_intrinsic", "depth_intrinsic"))
             ext = np.asarray(m["d_c_extrinsic"], np.float64)
             if ext.size != 12:
                 raise ValueError(f"d_c_extrinsic needs 12 numbers (3x4 row-major), got {ext.size}")
@@ -185,6 +196,8 @@ class FolderDataset:
         c = self.calibration.color
         if img.shape != (c.height, c.width):
             raise ValueError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, must match the colour size {c.width}x{c.height}")
+        if not img.any():
+            raise ValueError(f"{path}: the mask is empty (no pixel >= 1)")
         return img >= 1
 
     def mesh_path(self, frame_id: int) -> Path | None:

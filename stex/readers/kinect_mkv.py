@@ -344,7 +344,8 @@ def _check_matroska(path: Path, allow_truncated: bool) -> None:
         msg = (f"{path}: truncated Matroska file: the Segment declares {seg_start + seg_size} bytes "
                f"but the file has only {size} ({100.0 * size / (seg_start + seg_size):.1f}%)")
         if not allow_truncated:
-            raise ValueError(msg + "; pass allow_truncated=True to read the complete captures it still holds")
+            raise ValueError(msg + "; to read the complete captures it still holds set source.mkv.allow_truncated: "
+                             "true (open_kinect_mkv(..., allow_truncated=True))")
         warnings.warn(msg, stacklevel=3)
 
 

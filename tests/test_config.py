@@ -1,0 +1,36 @@
+"""Configuration: the schema's checks, the rules between settings it cannot state, and the
+errors a mistyped config gives (one line naming the key)."""
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from conftest import REPO
+from stex.config import load_config, section_params, validate_config
+
+
+def test_unknown_key_and_wrong_type_name_the_key():
+    with pytest.raises(ValueError, match=r"config error at masks: .*'depth_far' was unexpected"):
+        validate_config({"masks": {"depth_far": 1.5}})
+    with pytest.raises(ValueError, match=r"config error at masks/depth_far_m: '1.5m' is not of type 'number'"):
+        section_params("masks", {"depth_far_m": "1.5m"})
+
+
+def test_depth_range_must_be_ordered():
+    with pytest.raises(ValueError, match=r"masks: depth_near_m \(2 m\) must be below depth_far_m \(1.6 m\)"):
+        load_config(overrides={"masks": {"depth_near_m": 2.0}})
+    with pytest.raises(ValueError, match="must be below depth_far_m"):
+        section_params("masks", {"depth_near_m": 1.0, "depth_far_m": 1.0})
+    assert section_params("masks", {"depth_near_m": 1.0, "depth_far_m": 1.2})["depth_far_m"] == 1.2
+
+
+def test_the_workflow_refuses_an_unordered_depth_range_before_any_job(tmp_path):
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"results": str(tmp_path / "results"),
+                                                       "masks": {"depth_near_m": 2.0, "depth_far_m": 1.0}}))
+    run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "-n",
+                          "--directory", str(tmp_path), "--configfile", str(REPO / "config" / "config.yaml"),
+                          str(tmp_path / "bad.yaml")], capture_output=True, text=True, timeout=300)
+    assert run.returncode != 0
+    assert "depth_near_m (2 m) must be below depth_far_m (1 m)" in run.stdout + run.stderr
+    assert not (tmp_path / "results").exists()
