@@ -98,9 +98,11 @@ class FolderDataset:
         missing = [i for i in ids if i not in depth_ids]
         if missing:
             raise ValueError(f"{self._depth_dir}: depth missing for frame(s) {missing[:10]}")
-        gaps = [b for a, b in zip(ids, ids[1:]) if b != a + 1]
-        if gaps:
-            raise ValueError(f"{self._color_dir}: frames are not consecutive (missing before {gaps[:10]})")
+        missing = [i for a, b in zip(ids, ids[1:]) for i in range(a + 1, b)]
+        if missing:
+            raise ValueError(f"{self._color_dir}: frames are not consecutive: frame(s) {missing[:10]} missing"
+                             f"{f' (and {len(missing) - 10} more)' if len(missing) > 10 else ''} between "
+                             f"{ids[0]} and {ids[-1]} (source.folder.start/stop select a consecutive part)")
         self.frame_ids = ids
         self._color_files = color_ids
         self._depth_files = depth_ids
