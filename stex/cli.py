@@ -34,7 +34,14 @@ def _arrays(group: zarr.Group, prefix: str = ""):
 
 def inspect_store(path: str) -> str:
     """A human-readable summary of one artifact store."""
-    raw = zarr.open_group(path, mode="r")
+    try:
+        raw = zarr.open_group(path, mode="r")
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError, zarr.errors.NodeNotFoundError) as exc:
+        stores = sorted(p.name for p in Path(path).glob("*.zarr")) if Path(path).is_dir() else []
+        listed = ", ".join(stores[:6]) + (f" and {len(stores) - 6} more" if len(stores) > 6 else "")
+        hint = (f"a folder of stores: {listed}" if stores
+                else "give a store a run writes, e.g. results/demo/labels.zarr")
+        raise StoreError(f"{path}: not a stex store ({hint})") from exc
     kind = raw.attrs.get("stex_artifact")
     if kind not in ARTIFACTS:
         raise StoreError(f"{path}: not a stex artifact store (stex_artifact={kind!r})")
@@ -99,6 +106,7 @@ def _run_tables(args) -> int:
     out = Path(args.out)
     if out.suffix not in (".rst", ".html"):
         raise ValueError(f"--out {out}: give a .rst or .html file")
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(tables_html(rst) if out.suffix == ".html" else rst.encode())
     print(f"wrote {out}: {len(args.results)} run(s)")
     return 0
@@ -136,6 +144,9 @@ def _run_evaluate(args) -> int:
         if name not in others:
             raise ValueError(f"--uv-mesh {item!r}: no --texture {name}=PATH")
         others[name] = {"slices": others[name], "uv_mesh": mesh}
+    from stex.export import output_folder
+
+    output_folder(args.out)
     frames = None
     if args.frames is not None:
         ids = open_store(f"{args.results}/scene.zarr", "scene").attrs["frame_ids"]
@@ -154,6 +165,13 @@ def _run_evaluate(args) -> int:
     print(f"wrote {args.out}: {len(res['frames'])} frames, methods {', '.join(res['methods'])}")
     print((Path(args.out) / "tables.rst").read_text())
     return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {value}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -207,9 +225,9 @@ def main(argv: list[str] | None = None) -> int:
                         "carried into the run's atlas; repeatable")
     p.add_argument("--out", required=True, help="output folder (not the run's own evaluation/)")
     p.add_argument("--frames", default=None, help=frames_help)
-    p.add_argument("--stride", type=int, default=None,
+    p.add_argument("--stride", type=_positive_int, default=None,
                    help="score every k-th frame (default: the run's evaluation.stride)")
-    p.add_argument("--threads", type=int, default=1, help="frames scored at once (default 1)")
+    p.add_argument("--threads", type=_positive_int, default=1, help="frames scored at once (default 1)")
     p.set_defaults(run=_run_evaluate)
 
     args = parser.parse_args(argv)

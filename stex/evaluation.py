@@ -218,10 +218,13 @@ class TextureSlices:
             f = self._files.get(int(frame_id))
             if f is None:
                 raise StoreError(f"{self.path}: no {self._name.format(frame=int(frame_id))}")
-            with Image.open(f) as im:
-                if im.mode != "RGB":
-                    raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
-                tex = np.asarray(im)
+            try:
+                with Image.open(f) as im:
+                    if im.mode != "RGB":
+                        raise StoreError(f"{f}: an 8-bit RGB PNG is needed, found mode {im.mode}")
+                    tex = np.asarray(im)
+            except OSError as exc:  # truncated or not an image: PIL's message does not name the file
+                raise StoreError(f"{f}: cannot read the image ({exc})") from None
         if self.transfer is not None:
             try:
                 tex = self.transfer.apply(tex)
@@ -1064,7 +1067,9 @@ class _Inputs:
             src.into_atlas(template)
             missing = sorted(want - set(src.frame_ids))
             if missing:
-                raise ValueError(f"method {name!r}: {src.path} has no slices for frames {short_ids(missing)}")
+                why = ("; the frame before each scored frame is read too, for the flicker: give the slices "
+                       "from one frame earlier" if set(missing) - set(score_ids) else "")
+                raise ValueError(f"method {name!r}: {src.path} has no slices for frames {short_ids(missing)}{why}")
             self._other_slice(name, score_ids[0] if score_ids else src.frame_ids[0])  # fail early
         self.texel_face = np.asarray(template["texel/face_id"][...]) if self.others else None
 

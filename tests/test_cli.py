@@ -1,6 +1,7 @@
 import shutil
 
 import numpy as np
+import pytest
 
 from stex.cli import main
 from stex.io import create_store
@@ -89,6 +90,43 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
     assert main(["preview", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.mp4")]) == 1
     assert "nowhere: no such results folder" in capsys.readouterr().err
     assert not (tmp_path / "p.mp4").exists()
+    # output paths are checked before any work: a folder where a file goes, and the reverse
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for argv, message in [(["preview", str(res), "--out", str(tmp_path / "pdir") + "/"], "is a folder; give a .mp4 file"),
+                          (["preview", str(res), "--out", str(tmp_path / "p.avi")], "give a .mp4 file name"),
+                          (["export", str(res), "--what", "png", "--source", "volume", "--out", str(afile)],
+                           "is a file; give a folder"),
+                          (["evaluate", str(res), "--out", str(afile)], "is a file; give a folder"),
+                          (["inspect", str(afile)], "afile: not a stex store (give a store a run writes"),
+                          (["inspect", str(res)], "not a stex store (a folder of stores: scene.zarr")]:
+        assert main(argv) == 1, argv
+        assert message in capsys.readouterr().err, argv
+    assert afile.read_text() == "x" and not (tmp_path / "pdir").exists()
+    assert list(tmp_path.glob(".*partial*")) == []
+
+
+def test_an_interrupted_export_leaves_no_file_under_its_final_name(tmp_path, monkeypatch):
+    """PNG, OBJ/MTL and glTF files are written under a hidden name and renamed when complete: an
+    export stopped inside a write (here a KeyboardInterrupt after half a PNG) leaves neither a
+    truncated file under the final name nor the temporary one."""
+    import cv2
+
+    from stex import export
+
+    real = cv2.imwrite
+
+    def half_then_stop(path, img):
+        real(path, img)
+        with open(path, "r+b") as fh:
+            fh.truncate(100)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(export.cv2, "imwrite", half_then_stop)
+    tex = np.zeros((8, 8, 3), np.uint8)
+    with pytest.raises(KeyboardInterrupt):
+        export.write_png_slices([tex, tex], [3, 4], tmp_path)
+    assert list(tmp_path.iterdir()) == []
 
 
 # --------------------------------------------------------------------------------------------

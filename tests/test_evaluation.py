@@ -356,8 +356,11 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
 
     # a frame's slice missing, a slice of the wrong size, a reserved name: refused
     (tmp_path / "mine" / "texture_00004.png").unlink()
-    with pytest.raises(ValueError, match=r"'mine'.*no slices for frames \[4\]"):
+    with pytest.raises(ValueError, match=r"'mine'.*no slices for frames \[4\]$"):
         evaluate_results(R, tmp_path / "e1", {"mine": tmp_path / "mine"})
+    # frames 5: scored alone, but its flicker reads frame 4 too: the message says why
+    with pytest.raises(ValueError, match=r"no slices for frames \[4\]; the frame before each scored frame"):
+        evaluate_results(R, tmp_path / "e1", {"mine": tmp_path / "mine"}, frames=[5])
     small = tmp_path / "small"
     write_png_slices((np.zeros((8, 8, 3), np.uint8) for _ in ids), ids, small)
     with pytest.raises(ValueError, match=r"slices are \(8, 8, 3\)"):
@@ -369,6 +372,10 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(small / "texture_00000.png")
     with pytest.raises(StoreError, match="8-bit RGB"):
         TextureSlices(small).read(0)
+    cut = small / "texture_00001.png"
+    cut.write_bytes(cut.read_bytes()[:60])
+    with pytest.raises(StoreError, match=r"texture_00001\.png: cannot read the image"):
+        TextureSlices(small).read(1)
     with pytest.raises(ValueError, match="own evaluation folder"):
         evaluate_results(R, R / "evaluation", {})
     assert not any((tmp_path / f"e{k}").exists() for k in range(1, 5))
