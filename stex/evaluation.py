@@ -719,12 +719,18 @@ def table_rows(summaries: dict) -> dict:
                                 if m not in METHODS))
     methods = list(METHODS) + others
 
-    def add(table, label, method, subset, metric, digits=2, scale=1.0, name=None):
+    def add(table, label, method, subset, metric, digits=2, scale=1.0, name=None, count=False):
         vals = [_mean(summaries[s], subset, method, metric) for s in scenes]
         if all(not math.isfinite(v) for v in vals):
             return
         first = "" if any(r[0] == label for r in table[1:]) else label   # group label once
-        table.append([first, name or method_name(method)] + [_fmt(v, digits, scale) for v in vals])
+        cells = [_fmt(v, digits, scale) for v in vals]
+        if count:  # a region absent from most frames (e.g. seen at t, from behind): say over how many
+            for k, s in enumerate(scenes):
+                got = summaries[s].get(subset, {}).get(method, {}).get(metric, {})
+                if math.isfinite(vals[k]) and got.get("n", 0) < got.get("n_total", 0):
+                    cells[k] += f" ({got['n']} of {got['n_total']} frames)"
+        table.append([first, name or method_name(method)] + cells)
 
     for m in methods:
         add(rec, "PSNR, dB (every frame)", m, "all", "psnr")
@@ -776,7 +782,7 @@ def table_rows(summaries: dict) -> dict:
                                   ("gt_truegeom_psnr_never_seen", "on the true surface: PSNR, dB, never seen", 2),
                                   ("flicker", "flicker in borrowed regions, grey levels", 2)):
         for m in methods:
-            add(gt, label, m, "all", metric, digits=digits)
+            add(gt, label, m, "all", metric, digits=digits, count=True)
     if len(gt) > 1:
         out["ground_truth"] = gt
     return out

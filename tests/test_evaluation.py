@@ -635,3 +635,21 @@ def test_labeling_reads_the_tables_a_frame_at_a_time(pipe):
     stored = open_store(pipe["labels"], "labels")["labels"][...]
     glimpsed = open_store(pipe["labels"], "labels")["glimpse_source"][...] >= 0
     assert np.array_equal(stored[:, ~glimpsed], lazy["labels"][:, ~glimpsed])
+
+
+def test_ground_truth_table_says_over_how_many_frames_a_rare_region_was_scored():
+    """A region that exists at few frames (the surface seen at t, in a view from behind) is
+    averaged over those frames only; the table says how many, so 32 dB over 9 pixels of 5 frames
+    is not read as a whole-sequence figure."""
+    import math
+
+    from stex.evaluation import summarise_frames, table_rows
+
+    records = [{"frame": t, "position": t, "held_out": False,
+                "methods": {"ours": {"psnr": 30.0, "gt_novel_psnr_all": 20.0,
+                                     "gt_novel_psnr_seen": 32.0 if t == 1 else math.nan}}}
+               for t in range(4)]
+    summary = summarise_frames(records, methods=("ours",))
+    rows = {(r[0], r[1]): r[2] for r in table_rows({"s": summary})["ground_truth"][1:]}
+    assert rows[("PSNR, dB, seen at t", "Ours")] == "32.00 (1 of 4 frames)"
+    assert rows[("PSNR, dB, whole object", "Ours")] == "20.00"
