@@ -442,6 +442,24 @@ def test_bad_depth_packet_names_frame(tmp_path):
         assert str(p) in str(e.value)
 
 
+def test_damaged_depth_data_is_named(recwarn):
+    """Random bytes in a depth packet decode to a full-size image, but much of it reads farther
+    than any Azure Kinect depth mode measures: a warning names the frame."""
+    import warnings
+
+    from stex.readers.kinect_mkv import _decode_depth
+
+    w, h = DEPTH_SIZE
+    good = np.full((h, w), 1500, ">u2")
+    good[:5] = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _decode_depth(good.tobytes(), DEPTH_SIZE, ">u2", "f.mkv: frame 3").max() == 1500
+    noise = np.random.default_rng(0).integers(0, 256, w * h * 2, dtype=np.uint8).tobytes()
+    with pytest.warns(UserWarning, match=r"f\.mkv: frame 3: 8\d % of the depth pixels read beyond 8 m"):
+        _decode_depth(noise, DEPTH_SIZE, ">u2", "f.mkv: frame 3")
+
+
 def test_bad_backend_name(synthetic_mkv):
     with pytest.raises(ValueError, match="backend"):
         open_kinect_mkv(synthetic_mkv[0], backend="ffmpeg")

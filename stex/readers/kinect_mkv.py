@@ -353,12 +353,23 @@ def _check_matroska(path: Path, allow_truncated: bool) -> None:
 # Frame decoding (shared by the PyAV backend)
 # --------------------------------------------------------------------------------------------
 
+#: The farthest an Azure Kinect depth mode measures is 5.46 m (NFOV 2x2 binned); depth read beyond
+#: this over more than 1 % of a frame's pixels is damaged data, not a far wall.
+DEPTH_IMPLAUSIBLE_MM = 8000
+
+
 def _decode_depth(buf: bytes, size: tuple[int, int], dtype: str, what: str) -> np.ndarray:
     w, h = size
     if len(buf) != w * h * 2:
         raise ValueError(f"{what}: depth packet has {len(buf)} bytes, expected {w * h * 2} "
                          f"({w}x{h} 16-bit pixels); the file is corrupt or truncated")
-    return np.frombuffer(buf, dtype=dtype).reshape(h, w).astype(np.uint16)
+    depth = np.frombuffer(buf, dtype=dtype).reshape(h, w).astype(np.uint16)
+    far = float(np.mean(depth > DEPTH_IMPLAUSIBLE_MM))
+    if far > 0.01:
+        warnings.warn(f"{what}: {100 * far:.0f} % of the depth pixels read beyond "
+                      f"{DEPTH_IMPLAUSIBLE_MM / 1000:g} m, farther than any Azure Kinect depth mode "
+                      f"measures: damaged depth data?", stacklevel=2)
+    return depth
 
 
 def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.ndarray:
