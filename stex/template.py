@@ -47,7 +47,12 @@ Measured: a subdivision-5 icosphere comes out with 10,240 of its 20,480 UV trian
 3. repacks the fixed charts with xatlas (``use_input_mesh_uvs``, ``rotate_charts`` off, so no new
    mirror images) into exactly ``resolution`` x ``resolution`` texels, searching the texel density
    (texels per metre) that just fits one atlas,
-4. checks that no triangle is mirrored and all texcoords lie in [0, 1].
+4. mirrors back, each inside its own box, the small charts the repack returns wholly mirrored
+   (a sliver triangle of a mesh from depth; 2-4-face fans at the pole of a noisy 500k-face scan),
+   and checks that no triangle is mirrored and all texcoords lie in [0, 1].
+
+xatlas skips faces below an absolute area (about 1.2e-7 in the mesh's units), so the mesh is
+scaled to a unit box for it and the texel density scaled back: a 2 cm object charts like a 2 m one.
 
 Cost for 20k faces at 4096^2: charting ~3-5 s, each repack ~0.6 s (up to ``pack_search_steps``).
 Which charts the packer transposes depends on the layout, so ``flipped_xatlas`` varies with the
@@ -176,15 +181,57 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
     V2 = V1[used]
     F2 = remap[F1].astype(np.int32)
 
+    if len(F2) == 0:
+        raise ValueError("the mesh has no non-degenerate faces")
     nm, boundary = nonmanifold_edges(F2)
+    F2, winding = _orient_closed_parts(V2, F2)
     report.update(vertices_out=len(V2), faces_out=len(F2), nonmanifold_edges=int(len(nm)),
-                  boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist())
+                  boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist(), **winding)
     if len(nm):
         log.warning("template: %d non-manifold edges (shared by > 2 faces), e.g. %s",
                     len(nm), nm[:3].tolist())
-    if len(F2) == 0:
-        raise ValueError("the mesh has no non-degenerate faces")
+    if winding["inverted_parts_flipped"]:
+        log.warning("template: %d closed parts of the mesh faced inwards (clockwise seen from outside); "
+                    "their faces were turned round", winding["inverted_parts_flipped"])
+    if winding["inconsistent_winding_edges"]:
+        log.warning("template: %d edges join faces of opposite winding, so some faces face inwards: the "
+                    "renderer treats them as back faces (unseen); re-orient the mesh's faces coherently "
+                    "(e.g. MeshLab: Re-Orient all faces coherently)", winding["inconsistent_winding_edges"])
     return V2, F2, report
+
+
+def _orient_closed_parts(V, F):
+    """Turn round every closed, coherently wound connected part whose faces point inwards
+    (negative signed volume), and count the edges whose two faces have opposite winding (an edge
+    both faces traverse in the same direction). Parts with such edges or a boundary are left as
+    they are: their inside is not defined. Returns (faces, {``inverted_parts_flipped``,
+    ``inconsistent_winding_edges``})."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(F, np.int64)
+    directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    owner = np.tile(np.arange(len(F)), 3)
+    n = int(F.max()) + 1  # edges as int64 keys: np.unique on 1-D is ~10x faster than on rows
+    _, inv, counts = np.unique(directed[:, 0] * n + directed[:, 1], return_inverse=True, return_counts=True)
+    same_way = counts[inv] > 1                       # directed edge used twice: opposite windings
+    _, uinv, ucounts = np.unique(directed.min(1) * n + directed.max(1), return_inverse=True, return_counts=True)
+    # faces sharing an edge belong to one part
+    order = np.argsort(uinv, kind="stable")
+    e_sorted, f_sorted = uinv[order], owner[order]
+    same = e_sorted[1:] == e_sorted[:-1]
+    adj = coo_matrix((np.ones(int(same.sum())), (f_sorted[:-1][same], f_sorted[1:][same])), (len(F), len(F)))
+    n_parts, part = connected_components(adj, directed=False)
+    open_or_odd = np.zeros(n_parts, bool)
+    open_or_odd[part[owner[(ucounts[uinv] != 2) | same_way]]] = True
+    tri = np.asarray(V, np.float64)[F]
+    volume = np.bincount(part, np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0, n_parts)
+    inverted = ~open_or_odd & (volume < 0)
+    out = F.copy()
+    flip = inverted[part]
+    out[flip] = out[flip][:, [0, 2, 1]]
+    return out.astype(np.int32), {"inverted_parts_flipped": int(inverted.sum()),
+                                  "inconsistent_winding_edges": int(same_way.sum() // 2)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,6 +372,19 @@ def _repack(positions, tfaces, uv, resolution, gutter_px, texels_per_unit):
     return np.asarray(vmap, np.int64), np.asarray(idx, np.int64), np.asarray(out_uv, np.float64), a.utilization
 
 
+def working_scale(vertices, faces) -> float:
+    """Factor that brings a mesh of small faces to where xatlas and trimesh's proximity queries
+    work: xatlas skips faces below an absolute area (about 1.2e-7, i.e. FLT_EPSILON) and trimesh's
+    closest-point search uses absolute tolerances (a 1 mm sphere took 8.9 GB there). 1.0 when the
+    median face area is at least 1e-6 m² (a 20k-face template of a 10 cm object has ~1.6e-6), so
+    usual templates are untouched; else the factor that makes it 1e-4."""
+    V = np.asarray(vertices, np.float64)
+    tri = V[np.asarray(faces, np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    med = float(np.median(area)) if len(area) else 0.0
+    return 1.0 if med >= 1e-6 or med <= 0 else float(np.sqrt(1e-4 / med))
+
+
 def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, return_info: bool = False,
                 pack_search_steps: int = 7):
     """A UV atlas of the mesh: xatlas charts packed into one square texture, no mirrored charts.
@@ -352,8 +412,9 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     """
     import xatlas
 
-    V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
+    scale = working_scale(vertices, F)  # texel densities below are per scaled unit
+    V = np.asarray(vertices, np.float64) * scale
     resolution, gutter_px = int(resolution), int(gutter_px)
     if resolution < 8 or gutter_px < 0:
         raise ValueError(f"need resolution >= 8 and gutter_px >= 0, got {resolution}, {gutter_px}")
@@ -426,22 +487,40 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     texcoords = texcoords.astype(np.float32)
     tfaces = idx2.astype(np.int32)
     flipped = uv_flipped(texcoords, tfaces)
-    # A triangle that pass 1 flattened to a sliver (near-collinear UVs: seen on a mesh from depth)
-    # comes back from the repack as a chart of its own, sometimes mirrored. Its corners are its
-    # own, so mirroring it inside its own box fixes it without touching any other chart.
+    # Small charts can come back from the repack wholly mirrored: a triangle that pass 1 flattened
+    # to a sliver (a mesh from depth), fans of 2-4 slivers at the pole of a noisy 500k-face scan.
+    # A chart's corners are its own, so mirroring it inside its own box fixes it without moving
+    # it or touching any other chart.
     chart2 = uv_charts(tfaces, len(texcoords))
-    lone = np.flatnonzero(flipped & (np.bincount(chart2)[chart2] == 1))
-    for f in lone:
-        u = texcoords[tfaces[f], 0]
-        texcoords[tfaces[f], 0] = u.min() + u.max() - u
-    info["lone_mirrored"] = int(len(lone))
+    n2 = int(chart2.max()) + 1
+    whole = np.bincount(chart2, flipped, n2) == np.bincount(chart2, minlength=n2)
+    whole &= np.bincount(chart2, minlength=n2) > 0
+    if whole.any():
+        corner_chart = np.empty(len(texcoords), np.int64)
+        corner_chart[tfaces.ravel()] = np.repeat(chart2, 3)
+        sel = whole[corner_chart]
+        lo = np.full(n2, np.inf)
+        hi = np.full(n2, -np.inf)
+        np.minimum.at(lo, corner_chart[sel], texcoords[sel, 0])
+        np.maximum.at(hi, corner_chart[sel], texcoords[sel, 0])
+        c = corner_chart[sel]
+        texcoords[sel, 0] = (lo[c] + hi[c] - texcoords[sel, 0]).astype(np.float32)
+    info["repack_mirrored_charts"] = int(whole.sum())
     flipped = uv_flipped(texcoords, tfaces)
     if flipped.any():
-        raise RuntimeError(f"{int(flipped.sum())} UV triangles still mirrored after the fix")
+        bad = np.flatnonzero(flipped)
+        raise RuntimeError(f"{len(bad)} UV triangles still mirrored after the fix (faces {bad[:10].tolist()}"
+                           f"{' ...' if len(bad) > 10 else ''}, in {len(np.unique(chart2[bad]))} charts that are "
+                           f"only partly mirrored)")
     if texcoords.min() < 0 or texcoords.max() > 1:
         raise RuntimeError("texcoords outside [0, 1] after packing")
-    info.update(charts=int(uv_charts(tfaces, len(texcoords)).max()) + 1, texels_per_unit=best_tpu,
-                utilization=float(util), degenerate_uv_faces=int((uv_signed_area(texcoords, tfaces) == 0).sum()))
+    info.update(charts=int(uv_charts(tfaces, len(texcoords)).max()) + 1, texels_per_unit=best_tpu * scale,
+                utilization=float(util), degenerate_uv_faces=int((uv_signed_area(texcoords, tfaces) == 0).sum()),
+                working_scale=scale)
+    if info["degenerate_uv_faces"]:
+        log.warning("template: %d faces have no area in the atlas (needle-thin faces: xatlas gives them "
+                    "collapsed UVs, so they take the colour of one texel); thicken or remove such parts of "
+                    "the mesh", info["degenerate_uv_faces"])
     log.info("template: atlas %d^2, %d charts (%d mirrored by xatlas, %d triangles), %.1f%% used, "
              "%.1f s charting + %.1f s packing", resolution, info["charts"], info["flipped_charts"],
              info["flipped_xatlas"], 100 * info["utilization"], info["time_chart_s"], info["time_pack_s"])
@@ -546,19 +625,20 @@ def embed_vertices(points, orig_vertices, orig_faces):
     """
     import trimesh
 
-    V0 = np.asarray(orig_vertices, np.float64)
     F0 = np.asarray(orig_faces, np.int64)
+    scale = working_scale(orig_vertices, F0)  # closest-point tolerances are absolute
+    V0 = np.asarray(orig_vertices, np.float64) * scale
     tri = V0[F0]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     ok = np.flatnonzero(area > 0)
     tm = trimesh.Trimesh(V0, F0[ok], process=False, validate=False)
-    pts = np.asarray(points, np.float64)
+    pts = np.asarray(points, np.float64) * scale
     closest, dist, tid = trimesh.proximity.closest_point(tm, pts)
     face = ok[tid]
     bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
     bary = np.clip(bary, 0.0, None)
     bary /= bary.sum(1, keepdims=True)
-    return face.astype(np.int32), bary.astype(np.float32), closest, np.asarray(dist)
+    return face.astype(np.int32), bary.astype(np.float32), closest / scale, np.asarray(dist) / scale
 
 
 def transfer_vertices(orig_frame_vertices, orig_faces, embedding_face, embedding_bary) -> np.ndarray:
@@ -598,6 +678,10 @@ def prepare_template(mesh, params: dict) -> dict:
     """
     t0 = time.perf_counter()
     V, F, report = clean_mesh(mesh.vertices, mesh.faces)
+    extent = float(np.ptp(V, axis=0).max())
+    if extent > 5.0:  # the tracking stage refuses it at the first frame; say why here already
+        log.warning("template: the mesh is %.3g m across: an object one RGB-D camera films is under a few metres; "
+                    "is it in millimetres or centimetres? (it must be in metres)", extent)
     log.info("template: cleaned %d -> %d faces (%s)", report["faces_in"], report["faces_out"],
              {k: report[k] for k in ("duplicate_vertices", "degenerate_faces", "duplicate_faces",
                                      "unreferenced_vertices", "nonmanifold_edges", "boundary_edges")})
@@ -767,7 +851,10 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
         raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
                          f"template.from_depth to build one from the first frame's depth (one view only)")
-    result = prepare_template(mesh, params)
+    try:
+        result = prepare_template(mesh, params)
+    except (ValueError, RuntimeError) as e:  # name the mesh: the stage's errors speak of faces only
+        raise type(e)(f"{scene_path}: template ({origin}): {e}") from e
     attrs = result.pop("attrs")
     attrs["origin"] = origin
     with create_store(out, "template", attrs=attrs, params=params) as store:

@@ -283,4 +283,71 @@ def test_a_lone_triangle_the_repack_mirrors_is_mirrored_back(monkeypatch):
         return vmap, idx, uv, util
     monkeypatch.setattr(tm, "_repack", mirroring)
     tc, tf, info = build_atlas(V, F, 64, 2, return_info=True)
-    assert info["lone_mirrored"] == 1 and not uv_flipped(tc, tf).any()
+    assert info["repack_mirrored_charts"] == 1 and not uv_flipped(tc, tf).any()
+
+
+def test_small_charts_the_repack_mirrors_whole_are_mirrored_back(monkeypatch):
+    """A noisy 500k-face scan's pole fans came back from the repack as wholly mirrored charts of
+    2-4 faces ("38 UV triangles still mirrored"): each is mirrored back inside its own box, and
+    its box, hence the packing and the gutters, stays where it was."""
+    import stex.template as tm
+
+    # two separate charts: a quad of 2 faces, and a triangle
+    V = np.array([[0, 0, 1], [0.01, 0, 1], [0.01, 0.01, 1], [0, 0.01, 1], [0.05, 0, 1], [0.06, 0, 1], [0.05, 0.01, 1.0]])
+    F = np.array([[0, 2, 1], [0, 3, 2], [4, 6, 5]])
+    repack = tm._repack
+    boxes = {}
+
+    def mirroring(*args):
+        vmap, idx, uv, util = repack(*args)
+        uv = uv.copy()
+        c = np.unique(idx[:2])  # the quad's corners
+        boxes["before"] = (uv[c].min(0), uv[c].max(0))
+        uv[c, 0] = uv[c, 0].min() + uv[c, 0].max() - uv[c, 0]
+        return vmap, idx, uv, util
+    monkeypatch.setattr(tm, "_repack", mirroring)
+    tc, tf, info = build_atlas(V, F, 64, 2, return_info=True)
+    assert info["repack_mirrored_charts"] == 1 and not uv_flipped(tc, tf).any()
+    quad = np.unique(tf[:2])
+    lo, hi = boxes["before"]
+    np.testing.assert_allclose(tc[quad, 0].min(), lo[0], atol=1e-6)
+    np.testing.assert_allclose(tc[quad, 0].max(), hi[0], atol=1e-6)
+
+
+def test_a_small_object_gets_an_atlas():
+    """xatlas skips faces below ~1.2e-7 in area, so a 5 mm sphere of 5k faces (6e-8 m² each) had
+    no chart at all (ZeroDivisionError in build_atlas); it is scaled to where xatlas works, and
+    the texel density is still per metre."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(4, radius=0.005)
+    tc, tf, info = build_atlas(s.vertices + [0, 0, 0.5], s.faces, 256, 2, return_info=True)
+    assert info["working_scale"] > 1 and info["charts"] < 50 and not uv_flipped(tc, tf).any()
+    assert 0 <= tc.min() and tc.max() <= 1
+    face_id, _ = texel_map(tc, tf, 256)
+    assert len(np.unique(face_id[face_id >= 0])) > 0.95 * len(tf)
+    # the same sphere at 1 m radius: the same layout density per unit of surface, in texels per metre
+    _, _, big = build_atlas(s.vertices * 200 + [0, 0, 0.5], s.faces, 256, 2, return_info=True)
+    assert big["working_scale"] == 1.0
+    assert info["texels_per_unit"] == pytest.approx(200 * big["texels_per_unit"], rel=0.1)
+
+
+def test_faces_turned_inwards_are_turned_round_and_mixed_winding_is_counted(caplog):
+    import trimesh
+
+    s = trimesh.creation.icosphere(3)
+    s.vertices += [0, 0, 1.0]
+    V, F, r = clean_mesh(s.vertices, s.faces)
+    assert np.array_equal(F, s.faces) and r["inverted_parts_flipped"] == 0 and r["inconsistent_winding_edges"] == 0
+    with caplog.at_level("WARNING", logger="stex.template"):
+        V, F, r = clean_mesh(s.vertices, s.faces[:, ::-1])  # a closed mesh facing inwards
+    assert r["inverted_parts_flipped"] == 1 and trimesh.Trimesh(V, F).volume > 0
+    assert "faced inwards" in caplog.text
+    mixed = s.faces.copy()
+    mixed[::2] = mixed[::2, ::-1]
+    V, F, r = clean_mesh(s.vertices, mixed)
+    assert r["inconsistent_winding_edges"] > 0 and r["inverted_parts_flipped"] == 0 and np.array_equal(F, mixed)
+    # an open surface (a cap, as a template from depth) is never turned round
+    cap = s.faces[s.triangles_center[:, 2] > 1.0][:, ::-1]
+    V, F, r = clean_mesh(s.vertices, cap)
+    assert r["inverted_parts_flipped"] == 0
