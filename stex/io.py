@@ -151,7 +151,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "atlas_size": "int: atlas side W (texels)",
             "gutter_px": "int: xatlas padding around every chart (texels); charts end up >= 2*gutter_px+2 texels apart",
             "counts": "dict: vertices, faces, texcoords, charts, adjacent_pairs, covered_texels, faces_in",
-            "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges)",
+            "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges; closed parts facing inwards turned round, edges between faces of opposite winding)",
             "decimated": "bool: whether quadric decimation ran",
             "subdivided": "int: midpoint subdivisions applied to a low-poly mesh",
             "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed",

@@ -51,8 +51,9 @@ Measured: a subdivision-5 icosphere comes out with 10,240 of its 20,480 UV trian
    (a sliver triangle of a mesh from depth; 2-4-face fans at the pole of a noisy 500k-face scan),
    and checks that no triangle is mirrored and all texcoords lie in [0, 1].
 
-xatlas skips faces below an absolute area (about 1.2e-7 in the mesh's units), so the mesh is
-scaled to a unit box for it and the texel density scaled back: a 2 cm object charts like a 2 m one.
+xatlas skips faces below an absolute area (about 1.2e-7 in the mesh's units), so a mesh of tiny
+faces is scaled up for it (:func:`working_scale`) and the texel density scaled back to texels per
+metre.
 
 Cost for 20k faces at 4096^2: charting ~3-5 s, each repack ~0.6 s (up to ``pack_search_steps``).
 Which charts the packer transposes depends on the layout, so ``flipped_xatlas`` varies with the
@@ -373,11 +374,10 @@ def _repack(positions, tfaces, uv, resolution, gutter_px, texels_per_unit):
 
 
 def working_scale(vertices, faces) -> float:
-    """Factor that brings a mesh of small faces to where xatlas and trimesh's proximity queries
-    work: xatlas skips faces below an absolute area (about 1.2e-7, i.e. FLT_EPSILON) and trimesh's
-    closest-point search uses absolute tolerances (a 1 mm sphere took 8.9 GB there). 1.0 when the
-    median face area is at least 1e-6 m² (a 20k-face template of a 10 cm object has ~1.6e-6), so
-    usual templates are untouched; else the factor that makes it 1e-4."""
+    """Factor that brings a mesh of small faces to where xatlas charts it: xatlas skips faces
+    below an absolute area (about 1.2e-7, i.e. FLT_EPSILON; a 5 mm sphere of 5k faces got no chart
+    at all). 1.0 when the median face area is at least 1e-6 m² (a 20k-face template of a 10 cm
+    object has ~1.6e-6), so usual templates are untouched; else the factor that makes it 1e-4."""
     V = np.asarray(vertices, np.float64)
     tri = V[np.asarray(faces, np.int64)]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -625,20 +625,19 @@ def embed_vertices(points, orig_vertices, orig_faces):
     """
     import trimesh
 
+    V0 = np.asarray(orig_vertices, np.float64)
     F0 = np.asarray(orig_faces, np.int64)
-    scale = working_scale(orig_vertices, F0)  # closest-point tolerances are absolute
-    V0 = np.asarray(orig_vertices, np.float64) * scale
     tri = V0[F0]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     ok = np.flatnonzero(area > 0)
     tm = trimesh.Trimesh(V0, F0[ok], process=False, validate=False)
-    pts = np.asarray(points, np.float64) * scale
+    pts = np.asarray(points, np.float64)
     closest, dist, tid = trimesh.proximity.closest_point(tm, pts)
     face = ok[tid]
     bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
     bary = np.clip(bary, 0.0, None)
     bary /= bary.sum(1, keepdims=True)
-    return face.astype(np.int32), bary.astype(np.float32), closest / scale, np.asarray(dist) / scale
+    return face.astype(np.int32), bary.astype(np.float32), closest, np.asarray(dist)
 
 
 def transfer_vertices(orig_frame_vertices, orig_faces, embedding_face, embedding_bary) -> np.ndarray:
