@@ -281,14 +281,17 @@ def decimate(vertices, faces, target_faces: int):
         return V.copy(), F.copy()
     import pymeshlab
 
+    # the quadrics' thresholds are absolute too: at 1 mm scale a sphere came out up to 0.7 radii
+    # off its surface, so tiny faces are scaled up for it as for xatlas
+    scale = working_scale(V, F)
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V * scale, face_matrix=F))
     ms.meshing_decimation_quadric_edge_collapse(
         targetfacenum=target_faces, qualitythr=0.3, preserveboundary=True, boundaryweight=1.0,
         preservenormal=True, preservetopology=True, optimalplacement=True, planarquadric=True,
         autoclean=True)
     m = ms.current_mesh()
-    V2 = np.asarray(m.vertex_matrix(), np.float64)
+    V2 = np.asarray(m.vertex_matrix(), np.float64) / scale
     F2 = np.asarray(m.face_matrix(), np.int32)
     used = np.zeros(len(V2), bool)
     used[F2.ravel()] = True
@@ -374,9 +377,10 @@ def _repack(positions, tfaces, uv, resolution, gutter_px, texels_per_unit):
 
 
 def working_scale(vertices, faces) -> float:
-    """Factor that brings a mesh of small faces to where xatlas charts it: xatlas skips faces
-    below an absolute area (about 1.2e-7, i.e. FLT_EPSILON; a 5 mm sphere of 5k faces got no chart
-    at all). 1.0 when the median face area is at least 1e-6 m² (a 20k-face template of a 10 cm
+    """Factor that brings a mesh of small faces to where xatlas and pymeshlab's decimation work:
+    xatlas skips faces below an absolute area (about 1.2e-7, i.e. FLT_EPSILON; a 5 mm sphere of 5k
+    faces got no chart at all), and the quadric decimation of a 1 mm sphere of 82k faces left
+    vertices up to 0.7 radii off its surface. 1.0 when the median face area is at least 1e-6 m² (a 20k-face template of a 10 cm
     object has ~1.6e-6), so usual templates are untouched; else the factor that makes it 1e-4."""
     V = np.asarray(vertices, np.float64)
     tri = V[np.asarray(faces, np.int64)]
