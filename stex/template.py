@@ -201,6 +201,48 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
     return V2, F2, report
 
 
+def mesh_parts(faces) -> np.ndarray:
+    """(F,) int connected part of each face, faces joined when they share an edge."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    F = np.asarray(faces, np.int64)
+    if len(F) == 0:
+        return np.zeros(0, np.int64)
+    edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    n = int(F.max()) + 1
+    key = edges.min(1) * n + edges.max(1)
+    owner = np.tile(np.arange(len(F)), 3)
+    order = np.argsort(key, kind="stable")
+    k, f = key[order], owner[order]
+    same = k[1:] == k[:-1]
+    adj = coo_matrix((np.ones(int(same.sum())), (f[:-1][same], f[1:][same])), (len(F), len(F)))
+    return connected_components(adj, directed=False)[1]
+
+
+def drop_small_parts(vertices, faces, min_faces: int):
+    """Remove connected parts (:func:`mesh_parts`) with fewer than ``min_faces`` faces, and the
+    vertices only they used. Returns (vertices, faces int32, {``parts``, ``dropped_parts``,
+    ``dropped_faces``}); face order is kept."""
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    part = mesh_parts(F)
+    sizes = np.bincount(part)
+    keep = sizes[part] >= int(min_faces)
+    report = {"parts": int(len(sizes)), "dropped_parts": int((sizes < int(min_faces)).sum()),
+              "dropped_faces": int((~keep).sum())}
+    if keep.all():
+        return V, F.astype(np.int32), report
+    if not keep.any():
+        raise ValueError(f"every part of the mesh has fewer than {min_faces} faces (template.min_part_faces); "
+                         f"the largest has {int(sizes.max())}")
+    F = F[keep]
+    used = np.zeros(len(V), bool)
+    used[F.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return V[used], remap[F].astype(np.int32), report
+
+
 def _orient_closed_parts(V, F):
     """Turn round every closed, coherently wound connected part whose faces point inwards
     (negative signed volume), and count the edges whose two faces have opposite winding (an edge
@@ -681,6 +723,11 @@ def prepare_template(mesh, params: dict) -> dict:
     """
     t0 = time.perf_counter()
     V, F, report = clean_mesh(mesh.vertices, mesh.faces)
+    V, F, parts = drop_small_parts(V, F, int(params.get("min_part_faces", 0)))
+    report.update(parts)
+    if parts["dropped_parts"]:
+        log.info("template: dropped %d of %d parts with fewer than %d faces (%d faces)", parts["dropped_parts"],
+                 parts["parts"], int(params["min_part_faces"]), parts["dropped_faces"])
     extent = float(np.ptp(V, axis=0).max())
     if extent > 5.0:  # the tracking stage refuses it at the first frame; say why here already
         log.warning("template: the mesh is %.3g m across: an object one RGB-D camera films is under a few metres; "

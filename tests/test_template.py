@@ -361,3 +361,26 @@ def test_a_millimetre_object_is_decimated_onto_its_surface():
     assert len(F) <= 20000
     off = np.abs(np.linalg.norm(V, axis=1) - 0.001)
     assert off.max() < 0.02 * 0.001
+
+
+def test_floating_fragments_are_kept_or_dropped_on_request():
+    """A scan's floating fragments (here 5 small boxes beside a sphere) are kept by default, each
+    a part of its own in the report; template.min_part_faces drops them, and the template then
+    is the sphere alone."""
+    from stex.readers.meshes import Mesh
+    from stex.template import prepare_template
+
+    s = trimesh.creation.icosphere(3)
+    boxes = [trimesh.creation.box((0.01, 0.01, 0.01)).apply_translation([0.3 + 0.05 * i, 0, 0]) for i in range(5)]
+    m = trimesh.util.concatenate([s.copy().apply_translation([0, 0, 1.0])] +
+                                 [b.apply_translation([0, 0, 1.0]) for b in boxes])
+    params = dict(decimate=False, target_faces=20000, min_faces=0, atlas_size=256, gutter_px=2)
+    kept = prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)), params)
+    assert kept["attrs"]["clean_report"]["parts"] == 6 and kept["attrs"]["clean_report"]["dropped_parts"] == 0
+    assert len(kept["faces"]) == len(m.faces)
+    dropped = prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)), dict(params, min_part_faces=13))
+    rep = dropped["attrs"]["clean_report"]
+    assert rep["dropped_parts"] == 5 and rep["dropped_faces"] == 60 and len(dropped["faces"]) == len(s.faces)
+    assert np.ptp(dropped["vertices"][:, 0]) < 2.1  # the sphere's width: no box left
+    with pytest.raises(ValueError, match="every part of the mesh has fewer than 5000 faces"):
+        prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)), dict(params, min_part_faces=5000))
