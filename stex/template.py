@@ -249,9 +249,6 @@ def _orient_closed_parts(V, F):
     both faces traverse in the same direction). Parts with such edges or a boundary are left as
     they are: their inside is not defined. Returns (faces, {``inverted_parts_flipped``,
     ``inconsistent_winding_edges``})."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     F = np.asarray(F, np.int64)
     directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     owner = np.tile(np.arange(len(F)), 3)
@@ -259,12 +256,8 @@ def _orient_closed_parts(V, F):
     _, inv, counts = np.unique(directed[:, 0] * n + directed[:, 1], return_inverse=True, return_counts=True)
     same_way = counts[inv] > 1                       # directed edge used twice: opposite windings
     _, uinv, ucounts = np.unique(directed.min(1) * n + directed.max(1), return_inverse=True, return_counts=True)
-    # faces sharing an edge belong to one part
-    order = np.argsort(uinv, kind="stable")
-    e_sorted, f_sorted = uinv[order], owner[order]
-    same = e_sorted[1:] == e_sorted[:-1]
-    adj = coo_matrix((np.ones(int(same.sum())), (f_sorted[:-1][same], f_sorted[1:][same])), (len(F), len(F)))
-    n_parts, part = connected_components(adj, directed=False)
+    part = mesh_parts(F)
+    n_parts = int(part.max()) + 1
     open_or_odd = np.zeros(n_parts, bool)
     open_or_odd[part[owner[(ucounts[uinv] != 2) | same_way]]] = True
     tri = np.asarray(V, np.float64)[F]
