@@ -50,6 +50,7 @@ class Source:
         positions [start, stop). The workflow makes them the ingest rules' inputs, so a dataset
         file changed after a run (a frame replaced, the calibration fixed) re-runs what read it."""
         ...
+
     def frames(self, start: int, stop: int):
         """Yield (position, color uint8 RGB, depth uint16 mm, mask bool or None, timestamp s)."""
         ...
