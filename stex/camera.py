@@ -101,9 +101,18 @@ class Intrinsics:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
-        return cls.from_focal(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
-                              d.get("distortion", ()))
+    def from_dict(cls, d: dict, name: str = "camera") -> "Intrinsics":
+        """From ``{fx, fy, cx, cy, width, height[, distortion]}``; ValueError naming ``name`` (e.g.
+        'color camera') and the key when ``d`` is missing, lacks a key or holds a bad value."""
+        if not isinstance(d, dict):
+            raise ValueError(f"{name}: missing (a dict of fx, fy, cx, cy, width, height)")
+        try:
+            return cls.from_focal(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
+                                  d.get("distortion", ()))
+        except KeyError as e:
+            raise ValueError(f"{name}: missing key {e}") from None
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name}: {e}") from None
 
 
 # The colour and depth cameras of an RGB-D sensor sit 1-6 cm apart (Kinect v1/v2, Azure Kinect,
@@ -149,20 +158,10 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Calibration":
-        cams = []
-        for which in ("color", "depth"):
-            if which not in d:
-                raise ValueError(f"no '{which}' camera")
-            try:
-                cams.append(Intrinsics.from_dict(d[which]))
-            except KeyError as e:
-                raise ValueError(f"{which} camera: missing key {e}") from None
-            except (ValueError, TypeError) as e:
-                raise ValueError(f"{which} camera: {e}") from None
+        cams = [Intrinsics.from_dict(d.get(which), f"{which} camera") for which in ("color", "depth")]
         if "depth_to_color" not in d:
             raise ValueError("no 'depth_to_color' transform")
-        return cls(*cams,
-                   np.asarray(d["depth_to_color"], dtype=np.float64))
+        return cls(*cams, np.asarray(d["depth_to_color"], dtype=np.float64))
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -233,11 +233,10 @@ def write_video(images: Iterable, out_mp4, fps: float = 30.0, crf: int = 18, pre
         raise ValueError(f"crf must be in 0..51, got {crf}")
     out = Path(out_mp4)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_name(out)
-    container = av.open(str(tmp), mode="w", format="mp4")
-    n, size = 0, None
-    try:
-        stream = None
+    n = 0
+    # closed before the rename, and on failure before the temporary file is removed
+    with _written_whole(out) as tmp, contextlib.closing(av.open(str(tmp), mode="w", format="mp4")) as container:
+        stream, size = None, None
         for img in images:
             img = _rgb_image(img, f"video frame {n}")
             if size is None:
@@ -265,12 +264,6 @@ def write_video(images: Iterable, out_mp4, fps: float = 30.0, crf: int = 18, pre
             raise ValueError(f"{out}: no frames to write")
         container.mux(stream.encode(None))
         W, H = stream.width, stream.height
-    except BaseException:
-        container.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    container.close()
-    os.replace(tmp, out)
     return n, W, H
 
 

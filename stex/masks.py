@@ -297,9 +297,8 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
     import logging
     import time
 
-    from stex.io import create_store, open_store
-
     from stex.config import section_params
+    from stex.io import create_store, open_store
 
     log = logging.getLogger("stex.masks")
     params = section_params("masks", params)

@@ -206,17 +206,15 @@ def mesh_parts(faces) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    F = np.asarray(faces, np.int64)
-    if len(F) == 0:
+    e, owner = _edge_table(faces)
+    if len(e) == 0:
         return np.zeros(0, np.int64)
-    edges = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    n = int(F.max()) + 1
-    key = edges.min(1) * n + edges.max(1)
-    owner = np.tile(np.arange(len(F)), 3)
+    key = e[:, 0] * (int(e.max()) + 1) + e[:, 1]  # 1-D keys: sorting them is ~10x faster than rows
     order = np.argsort(key, kind="stable")
     k, f = key[order], owner[order]
     same = k[1:] == k[:-1]
-    adj = coo_matrix((np.ones(int(same.sum())), (f[:-1][same], f[1:][same])), (len(F), len(F)))
+    n = len(owner) // 3
+    adj = coo_matrix((np.ones(int(same.sum())), (f[:-1][same], f[1:][same])), (n, n))
     return connected_components(adj, directed=False)[1]
 
 
@@ -250,12 +248,15 @@ def _orient_closed_parts(V, F):
     they are: their inside is not defined. Returns (faces, {``inverted_parts_flipped``,
     ``inconsistent_winding_edges``})."""
     F = np.asarray(F, np.int64)
-    directed = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    owner = np.tile(np.arange(len(F)), 3)
-    n = int(F.max()) + 1  # edges as int64 keys: np.unique on 1-D is ~10x faster than on rows
-    _, inv, counts = np.unique(directed[:, 0] * n + directed[:, 1], return_inverse=True, return_counts=True)
-    same_way = counts[inv] > 1                       # directed edge used twice: opposite windings
-    _, uinv, ucounts = np.unique(directed.min(1) * n + directed.max(1), return_inverse=True, return_counts=True)
+    e, owner = _edge_table(F)  # corner edges in the order (0, 1), (1, 2), (2, 0) of every face
+    first = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
+    # an edge both of whose faces run it the same way (its smaller vertex first in both, or in
+    # neither) joins faces of opposite winding
+    n = int(F.max()) + 1
+    _, inv, counts = np.unique(2 * (e[:, 0] * n + e[:, 1]) + (first == e[:, 0]), return_inverse=True,
+                               return_counts=True)
+    same_way = counts[inv] > 1
+    _, uinv, ucounts = np.unique(e[:, 0] * n + e[:, 1], return_inverse=True, return_counts=True)
     part = mesh_parts(F)
     n_parts = int(part.max()) + 1
     open_or_odd = np.zeros(n_parts, bool)
@@ -532,8 +533,8 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     # it or touching any other chart.
     chart2 = uv_charts(tfaces, len(texcoords))
     n2 = int(chart2.max()) + 1
-    whole = np.bincount(chart2, flipped, n2) == np.bincount(chart2, minlength=n2)
-    whole &= np.bincount(chart2, minlength=n2) > 0
+    chart_faces = np.bincount(chart2, minlength=n2)
+    whole = (np.bincount(chart2, flipped, n2) == chart_faces) & (chart_faces > 0)
     if whole.any():
         corner_chart = np.empty(len(texcoords), np.int64)
         corner_chart[tfaces.ravel()] = np.repeat(chart2, 3)

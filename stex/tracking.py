@@ -27,8 +27,8 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
-  as a reprojection term; and a silhouette term (on by default, ``w_silhouette``) (:func:`silhouette_field`): rim
-  vertices onto the mask's boundary, and no visible vertex outside the mask.
+  as a reprojection term; and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``,
+  on by default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
 
 The frame is initialised from the previous frame's mesh, or with ``constant_velocity`` from it
 moved once more by the previous frame's rigid motion.
@@ -1228,9 +1228,9 @@ def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, wher
     ratio = depth_scale_ratio(vertices, faces, target)
     if ratio is not None and not 1 / 1.5 < ratio < 1.5:
         raise ValueError(
-            f"{where}: at frame {frame_id} the mesh lies {ratio:.{0 if ratio >= 10 else 2}f} times as far from the depth camera as the "
-            f"depth image reads where they overlap: the mesh must be in metres (millimetres give 1000, "
-            f"centimetres 100) and in the depth camera's coordinates")
+            f"{where}: at frame {frame_id} the mesh lies {ratio:.{0 if ratio >= 10 else 2}f} times as far from "
+            f"the depth camera as the depth image reads where they overlap: the mesh must be in metres "
+            f"(millimetres give 1000, centimetres 100) and in the depth camera's coordinates")
 
 
 def _runs(ids) -> str:

@@ -39,18 +39,6 @@ from stex.readers.meshes import Mesh, load_mesh
 _MESH_EXT = (".off", ".obj", ".ply")
 
 
-def _intrinsics(mapper: dict, key: str) -> Intrinsics:
-    """``mapper[key]`` as a camera; errors name the key (colour or depth)."""
-    if key not in mapper:
-        raise ValueError(f"mapper4D has no {key!r}")
-    try:
-        return Intrinsics.from_dict(mapper[key])
-    except KeyError as e:
-        raise ValueError(f"{key}: missing key {e}") from None
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"{key}: {e}") from None
-
-
 class FolderDataset:
     """Random access to the frames of a folder dataset.
 
@@ -133,7 +121,7 @@ class FolderDataset:
             conf = json.loads(path.read_text())
             case = next(v for v in conf.values() if isinstance(v, dict) and "mapper4D" in v)
             m = case["mapper4D"]
-            color, depth = (_intrinsics(m, key) for key in ("color_intrinsic", "depth_intrinsic"))
+            color, depth = (Intrinsics.from_dict(m.get(key), key) for key in ("color_intrinsic", "depth_intrinsic"))
             ext = np.asarray(m["d_c_extrinsic"], np.float64)
             if ext.size != 12:
                 raise ValueError(f"d_c_extrinsic needs 12 numbers (3x4 row-major), got {ext.size}")
