@@ -2,13 +2,16 @@
 # Run: snakemake --cores 2   (scene: config/config.yaml; others: --configfile config/scenes/<name>.yaml)
 from snakemake.utils import min_version, validate
 
+from stex.config import SCHEMA_PATH
+
 min_version("9.0")
 
 
 configfile: "config/config.yaml"
 
 
-validate(config, "config/schema.yaml")
+# the schema ships inside the package: library functions read their defaults from it too
+validate(config, str(SCHEMA_PATH))
 
 
 report: "workflow/report/workflow.rst"

@@ -1,4 +1,4 @@
-"""Configuration: load YAML, validate against config/schema.yaml and fill in the defaults.
+"""Configuration: load YAML, validate against the schema (stex/schema.yaml) and fill in the defaults.
 
 The workflow validates with ``snakemake.utils.validate`` (same schema); this module does the
 same for library users, the CLI and tests, without importing snakemake.
@@ -12,7 +12,8 @@ from pathlib import Path
 import jsonschema
 import yaml
 
-SCHEMA_PATH = Path(__file__).resolve().parents[1] / "config" / "schema.yaml"
+# inside the package, so that an installed wheel has the defaults its stage functions read
+SCHEMA_PATH = Path(__file__).resolve().parent / "schema.yaml"
 
 
 def _with_defaults(validator_class):
@@ -91,7 +92,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
         _SCHEMA_CACHE = load_schema()
     sub = _SCHEMA_CACHE["properties"].get(section)
     if sub is None:
-        raise ValueError(f"config/schema.yaml has no section {section!r}")
+        raise ValueError(f"the schema ({SCHEMA_PATH.name}) has no section {section!r}")
     schema = {"type": "object", "properties": {section: sub}}
     cfg = {section: copy.deepcopy(params) if params else {}}
     validator = _with_defaults(jsonschema.Draft202012Validator)(schema)

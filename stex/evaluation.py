@@ -254,7 +254,7 @@ def method_name(method: str) -> str:
 
 
 def evaluation_params(params: dict | None = None) -> dict:
-    """The evaluation settings: the schema's ``evaluation`` section (config/schema.yaml, the one
+    """The evaluation settings: the schema's ``evaluation`` section (stex/schema.yaml, the one
     place the defaults live) updated with ``params``; unknown keys and bad values raise
     ValueError."""
     from stex.config import section_params

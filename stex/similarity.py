@@ -86,7 +86,7 @@ first. On the demo ground truth (its former inputs: colour noise σ 2, no motion
 ``benchmarks/bench_labeling.py``) the labels' error on faces
 unseen at t drops from 4.82 to 4.28 grey levels with ω_str = 1 (labels chosen by E_qual
 alone: 4.72), and the novel-view PSNR of the region unseen at t rises from 20.61 to 21.29 dB (the
-sweep is in ``config/schema.yaml``).
+sweep is in ``stex/schema.yaml``).
 
 Conventions: vertices in metres in depth-camera coordinates; poses 4x4 float64 with
 poses[t, l] mapping frame t's vertices onto frame l (x' = R x + t, :mod:`stex.poses`).

@@ -273,7 +273,7 @@ def mask_in_depth(mask_color: np.ndarray, depth_mm: np.ndarray, calibration) -> 
 
 @dataclass
 class TrackParams:
-    """Weights and schedule of the per-frame solve (see config/schema.yaml, section tracking)."""
+    """Weights and schedule of the per-frame solve (see stex/schema.yaml, section tracking)."""
 
     node_spacing_m: float = 0.05
     k_nodes: int = 4

@@ -326,7 +326,9 @@ def test_source_files_are_what_ingest_reads(datasets, layout):
 
 def test_a_dataset_file_changed_after_a_run_reruns_the_ingest_jobs_that_read_it(tmp_path, authors):
     """The dataset's files are the ingest rules' inputs: a frame replaced after a run re-runs its
-    block's ingest, a fixed calibration every ingest job, and nothing else is touched."""
+    block's ingest, a fixed calibration every ingest job, and nothing else is touched. Settings of
+    the other source kinds are not the ingest's parameters: changing them re-runs nothing (a new
+    ``source.mkv`` key once re-ran every synthetic and folder scene from its ingest on)."""
     import subprocess
     import sys
     import time
@@ -341,20 +343,23 @@ def test_a_dataset_file_changed_after_a_run_reruns_the_ingest_jobs_that_read_it(
         "source": {"kind": "folder", "folder": {"path": str(authors), "layout": "authors"}}}))
     targets = [str(res / "scene.zarr"), str(res / "frames" / "block_0000.zarr"), str(res / "frames" / "block_0001.zarr")]
 
-    def snakemake(*args):
+    def snakemake(*args, configs=()):
         cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(tmp_path),
-               "--configfile", str(tmp_path / "ds.yaml"), "--cores", "1", *args, *targets]
+               "--configfile", str(tmp_path / "ds.yaml"), *configs, "--cores", "1", *args, *targets]
         run = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        assert run.returncode == 0, run.stderr[-3000:]
+        assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
         return run.stdout + run.stderr
 
-    def planned():
-        out = snakemake("-n")
+    def planned(configs=()):
+        out = snakemake("-n", configs=configs)
         return sorted((rule, m.group(1) if (m := re.search(r"block=(\d{4})", body)) else None)
                       for rule, body in re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=\n\n|\n\[|\Z)", out, re.M | re.S))
 
     snakemake()
     assert planned() == []
+    (tmp_path / "other_kinds.yaml").write_text(yaml.safe_dump({"source": {
+        "mkv": {"undistort": False}, "synthetic": {"n_frames": 7}}}))
+    assert planned(configs=[str(tmp_path / "other_kinds.yaml")]) == []
 
     time.sleep(1.1)  # past the outputs' mtimes; Snakemake also compares the contents (a touch alone is no change)
     depth = authors / "stream" / "depth" / f"Frame_{IDS[3]:06d}.png"  # a frame of block 1

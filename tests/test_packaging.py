@@ -69,3 +69,37 @@ def test_config_examples_in_the_docs_are_valid_and_stated_defaults_are_the_schem
                     want = want[k]
                 assert value == want, f"{path.name}: {'.'.join(keys)} is {value!r}, the schema's default {want!r}"
     assert n_defaults >= 1
+
+
+def test_an_installed_wheel_has_its_schema_outside_the_checkout(tmp_path):
+    """``pip install stex`` (a wheel, not the editable checkout) gives working stage functions: they
+    read their defaults from the schema, which once lived outside the package (config/), so every
+    stage of an installed wheel failed with FileNotFoundError."""
+    import shutil
+    import subprocess
+    import sys
+    import zipfile
+
+    src = tmp_path / "src"  # a copy, so that the build leaves nothing in the checkout
+    shutil.copytree(REPO / "stex", src / "stex", ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    run = dict(check=True, capture_output=True, text=True, cwd=tmp_path)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
+                    "-w", str(tmp_path / "dist"), str(src)], **run)
+    wheel = next((tmp_path / "dist").glob("stex-*.whl"))
+    assert "stex/schema.yaml" in zipfile.ZipFile(wheel).namelist()
+
+    # the dependencies from this machine, stex only from the wheel
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(tmp_path / "venv")], **run)
+    python = tmp_path / "venv" / "bin" / "python"
+    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], **run)
+    out = subprocess.run([str(python), "-c", (
+        "import stex, stex.config as c\n"
+        "print(stex.__file__)\n"
+        "for s in c.load_schema()['properties']:\n"
+        "    if c.load_schema()['properties'][s].get('type') == 'object': c.section_params(s)\n"
+        "print(c.section_params('masks')['depth_far_m'])\n")],
+        env={"PATH": str(python.parent)}, **run).stdout.split()
+    assert str(tmp_path / "venv") in out[0] and "site-packages" in out[0], out
+    assert float(out[1]) > 0

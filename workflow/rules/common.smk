@@ -4,7 +4,9 @@ from stex.ingest import frame_blocks, open_source
 
 check_relations(config)  # what the schema cannot say (e.g. masks.depth_near_m < depth_far_m)
 RESULTS = f"{config['results']}/{config['scene']}"
-SOURCE = config["source"]
+# only the active kind's settings: they are the ingest jobs' parameters, and a setting of another
+# kind (or a key newly added to one) must not re-run a finished scene
+SOURCE = {"kind": config["source"]["kind"], config["source"]["kind"]: config["source"][config["source"]["kind"]]}
 SYNTHETIC = SOURCE["kind"] == "synthetic"
 _SOURCE = open_source(SOURCE)
 BLOCKS = frame_blocks(len(_SOURCE.frame_ids), config["frame_block"])
