@@ -105,6 +105,58 @@ def section_params(section: str, params: dict | None = None) -> dict:
     return cfg[section]
 
 
+DATASET_KEYS = {"scene_files", "common"}
+
+
+def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/config.yaml",
+                          where: str = "dataset") -> dict[str, dict]:
+    """The validated config of every scene of a dataset (workflow/dataset.smk), by scene name.
+
+    Each scene is ``base`` (when that file exists: the workflow's default config, as Snakemake's
+    ``configfile:`` reads it from the working directory), then ``dataset['common']`` (settings
+    shared by the captures, e.g. ``results`` or the rig's ``masks`` range), then its scene file:
+    what ``snakemake --configfile <scene file>`` runs, plus the shared settings.
+
+    Args:
+        dataset: ``{"scene_files": [path, ...], "common": {...}}`` (``common`` optional).
+        base: the default config file, or None.
+        where: how to name the dataset in errors (e.g. its file).
+    Raises:
+        ValueError naming the dataset and the scene file: unknown keys, no scene files, a scene
+        file that is not a mapping or whose config is invalid, two scene files naming one scene.
+        FileNotFoundError naming a missing scene file.
+    """
+    unknown = sorted(set(dataset or {}) - DATASET_KEYS)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; expected scene_files (and common)")
+    files = (dataset or {}).get("scene_files")
+    if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
+        raise ValueError(f"{where}: scene_files must be a non-empty list of scene file paths, got {files!r}")
+    common = dataset.get("common") or {}
+    if not isinstance(common, dict):
+        raise ValueError(f"{where}: common must be a mapping of settings, got {common!r}")
+    start = (yaml.safe_load(Path(base).read_text()) or {}) if base is not None and Path(base).is_file() else {}
+    start = deep_update(start, common)
+    configs: dict[str, dict] = {}
+    named_by: dict[str, str] = {}
+    for f in files:
+        if not Path(f).is_file():
+            raise FileNotFoundError(f"{where}: scene file {f} not found")
+        scene = yaml.safe_load(Path(f).read_text()) or {}
+        if not isinstance(scene, dict):
+            raise ValueError(f"{where}: scene file {f} is not a mapping of settings")
+        try:
+            cfg = validate_config(deep_update(start, scene))
+        except ValueError as e:
+            raise ValueError(f"{where}: scene file {f}: {e}") from None
+        name = cfg["scene"]
+        if name in configs:
+            raise ValueError(f"{where}: scene files {named_by[name]} and {f} both name scene {name!r} "
+                             f"(set a different `scene:` in each: it names the results folder)")
+        configs[name], named_by[name] = cfg, f
+    return configs
+
+
 def other_method_paths(others) -> dict:
     """``{name: (slices path, uv mesh path or None)}`` of the setting ``evaluation.other_methods``,
     whose values are a path, or ``{slices: path, uv_mesh: path}`` for slices in another UV layout

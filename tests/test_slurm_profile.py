@@ -15,17 +15,22 @@ pytest.importorskip("snakemake_executor_plugin_slurm")
 import fake_slurm  # noqa: E402
 
 
-def rule_threads():
-    """threads declared by each rule of the workflow (1 where none is declared)."""
+def rule_threads_and_runtime():
+    """threads declared by each rule of the workflow (1 where none is declared), and the wall time
+    (minutes) of the rules that declare one (``runtime=SEQUENCE_RUNTIME_MIN``)."""
     import re
 
-    threads = {}
-    for smk in (REPO / "workflow" / "rules").glob("*.smk"):
+    rules = REPO / "workflow" / "rules"
+    sequence_minutes = int(re.search(r"^SEQUENCE_RUNTIME_MIN = (\d+)$", (rules / "common.smk").read_text(), re.M)[1])
+    threads, runtime = {}, {}
+    for smk in rules.glob("*.smk"):
         for block in re.split(r"^\s*rule ", smk.read_text(), flags=re.M)[1:]:
             name = block.split(":", 1)[0].strip()
             m = re.search(r"^\s+threads:\s*(\d+)", block, flags=re.M)
             threads[name] = int(m.group(1)) if m else 1
-    return threads
+            if re.search(r"^\s+runtime=SEQUENCE_RUNTIME_MIN,", block, flags=re.M):
+                runtime[name] = sequence_minutes
+    return threads, runtime
 
 
 def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
@@ -40,7 +45,10 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     res = work / "results" / "tiny"
     profile = REPO / "workflow" / "profiles" / "slurm"
     settings = yaml.safe_load((profile / "config.yaml").read_text())
-    defaults, per_rule = settings["default-resources"], settings.get("set-resources", {})
+    defaults = settings["default-resources"]
+    # per-rule resources live in the rules, so that they also hold for workflow/dataset.smk's
+    # prefixed rule names, which a profile's set-resources would not reach
+    assert "set-resources" not in settings
     assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     cmd = [sys.executable, "-m", "snakemake", str(res / "poses.zarr"), str(res / "texcoords.zarr"),
            "--snakefile", str(REPO / "Snakefile"),
@@ -61,16 +69,15 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
         cpus = [a for a in args if a.startswith("--cpus-per-task=")]
         submitted[rule] = (cpus, args[args.index("--mem") + 1], args[args.index("-t") + 1],
                            args[args.index("-A") + 1], args[args.index("-p") + 1])
-    threads = rule_threads()
+    threads, runtime = rule_threads_and_runtime()
     expected = {"ingest_scene", "ingest_block", "masks", "template", "tracking", "poses",
                 "projection", "texcoords"}
     assert expected <= set(submitted), submitted
     assert threads["texcoords"] == threads["poses"] == 2
-    assert per_rule["tracking"]["runtime"] > defaults["runtime"]  # a sequence-long job
+    assert runtime["tracking"] > defaults["runtime"]  # a sequence-long job
     for rule, (cpus, mem, minutes, account, partition) in submitted.items():
         assert cpus == [f"--cpus-per-task={threads[rule]}"], (rule, cpus)
-        wanted = {**defaults, **per_rule.get(rule, {})}
-        assert (int(mem), int(minutes)) == (wanted["mem_mb"], wanted["runtime"]), rule
+        assert (int(mem), int(minutes)) == (defaults["mem_mb"], runtime.get(rule, defaults["runtime"])), rule
         assert (account, partition) == ("acct", "part"), rule
     # the jobs ran on the stand-in nodes and wrote complete stores
     assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)

@@ -12,6 +12,12 @@ _SOURCE = open_source(SOURCE)
 BLOCKS = frame_blocks(len(_SOURCE.frame_ids), config["frame_block"])
 BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
 ENV = "../../envs/stex.yaml"
+# Wall time (minutes) asked of a cluster by the jobs that run over the whole sequence (a local run
+# ignores it; other jobs get the profile's default). At paper scale, 265 frames: tracking 6.1,
+# texcoords 1.9, the sampling table 12.1, labeling 3.9 min (README); 240 leaves room for a few
+# thousand frames. In the rules rather than the profile, so that it holds for prefixed rule names
+# too (workflow/dataset.smk).
+SEQUENCE_RUNTIME_MIN = 240
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
 # texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
 COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"

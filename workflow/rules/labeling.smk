@@ -12,6 +12,8 @@ rule labeling:
         directory(f"{RESULTS}/labels.zarr"),
     params:
         labeling=config["labeling"],
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
     threads: 2
     log:
         f"{RESULTS}/logs/labeling.log",

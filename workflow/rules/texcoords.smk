@@ -16,6 +16,8 @@ rule texcoords:
         f"{RESULTS}/logs/texcoords.log",
     benchmark:
         f"{RESULTS}/benchmarks/texcoords.tsv",
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
     threads: 2
     conda:
         ENV
@@ -58,6 +60,8 @@ rule texcoords_sampling:
         f"{RESULTS}/logs/texcoords_sampling.log",
     benchmark:
         f"{RESULTS}/benchmarks/texcoords_sampling.tsv",
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
     threads: 2
     conda:
         ENV

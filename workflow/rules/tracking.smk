@@ -11,6 +11,8 @@ rule tracking:
         directory(f"{RESULTS}/tracking.zarr"),
     params:
         tracking=config["tracking"],
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
     log:
         f"{RESULTS}/logs/tracking.log",
     benchmark:

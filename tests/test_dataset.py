@@ -1,0 +1,82 @@
+"""A dataset of captures in one run (workflow/dataset.smk): the workflow once per scene file."""
+import json
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from conftest import REPO, TINY_SYNTHETIC
+from stex.config import dataset_scene_configs
+
+
+def _write(path, data):
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_scene_configs_merge_base_common_and_scene_file(tmp_path):
+    base = _write(tmp_path / "base.yaml", {"scene": "demo", "frame_block": 16, "masks": {"depth_far_m": 3.0}})
+    a = _write(tmp_path / "a.yaml", {"scene": "a"})
+    b = _write(tmp_path / "b.yaml", {"scene": "b", "masks": {"depth_far_m": 1.2}})
+    configs = dataset_scene_configs({"scene_files": [a, b], "common": {"masks": {"depth_far_m": 1.5}}}, base)
+    assert list(configs) == ["a", "b"]
+    assert configs["a"]["frame_block"] == 16  # from the base
+    assert configs["a"]["masks"]["depth_far_m"] == 1.5  # common over the base
+    assert configs["b"]["masks"]["depth_far_m"] == 1.2  # the scene file over common
+    assert configs["a"]["masks"]["depth_near_m"] > 0  # the schema's defaults filled in
+    # no base file: the schema's defaults, as Snakemake skips a configfile: that is not there
+    assert dataset_scene_configs({"scene_files": [a]}, tmp_path / "none.yaml")["a"]["frame_block"] != 16
+
+
+def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
+    a = _write(tmp_path / "a.yaml", {"scene": "a"})
+    also_a = _write(tmp_path / "also_a.yaml", {"scene": "a", "frame_block": 4})
+    with pytest.raises(ValueError, match=r"scene files .*a\.yaml and .*also_a\.yaml both name scene 'a'"):
+        dataset_scene_configs({"scene_files": [a, also_a]}, None)
+    with pytest.raises(FileNotFoundError, match=r"my\.yaml: scene file .*missing\.yaml not found"):
+        dataset_scene_configs({"scene_files": [a, str(tmp_path / "missing.yaml")]}, None, where="my.yaml")
+    bad = _write(tmp_path / "bad.yaml", {"scene": "bad", "masks": {"depth_far_m": -1}})
+    with pytest.raises(ValueError, match=r"scene file .*bad\.yaml: config error at masks/depth_far_m"):
+        dataset_scene_configs({"scene_files": [a, bad]}, None)
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['scenes'\]"):
+        dataset_scene_configs({"scenes": [a]}, None)
+    with pytest.raises(ValueError, match="scene_files must be a non-empty list"):
+        dataset_scene_configs({"scene_files": []}, None)
+    with pytest.raises(ValueError, match="common must be a mapping"):
+        dataset_scene_configs({"scene_files": [a], "common": [1]}, None)
+
+
+def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path):
+    """Both scenes are reconstructed and evaluated, with their own sources; the cluster wall time
+    of the sequence-long jobs holds for the prefixed rules; and each scene's results are what the
+    main workflow would make from its scene file: run alone afterwards, it has nothing to do."""
+    common = {"results": str(tmp_path / "results"), "frame_block": 4, "template": {"atlas_size": 256},
+              "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10},
+              "sampling_table": {"steps": []}}
+    files = [_write(tmp_path / "tiny_a.yaml", {"scene": "tiny-a", "source": {
+                 "kind": "synthetic", "synthetic": TINY_SYNTHETIC}}),
+             _write(tmp_path / "tiny_b.yaml", {"scene": "tiny_b", "source": {
+                 "kind": "synthetic", "synthetic": {**TINY_SYNTHETIC, "seed": 1}}})]
+    dataset = _write(tmp_path / "dataset.yaml", {"scene_files": files, "common": common})
+    common_file = _write(tmp_path / "common.yaml", common)
+
+    def snakemake(snakefile, configfiles, *args):
+        run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(snakefile),
+                              "--directory", str(tmp_path), "--configfile", *configfiles, "--cores", "2", *args],
+                             capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+        return run.stdout + run.stderr
+
+    plan = snakemake(REPO / "workflow" / "dataset.smk", [dataset], "-n")
+    tracking_jobs = [j for j in plan.split("\n\n") if "rule tiny_a_tracking:" in j or "rule tiny_b_tracking:" in j]
+    assert len(tracking_jobs) == 2 and all("runtime=240" in j for j in tracking_jobs), tracking_jobs
+
+    snakemake(REPO / "workflow" / "dataset.smk", [dataset])
+    scores = {}
+    for scene in ("tiny-a", "tiny_b"):
+        evaluation = tmp_path / "results" / scene / "evaluation" / "evaluation.json"
+        scores[scene] = json.loads(evaluation.read_text())
+    assert scores["tiny-a"] != scores["tiny_b"]  # two seeds: two different scenes
+    for scene_file in files:
+        assert "Nothing to be done" in snakemake(REPO / "Snakefile", [common_file, scene_file], "-n")
