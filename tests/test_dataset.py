@@ -1,5 +1,6 @@
 """A dataset of captures in one run (workflow/dataset.smk): the workflow once per scene file."""
 import json
+import re
 import subprocess
 import sys
 
@@ -78,5 +79,14 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
         evaluation = tmp_path / "results" / scene / "evaluation" / "evaluation.json"
         scores[scene] = json.loads(evaluation.read_text())
     assert scores["tiny-a"] != scores["tiny_b"]  # two seeds: two different scenes
+
+    # one report over the dataset: every category holds a group per scene
+    snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--report", str(tmp_path / "report.html"))
+    html = (tmp_path / "report.html").read_text()
+    categories = json.loads(re.search(r"var categories = (\{.*?\});?\n", html)[1])
+    assert {"Masks", "Tracking", "Evaluation"} <= set(categories)
+    for groups in categories.values():
+        assert set(groups) == {"tiny-a", "tiny_b"}, groups
+    assert "stex over a dataset of captures" in html and "tiny_b.yaml" in html  # its description
     for scene_file in files:
         assert "Nothing to be done" in snakemake(REPO / "Snakefile", [common_file, scene_file], "-n")

@@ -15,6 +15,9 @@ from stex.config import dataset_scene_configs
 min_version("9.1")  # module names given by a variable
 
 
+report: "report/dataset.rst"
+
+
 SCENES = dataset_scene_configs(config, where="the dataset config (scene_files, common)")
 _PREFIXES = {}
 for scene_name, scene_config in SCENES.items():

@@ -33,6 +33,7 @@ rule labels_preview:
             f"{RESULTS}/previews/labels.png",
             caption="../report/labels.rst",
             category="Labeling",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/labels_preview.log",
@@ -56,6 +57,7 @@ rule preview_video:
             f"{RESULTS}/previews/preview.mp4",
             caption="../report/preview.rst",
             category="Result",
+            subcategory=config["scene"],
         ),
     params:
         results=lambda wildcards: RESULTS,

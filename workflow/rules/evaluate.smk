@@ -58,6 +58,7 @@ rule evaluate:
             patterns=["{name}.png", "{name}.html"],
             caption="../report/evaluation.rst",
             category="Evaluation",
+            subcategory=config["scene"],
         ),
     params:
         evaluation=config["evaluation"],

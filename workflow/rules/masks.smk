@@ -30,6 +30,7 @@ rule masks_preview:
             f"{RESULTS}/previews/masks.png",
             caption="../report/masks.rst",
             category="Masks",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/masks_preview.log",

@@ -34,6 +34,7 @@ rule projection_preview:
             f"{RESULTS}/previews/projection.png",
             caption="../report/projection.rst",
             category="Projection",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/projection_preview.log",

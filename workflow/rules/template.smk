@@ -32,6 +32,7 @@ rule template_preview:
             f"{RESULTS}/previews/template_atlas.png",
             caption="../report/template.rst",
             category="Template",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/template_preview.log",

@@ -35,6 +35,7 @@ rule texcoords_preview:
             f"{RESULTS}/previews/texcoords.png",
             caption="../report/texcoords.rst",
             category="Texture coordinates",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/texcoords_preview.log",

@@ -31,6 +31,7 @@ rule tracking_preview:
             f"{RESULTS}/previews/tracking_fit.png",
             caption="../report/tracking.rst",
             category="Tracking",
+            subcategory=config["scene"],
         ),
     log:
         f"{RESULTS}/logs/tracking_preview.log",
