@@ -118,7 +118,9 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     what ``snakemake --configfile <scene file>`` runs, plus the shared settings.
 
     Args:
-        dataset: ``{"scene_files": [path, ...], "common": {...}}`` (``common`` optional).
+        dataset: ``{"scene_files": [path, ...], "common": {...}}`` (``common`` optional); an
+            entry of ``scene_files`` may be a list of paths, merged left to right as several
+            ``--configfile`` files are (e.g. ``[config/scenes/fox.yaml, config/scenes/fox_heldout.yaml]``).
         base: the default config file, or None.
         where: how to name the dataset in errors (e.g. its file).
     Raises:
@@ -130,8 +132,10 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; expected scene_files (and common)")
     files = (dataset or {}).get("scene_files")
-    if not isinstance(files, list) or not files or not all(isinstance(f, str) for f in files):
-        raise ValueError(f"{where}: scene_files must be a non-empty list of scene file paths, got {files!r}")
+    if not isinstance(files, list) or not files or not all(
+            isinstance(f, str) or (isinstance(f, list) and f and all(isinstance(g, str) for g in f)) for f in files):
+        raise ValueError(f"{where}: scene_files must be a non-empty list of scene file paths "
+                         f"(or of lists of them, merged in order), got {files!r}")
     common = dataset.get("common") or {}
     if not isinstance(common, dict):
         raise ValueError(f"{where}: common must be a mapping of settings, got {common!r}")
@@ -139,14 +143,18 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     start = deep_update(start, common)
     configs: dict[str, dict] = {}
     named_by: dict[str, str] = {}
-    for f in files:
-        if not Path(f).is_file():
-            raise FileNotFoundError(f"{where}: scene file {f} not found")
-        scene = yaml.safe_load(Path(f).read_text()) or {}
-        if not isinstance(scene, dict):
-            raise ValueError(f"{where}: scene file {f} is not a mapping of settings")
+    for entry in files:
+        merged = start
+        for part in [entry] if isinstance(entry, str) else entry:
+            if not Path(part).is_file():
+                raise FileNotFoundError(f"{where}: scene file {part} not found")
+            scene = yaml.safe_load(Path(part).read_text()) or {}
+            if not isinstance(scene, dict):
+                raise ValueError(f"{where}: scene file {part} is not a mapping of settings")
+            merged = deep_update(merged, scene)
+        f = entry if isinstance(entry, str) else " + ".join(entry)
         try:
-            cfg = validate_config(deep_update(start, scene))
+            cfg = validate_config(merged)
         except ValueError as e:
             raise ValueError(f"{where}: scene file {f}: {e}") from None
         name = cfg["scene"]

@@ -149,7 +149,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         },
         attrs={
             "atlas_size": "int: atlas side W (texels)",
-            "gutter_px": "int: xatlas padding around every chart (texels); charts end up >= 2*gutter_px+2 texels apart",
+            "gutter_px": "int: xatlas padding around every chart (texels); charts end up >= 2*gutter_px+2 texels apart and >= gutter_px from the atlas border",
             "counts": "dict: vertices, faces, texcoords, charts, adjacent_pairs, covered_texels, faces_in",
             "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges; closed parts facing inwards turned round, edges between faces of opposite winding)",
             "decimated": "bool: whether quadric decimation ran",
@@ -157,6 +157,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed",
             "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings)",
             "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",
+            "border_gap_px": "int: empty texels between the atlas border and the nearest covered texel (>= gutter_px expected)",
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
             "origin": "str: 'source' (the scene's template/*; embedding/* refer to it) or 'depth of frame N' "
                       "(template.from_depth: built from that frame's depth inside its mask; embedding/* refer to that mesh)",

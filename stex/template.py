@@ -81,6 +81,7 @@ __all__ = [
     "face_adjacency",
     "texel_map",
     "gutter_conflicts",
+    "border_gap",
     "embed_vertices",
     "transfer_vertices",
     "prepare_template",
@@ -438,7 +439,11 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         resolution: side of the square atlas W, texels.
         gutter_px: empty texels xatlas keeps around every chart (its ``padding``); with its
             bilinear reserve two charts end up at least 2 * gutter_px + 2 texels apart
-            (measured with :func:`gutter_conflicts`).
+            (measured with :func:`gutter_conflicts`). The charts are packed into the inner
+            (resolution - 2 gutter_px)^2 texels, so that every chart also keeps gutter_px empty
+            texels from the atlas border (:func:`border_gap`): xatlas itself packs up to half a
+            texel from it, where a viewer's default REPEAT wrap (glTF) and any filter reach across
+            to the opposite edge.
         return_info: also return a dict of statistics.
         pack_search_steps: repacks tried when searching the largest texel density that fits
             (bracket, then bisection to 1 %).
@@ -456,8 +461,9 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     scale = working_scale(vertices, F)  # texel densities below are per scaled unit
     V = np.asarray(vertices, np.float64) * scale
     resolution, gutter_px = int(resolution), int(gutter_px)
-    if resolution < 8 or gutter_px < 0:
-        raise ValueError(f"need resolution >= 8 and gutter_px >= 0, got {resolution}, {gutter_px}")
+    if gutter_px < 0 or resolution - 2 * gutter_px < 8:
+        raise ValueError(f"need gutter_px >= 0 and resolution - 2 gutter_px >= 8, got {resolution}, {gutter_px}")
+    inner = resolution - 2 * gutter_px  # the charts' square: a gutter to the border on every side
     info: dict = {}
     t0 = time.perf_counter()
     a = xatlas.Atlas()
@@ -497,16 +503,16 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         idx[fi] = base + np.arange(3 * len(fi)).reshape(-1, 3)
         log.warning("template: %d UV triangles folded inside their chart; split into own charts", len(fi))
 
-    # Repack into exactly resolution^2: largest texel density (texels per metre) that fits.
+    # Repack into exactly inner^2: largest texel density (texels per metre) that fits.
     t1 = time.perf_counter()
     positions = V[vmap]
     uv_in = (px - px.min(0)) / max(float(np.ptp(px, axis=0).max()), 1e-12)
-    tpu = tpu1 * resolution / max(w1, h1)  # pass 1's density scaled to fill the atlas
+    tpu = tpu1 * inner / max(w1, h1)  # pass 1's density scaled to fill the atlas
     best, lo, hi, tries = None, None, None, 0
     while tries < pack_search_steps or best is None:
         if tries >= pack_search_steps + 30:
             break
-        r = _repack(positions, idx, uv_in, resolution, gutter_px, tpu)
+        r = _repack(positions, idx, uv_in, inner, gutter_px, tpu)
         tries += 1
         if r is not None:
             best, lo = r, tpu
@@ -517,12 +523,12 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         tpu = 0.92 * tpu if lo is None else 1.08 * tpu if hi is None else 0.5 * (lo + hi)
     best_tpu = lo
     if best is None:
-        raise RuntimeError(f"xatlas could not pack the charts into one {resolution}^2 atlas")
+        raise RuntimeError(f"xatlas could not pack the charts into one {inner}^2 atlas")
     vmap2, idx2, uv2, util = best
     if not np.array_equal(vmap[vmap2[idx2]], F):
         raise RuntimeError("xatlas repack changed the faces")
     info["time_pack_s"] = time.perf_counter() - t1
-    texcoords = uv2.copy()
+    texcoords = (uv2 * inner + gutter_px) / resolution  # the inner square, a gutter from each border
     texcoords[:, 1] = 1.0 - texcoords[:, 1]  # xatlas rows -> stex v (front-facing: area < 0)
     texcoords = texcoords.astype(np.float32)
     tfaces = idx2.astype(np.int32)
@@ -626,6 +632,16 @@ def texel_map(texcoords, texcoord_faces, size: int):
     px = np.column_stack([tc[:, 0] * size - 0.5, tc[:, 1] * size - 0.5, np.ones(len(tc))])
     r = rasterize(px, texcoord_faces, np.eye(3), size, size)
     return r.face_id, r.bary
+
+
+def border_gap(face_id) -> int:
+    """Empty texels between the atlas border and the nearest covered texel (face_id (W, W) int,
+    -1 = empty, as :func:`texel_map` returns it); W when nothing is covered."""
+    rows, cols = np.nonzero(np.asarray(face_id) >= 0)
+    if not len(rows):
+        return int(np.shape(face_id)[0])
+    H, W = np.shape(face_id)
+    return int(min(rows.min(), cols.min(), H - 1 - rows.max(), W - 1 - cols.max()))
 
 
 def gutter_conflicts(face_id, face_chart, gutter_px: int) -> int:
@@ -756,6 +772,9 @@ def prepare_template(mesh, params: dict) -> dict:
     conflicts = gutter_conflicts(face_id, chart, gutter)
     if conflicts:
         log.warning("template: %d texels closer than %d texels to another chart", conflicts, gutter)
+    to_border = border_gap(face_id)
+    if to_border < gutter:
+        log.warning("template: a chart %d texels from the atlas border (gutter %d)", to_border, gutter)
     t5 = time.perf_counter()
     attrs = {
         "atlas_size": size, "gutter_px": gutter,
@@ -768,6 +787,7 @@ def prepare_template(mesh, params: dict) -> dict:
         "flipped_fixed": info["flipped_xatlas"],
         "atlas": {k: v for k, v in info.items()},
         "gutter_conflicts": conflicts,
+        "border_gap_px": to_border,
         "embedding_max_distance_m": float(dist.max()) if len(dist) else 0.0,
         "timings_s": {"clean": t1 - t0, "decimate": t2 - t1, "embed": t3 - t2, "atlas": t4 - t3,
                       "adjacency_texels": t5 - t4},

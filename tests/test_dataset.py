@@ -26,8 +26,21 @@ def test_scene_configs_merge_base_common_and_scene_file(tmp_path):
     assert configs["a"]["masks"]["depth_far_m"] == 1.5  # common over the base
     assert configs["b"]["masks"]["depth_far_m"] == 1.2  # the scene file over common
     assert configs["a"]["masks"]["depth_near_m"] > 0  # the schema's defaults filled in
+    # an entry of several files merges them in order, as several --configfile files
+    c = _write(tmp_path / "c.yaml", {"scene": "c", "frame_block": 3})
+    merged = dataset_scene_configs({"scene_files": [[b, c]]}, base)
+    assert list(merged) == ["c"] and merged["c"]["frame_block"] == 3 and merged["c"]["masks"]["depth_far_m"] == 1.2
     # no base file: the schema's defaults, as Snakemake skips a configfile: that is not there
     assert dataset_scene_configs({"scene_files": [a]}, tmp_path / "none.yaml")["a"]["frame_block"] != 16
+
+
+def test_the_shipped_datasets_resolve(monkeypatch):
+    """config/datasets/*.yaml name existing scene files and distinct scenes (run from the checkout)."""
+    monkeypatch.chdir(REPO)
+    names = {}
+    for dataset in sorted((REPO / "config" / "datasets").glob("*.yaml")):
+        names[dataset.name] = list(dataset_scene_configs(yaml.safe_load(dataset.read_text()), where=dataset.name))
+    assert names["demo_and_fox.yaml"] == ["demo", "demo_heldout", "fox", "fox_heldout"]
 
 
 def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
@@ -44,6 +57,10 @@ def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
         dataset_scene_configs({"scenes": [a]}, None)
     with pytest.raises(ValueError, match="scene_files must be a non-empty list"):
         dataset_scene_configs({"scene_files": []}, None)
+    with pytest.raises(ValueError, match="scene_files must be a non-empty list"):
+        dataset_scene_configs({"scene_files": [a, []]}, None)
+    with pytest.raises(ValueError, match=r"scene files .*a\.yaml and .*a\.yaml \+ .*also_a\.yaml both name scene 'a'"):
+        dataset_scene_configs({"scene_files": [a, [a, also_a]]}, None)
     with pytest.raises(ValueError, match="common must be a mapping"):
         dataset_scene_configs({"scene_files": [a], "common": [1]}, None)
 

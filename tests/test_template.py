@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from stex.template import (build_atlas, clean_mesh, decimate, embed_vertices, face_adjacency,
+from stex.template import (border_gap, build_atlas, clean_mesh, decimate, embed_vertices, face_adjacency,
                            gutter_conflicts, texel_map, transfer_vertices, uv_charts, uv_flipped,
                            uv_signed_area, write_template)
 
@@ -100,6 +100,11 @@ def test_charts_keep_the_gutter(sphere_atlas):
     assert gutter_conflicts(face_id, chart, 2 * 3) == 0  # xatlas pads both charts
     # the check does detect charts that touch
     assert gutter_conflicts(face_id, chart, 40) > 0
+    # and the border: every chart keeps the gutter to it (xatlas alone packs up to 0.5 texel from it)
+    assert 3 <= border_gap(face_id) <= 3 + 2
+    touching = face_id.copy()
+    touching[-1, 100] = 0
+    assert border_gap(touching) == 0
 
 
 def test_face_adjacency_on_icosphere(sphere):
@@ -170,7 +175,7 @@ def test_write_template_on_a_synthetic_scene(tmp_path):
     assert abs(len(F) - 500) <= 5 and g.attrs["decimated"]
     assert not uv_flipped(tc, tf).any() and tc.min() >= 0 and tc.max() <= 1
     assert g["texel/face_id"].shape == (256, 256) and g["texel/bary"].shape == (256, 256, 3)
-    assert g.attrs["atlas_size"] == 256 and g.attrs["gutter_conflicts"] == 0
+    assert g.attrs["atlas_size"] == 256 and g.attrs["gutter_conflicts"] == 0 and g.attrs["border_gap_px"] >= g.attrs["gutter_px"]
     assert g.attrs["counts"]["faces"] == len(F) and g.attrs["params"]["target_faces"] == 500
     assert g.attrs["clean_report"]["faces_in"] == scene["template/faces"].shape[0]
     pairs = g["adjacency/pairs"][...]
@@ -309,7 +314,7 @@ def test_small_charts_the_repack_mirrors_whole_are_mirrored_back(monkeypatch):
     tc, tf, info = build_atlas(V, F, 64, 2, return_info=True)
     assert info["repack_mirrored_charts"] == 1 and not uv_flipped(tc, tf).any()
     quad = np.unique(tf[:2])
-    lo, hi = boxes["before"]
+    lo, hi = ((x * (64 - 2 * 2) + 2) / 64 for x in boxes["before"])  # the packing's square in the atlas
     np.testing.assert_allclose(tc[quad, 0].min(), lo[0], atol=1e-6)
     np.testing.assert_allclose(tc[quad, 0].max(), hi[0], atol=1e-6)
 

@@ -3,6 +3,7 @@
 # where my_dataset.yaml is
 #   scene_files: [captures/a.yaml, captures/b.yaml]   # one scene file each, as for ../Snakefile
 #   common: {masks: {depth_far_m: 1.5}}              # optional: settings shared by every scene
+# (an entry may be a list of files, merged in order: config/datasets/demo_and_fox.yaml)
 # Each scene is exactly the run `snakemake --configfile <scene file>` would make in this
 # directory (config/config.yaml, then common, then the scene file), in its own
 # <results>/<scene>/; its rules are named <scene>_<rule> (e.g. fox_tracking).
