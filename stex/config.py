@@ -139,12 +139,11 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     common = dataset.get("common") or {}
     if not isinstance(common, dict):
         raise ValueError(f"{where}: common must be a mapping of settings, got {common!r}")
-    start = (yaml.safe_load(Path(base).read_text()) or {}) if base is not None and Path(base).is_file() else {}
-    start = deep_update(start, common)
+    base_cfg = (yaml.safe_load(Path(base).read_text()) or {}) if base is not None and Path(base).is_file() else {}
     configs: dict[str, dict] = {}
     named_by: dict[str, str] = {}
     for entry in files:
-        merged = start
+        merged = common
         for part in [entry] if isinstance(entry, str) else entry:
             if not Path(part).is_file():
                 raise FileNotFoundError(f"{where}: scene file {part} not found")
@@ -154,7 +153,10 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
             merged = deep_update(merged, scene)
         f = entry if isinstance(entry, str) else " + ".join(entry)
         try:
-            cfg = validate_config(merged)
+            # Snakemake's order: the command-line files, the Snakefile's configfile: under them,
+            # the command-line files again. Equal values either way, but the jobs' parameters are
+            # compared with their keys in order, and another order re-runs a finished scene.
+            cfg = validate_config(deep_update(deep_update(merged, base_cfg), merged))
         except ValueError as e:
             raise ValueError(f"{where}: scene file {f}: {e}") from None
         name = cfg["scene"]

@@ -9,6 +9,7 @@ import yaml
 
 from conftest import REPO, TINY_SYNTHETIC
 from stex.config import dataset_scene_configs
+from stex.io import open_store
 
 
 def _write(path, data):
@@ -78,6 +79,10 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
                  "kind": "synthetic", "synthetic": {**TINY_SYNTHETIC, "seed": 1}}})]
     dataset = _write(tmp_path / "dataset.yaml", {"scene_files": files, "common": common})
     common_file = _write(tmp_path / "common.yaml", common)
+    # the working directory's config/config.yaml is under every scene, as under a run of ../Snakefile;
+    # its keys come after the scene files' (Snakemake's order; another order re-ran the Fox)
+    (tmp_path / "config").mkdir()
+    _write(tmp_path / "config" / "config.yaml", {"source": {"synthetic": {"fps": 25.0}}, "masks": {"depth_far_m": 2.5}})
 
     def snakemake(snakefile, configfiles, *args):
         run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(snakefile),
@@ -96,6 +101,8 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
         evaluation = tmp_path / "results" / scene / "evaluation" / "evaluation.json"
         scores[scene] = json.loads(evaluation.read_text())
     assert scores["tiny-a"] != scores["tiny_b"]  # two seeds: two different scenes
+    scene = open_store(tmp_path / "results" / "tiny-a" / "scene.zarr", "scene")
+    assert scene.attrs["params"]["source"]["synthetic"]["fps"] == 25.0  # the base was read
 
     # one report over the dataset: every category holds a group per scene
     snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--report", str(tmp_path / "report.html"))
