@@ -69,11 +69,23 @@ def deep_update(base: dict, override: dict) -> dict:
     return out
 
 
+def read_settings(path: str | Path, where: str = "", what: str = "config file") -> dict:
+    """The settings of one YAML config file (an empty file gives {}); FileNotFoundError or
+    ValueError naming it (``where: what path ...``) when it is missing or not a mapping."""
+    prefix = f"{where}: " if where else ""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{prefix}{what} {path} not found")
+    settings = yaml.safe_load(Path(path).read_text()) or {}
+    if not isinstance(settings, dict):
+        raise ValueError(f"{prefix}{what} {path} is not a mapping of settings")
+    return settings
+
+
 def load_config(*paths: str | Path, overrides: dict | None = None) -> dict:
     """Merge YAML files left to right (then ``overrides``), validate and fill defaults."""
     cfg: dict = {}
     for p in paths:
-        cfg = deep_update(cfg, yaml.safe_load(Path(p).read_text()) or {})
+        cfg = deep_update(cfg, read_settings(p))
     return validate_config(deep_update(cfg, overrides or {}))
 
 
@@ -139,18 +151,13 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     common = dataset.get("common") or {}
     if not isinstance(common, dict):
         raise ValueError(f"{where}: common must be a mapping of settings, got {common!r}")
-    base_cfg = (yaml.safe_load(Path(base).read_text()) or {}) if base is not None and Path(base).is_file() else {}
+    base_cfg = read_settings(base) if base is not None and Path(base).is_file() else {}
     configs: dict[str, dict] = {}
     named_by: dict[str, str] = {}
     for entry in files:
         merged = common
         for part in [entry] if isinstance(entry, str) else entry:
-            if not Path(part).is_file():
-                raise FileNotFoundError(f"{where}: scene file {part} not found")
-            scene = yaml.safe_load(Path(part).read_text()) or {}
-            if not isinstance(scene, dict):
-                raise ValueError(f"{where}: scene file {part} is not a mapping of settings")
-            merged = deep_update(merged, scene)
+            merged = deep_update(merged, read_settings(part, where, "scene file"))
         f = entry if isinstance(entry, str) else " + ".join(entry)
         try:
             # Snakemake's order: the command-line files, the Snakefile's configfile: under them,

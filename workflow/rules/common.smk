@@ -6,8 +6,9 @@ check_relations(config)  # what the schema cannot say (e.g. masks.depth_near_m <
 RESULTS = f"{config['results']}/{config['scene']}"
 # only the active kind's settings: they are the ingest jobs' parameters, and a setting of another
 # kind (or a key newly added to one) must not re-run a finished scene
-SOURCE = {"kind": config["source"]["kind"], config["source"]["kind"]: config["source"][config["source"]["kind"]]}
-SYNTHETIC = SOURCE["kind"] == "synthetic"
+_KIND = config["source"]["kind"]
+SOURCE = {"kind": _KIND, _KIND: config["source"][_KIND]}
+SYNTHETIC = _KIND == "synthetic"
 _SOURCE = open_source(SOURCE)
 BLOCKS = frame_blocks(len(_SOURCE.frame_ids), config["frame_block"])
 BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
