@@ -154,8 +154,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges; closed parts facing inwards turned round, edges between faces of opposite winding)",
             "decimated": "bool: whether quadric decimation ran",
             "subdivided": "int: midpoint subdivisions applied to a low-poly mesh",
-            "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed",
-            "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings)",
+            "uv": "str: 'xatlas' (a new atlas) or 'mesh' (the template mesh's own texture coordinates, template.uv)",
+            "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed (0 with uv 'mesh')",
+            "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings); "
+                     "with uv 'mesh' keep_layout's (source 'mesh', charts, mirrored_faces, degenerate_uv_faces, "
+                     "overlap_texels, utilization)",
             "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",
             "border_gap_px": "int: empty texels between the atlas border and the nearest covered texel (>= gutter_px expected)",
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",

@@ -8,6 +8,9 @@ What it computes
   templates have 10-30k faces; default 20k). A no-op when the mesh is already small enough.
 - :func:`build_atlas` — a UV atlas from xatlas in one square ``resolution`` x ``resolution``
   texture with ``gutter_px`` empty texels between charts, and **no mirrored UV triangles**.
+- :func:`keep_layout` — instead of a new atlas (``template.uv: mesh``), the mesh's own texture
+  coordinates (an artist's layout), carried through cleaning, decimation (MeshLab's texture-aware
+  quadric collapse) and subdivision, and refused where they tile or overlap.
 - :func:`face_adjacency` — pairs of faces sharing a manifold edge and that edge.
 - :func:`texel_map` — per texel of the atlas: the face whose UV triangle holds its centre and
   the barycentrics of that centre.
@@ -77,6 +80,9 @@ __all__ = [
     "build_atlas",
     "uv_signed_area",
     "uv_flipped",
+    "layout_from_corners",
+    "uv_overlaps",
+    "keep_layout",
     "uv_charts",
     "face_adjacency",
     "texel_map",
@@ -121,7 +127,7 @@ def nonmanifold_edges(faces) -> tuple[np.ndarray, np.ndarray]:
     return uniq[counts > 2].astype(np.int32), uniq[counts == 1].astype(np.int32)
 
 
-def clean_mesh(vertices, faces, area_tol: float = 1e-12):
+def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = False):
     """Clean a triangle mesh for decimation and unwrapping.
 
     Steps: merge vertices with exactly equal coordinates; drop faces that use a vertex twice or
@@ -140,6 +146,10 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
         ``degenerate_faces``, ``duplicate_faces``, ``unreferenced_vertices`` (removed),
         ``nonmanifold_edges``, ``boundary_edges`` (counts) and ``nonmanifold_examples`` (up to 10
         vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
+        With ``return_corners`` also ``corners`` (F', 3) int64: the input corner ``3 f + k``
+        (corner k of input face f) that each output corner is, so that per-corner data such as
+        texture coordinates can follow (``data.reshape(3 F, ...)[corners]``), faces turned round
+        included.
     """
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -169,12 +179,13 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
     degenerate = repeated | (area <= area_tol * diag2)
     report["degenerate_faces"] = int(degenerate.sum())
     F1 = F1[~degenerate]
+    corners = np.arange(3 * len(F), dtype=np.int64).reshape(-1, 3)[~degenerate]
 
     key = np.sort(F1, axis=1)
     _, keep = np.unique(key, axis=0, return_index=True)
     keep.sort()
     report["duplicate_faces"] = int(len(F1) - len(keep))
-    F1 = F1[keep]
+    F1, corners = F1[keep], corners[keep]
 
     used = np.zeros(len(V1), bool)
     used[F1.ravel()] = True
@@ -186,7 +197,8 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
     if len(F2) == 0:
         raise ValueError("the mesh has no non-degenerate faces")
     nm, boundary = nonmanifold_edges(F2)
-    F2, winding = _orient_closed_parts(V2, F2)
+    F2, winding, turned = _orient_closed_parts(V2, F2)
+    corners[turned] = corners[turned][:, [0, 2, 1]]
     report.update(vertices_out=len(V2), faces_out=len(F2), nonmanifold_edges=int(len(nm)),
                   boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist(), **winding)
     if len(nm):
@@ -199,7 +211,7 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12):
         log.warning("template: %d edges join faces of opposite winding, so some faces face inwards: the "
                     "renderer treats them as back faces (unseen); re-orient the mesh's faces coherently "
                     "(e.g. MeshLab: Re-Orient all faces coherently)", winding["inconsistent_winding_edges"])
-    return V2, F2, report
+    return (V2, F2, report, corners) if return_corners else (V2, F2, report)
 
 
 def mesh_parts(faces) -> np.ndarray:
@@ -219,10 +231,11 @@ def mesh_parts(faces) -> np.ndarray:
     return connected_components(adj, directed=False)[1]
 
 
-def drop_small_parts(vertices, faces, min_faces: int):
+def drop_small_parts(vertices, faces, min_faces: int, return_kept: bool = False):
     """Remove connected parts (:func:`mesh_parts`) with fewer than ``min_faces`` faces, and the
     vertices only they used. Returns (vertices, faces int32, {``parts``, ``dropped_parts``,
-    ``dropped_faces``}); face order is kept."""
+    ``dropped_faces``}) and with ``return_kept`` the (F,) bool mask of input faces kept; face
+    order is kept."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     part = mesh_parts(F)
@@ -231,7 +244,7 @@ def drop_small_parts(vertices, faces, min_faces: int):
     report = {"parts": int(len(sizes)), "dropped_parts": int((sizes < int(min_faces)).sum()),
               "dropped_faces": int((~keep).sum())}
     if keep.all():
-        return V, F.astype(np.int32), report
+        return (V, F.astype(np.int32), report) + ((keep,) if return_kept else ())
     if not keep.any():
         raise ValueError(f"every part of the mesh has fewer than {min_faces} faces (template.min_part_faces); "
                          f"the largest has {int(sizes.max())}")
@@ -239,7 +252,7 @@ def drop_small_parts(vertices, faces, min_faces: int):
     used = np.zeros(len(V), bool)
     used[F.ravel()] = True
     remap = np.cumsum(used) - 1
-    return V[used], remap[F].astype(np.int32), report
+    return (V[used], remap[F].astype(np.int32), report) + ((keep,) if return_kept else ())
 
 
 def _orient_closed_parts(V, F):
@@ -247,7 +260,7 @@ def _orient_closed_parts(V, F):
     (negative signed volume), and count the edges whose two faces have opposite winding (an edge
     both faces traverse in the same direction). Parts with such edges or a boundary are left as
     they are: their inside is not defined. Returns (faces, {``inverted_parts_flipped``,
-    ``inconsistent_winding_edges``})."""
+    ``inconsistent_winding_edges``}, (F,) bool: the faces turned round)."""
     F = np.asarray(F, np.int64)
     e, owner = _edge_table(F)  # corner edges in the order (0, 1), (1, 2), (2, 0) of every face
     first = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
@@ -269,16 +282,18 @@ def _orient_closed_parts(V, F):
     flip = inverted[part]
     out[flip] = out[flip][:, [0, 2, 1]]
     return out.astype(np.int32), {"inverted_parts_flipped": int(inverted.sum()),
-                                  "inconsistent_winding_edges": int(same_way.sum() // 2)}
+                                  "inconsistent_winding_edges": int(same_way.sum() // 2)}, flip
 
 
 # --------------------------------------------------------------------------------------------
 # decimation
 # --------------------------------------------------------------------------------------------
 
-def subdivide_midpoint(vertices, faces):
+def subdivide_midpoint(vertices, faces, corner_uv=None):
     """Split every triangle into four at its edge midpoints (shape unchanged: new vertices lie on
-    the old faces). Returns (vertices (V + E, 3) float64, faces (4F, 3) int32)."""
+    the old faces). Returns (vertices (V + E, 3) float64, faces (4F, 3) int32), and with
+    ``corner_uv`` ((F, 3, 2) texture coordinates of each face corner) the children's corner
+    coordinates (4F, 3, 2), split at the midpoints the same way (the layout is unchanged)."""
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
@@ -290,24 +305,35 @@ def subdivide_midpoint(vertices, faces):
     ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
     F2 = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
                          np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
-    return V2, F2.astype(np.int32)
+    if corner_uv is None:
+        return V2, F2.astype(np.int32)
+    t = np.asarray(corner_uv, np.float64)
+    ta, tb, tc = t[:, 0], t[:, 1], t[:, 2]
+    tab, tbc, tca = 0.5 * (ta + tb), 0.5 * (tb + tc), 0.5 * (tc + ta)
+    T2 = np.concatenate([np.stack([ta, tab, tca], 1), np.stack([tab, tb, tbc], 1),
+                         np.stack([tca, tbc, tc], 1), np.stack([tab, tbc, tca], 1)])
+    return V2, F2.astype(np.int32), T2
 
 
-def decimate(vertices, faces, target_faces: int):
+def decimate(vertices, faces, target_faces: int, corner_uv=None):
     """Quadric edge-collapse decimation (pymeshlab) to ``target_faces`` faces.
 
     Normals are preserved (no face flips), topology is preserved (no holes closed or opened,
     genus kept), boundaries are kept, planar regions get the planar quadric, vertices go to their
     quadric-optimal positions. Returns the input unchanged when it has at most ``target_faces``
-    faces.
+    faces. With ``corner_uv`` the texture-aware variant runs (MeshLab's "with texture" filter:
+    the quadric includes the texture coordinates, UV seams stay seams), which has no topology
+    guard.
 
     Args:
         vertices: (V, 3) float, metres.
         faces: (F, 3) int.
         target_faces: wanted face count (> 0).
+        corner_uv: optional (F, 3, 2) float texture coordinates of each face corner.
 
     Returns:
-        (vertices (V', 3) float64 m, faces (F', 3) int32), unreferenced vertices removed.
+        (vertices (V', 3) float64 m, faces (F', 3) int32), unreferenced vertices removed; with
+        ``corner_uv`` also the kept faces' corner coordinates (F', 3, 2) float64.
     """
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int32)
@@ -315,18 +341,25 @@ def decimate(vertices, faces, target_faces: int):
     if target_faces < 1:
         raise ValueError(f"target_faces must be positive, got {target_faces}")
     if len(F) <= target_faces:
-        return V.copy(), F.copy()
+        out = (V.copy(), F.copy())
+        return out if corner_uv is None else out + (np.array(corner_uv, np.float64),)
     import pymeshlab
 
     # the quadrics' thresholds are absolute too: at 1 mm scale a sphere came out up to 0.7 radii
     # off its surface, so tiny faces are scaled up for it as for xatlas
     scale = working_scale(V, F)
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V * scale, face_matrix=F))
-    ms.meshing_decimation_quadric_edge_collapse(
-        targetfacenum=target_faces, qualitythr=0.3, preserveboundary=True, boundaryweight=1.0,
-        preservenormal=True, preservetopology=True, optimalplacement=True, planarquadric=True,
-        autoclean=True)
+    if corner_uv is None:
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V * scale, face_matrix=F))
+        ms.meshing_decimation_quadric_edge_collapse(
+            targetfacenum=target_faces, qualitythr=0.3, preserveboundary=True, boundaryweight=1.0,
+            preservenormal=True, preservetopology=True, optimalplacement=True, planarquadric=True,
+            autoclean=True)
+    else:
+        _load_textured(ms, V * scale, F, np.asarray(corner_uv, np.float64))
+        ms.meshing_decimation_quadric_edge_collapse_with_texture(
+            targetfacenum=target_faces, qualitythr=0.3, extratcoordw=1.0, preserveboundary=True,
+            boundaryweight=1.0, optimalplacement=True, preservenormal=True, planarquadric=True)
     m = ms.current_mesh()
     V2 = np.asarray(m.vertex_matrix(), np.float64) / scale
     F2 = np.asarray(m.face_matrix(), np.int32)
@@ -335,7 +368,38 @@ def decimate(vertices, faces, target_faces: int):
     if not used.all():
         remap = np.cumsum(used) - 1
         V2, F2 = V2[used], remap[F2].astype(np.int32)
-    return V2, F2
+    if corner_uv is None:
+        return V2, F2
+    return V2, F2, np.asarray(m.wedge_tex_coord_matrix(), np.float64).reshape(-1, 3, 2)
+
+
+def _load_textured(ms, V, F, corner_uv) -> None:
+    """Add a mesh with per-corner texture coordinates to a pymeshlab MeshSet.
+
+    MeshLab's texture-aware decimation also wants every face to name a texture, which pymeshlab's
+    array constructor cannot set (the filter refuses "some faces without texture"), so the mesh
+    goes through an OBJ with a one-texel material in a temporary folder. The coordinates are
+    written as they are (MeshLab does not flip v); only their differences matter to it.
+    """
+    import tempfile
+
+    import cv2
+
+    with tempfile.TemporaryDirectory(prefix="stex_decimate_") as d:
+        d = Path(d)
+        cv2.imwrite(str(d / "t.png"), np.zeros((1, 1, 3), np.uint8))
+        (d / "m.mtl").write_text("newmtl m\nmap_Kd t.png\n")
+        n = len(F)
+        with open(d / "m.obj", "w") as fh:
+            fh.write("mtllib m.mtl\n")
+            np.savetxt(fh, V, fmt="v %.17g %.17g %.17g")
+            np.savetxt(fh, corner_uv.reshape(-1, 2), fmt="vt %.17g %.17g")
+            fh.write("usemtl m\n")
+            idx = np.stack([F.astype(np.int64) + 1, np.arange(3 * n, dtype=np.int64).reshape(n, 3) + 1], 2)
+            np.savetxt(fh, idx.reshape(n, 6), fmt="f %d/%d %d/%d %d/%d")
+        ms.load_new_mesh(str(d / "m.obj"))
+    if ms.current_mesh().face_number() != n:
+        raise RuntimeError(f"pymeshlab read {ms.current_mesh().face_number()} of the {n} faces written for decimation")
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,6 +637,83 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     return (texcoords, tfaces, info) if return_info else (texcoords, tfaces)
 
 
+def layout_from_corners(corner_uv):
+    """Shared texture coordinates from per-corner ones: (texcoords (Vt, 2) float64, the distinct
+    rows of ``corner_uv`` (F, 3, 2) in order of first use; texcoord_faces (F, 3) int32)."""
+    t = np.asarray(corner_uv, np.float64).reshape(-1, 2)
+    uniq, first, inv = np.unique(t, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return uniq[order], rank[inv.reshape(-1)].reshape(-1, 3).astype(np.int32)
+
+
+def uv_overlaps(texcoords, texcoord_faces, size: int) -> tuple[int, tuple[int, int] | None]:
+    """Texel centres that lie in two or more UV triangles: (their number, (row, col) of one of
+    them or None). The layout is rasterised twice (:func:`texel_map`), faces in order and in
+    reverse; where the two disagree, a centre has two owners. The rasteriser's fill rule gives a
+    centre on a shared edge, or on the touching borders of two charts, to one triangle either
+    way, so that is not counted."""
+    from stex.render import rasterize
+
+    tc = np.asarray(texcoords, np.float64)
+    tf = np.asarray(texcoord_faces, np.int64)
+    px = np.column_stack([tc[:, 0] * size - 0.5, tc[:, 1] * size - 0.5, np.ones(len(tc))])
+    forward = rasterize(px, tf, np.eye(3), size, size).face_id
+    backward = rasterize(px, tf[::-1], np.eye(3), size, size).face_id
+    backward = np.where(backward >= 0, len(tf) - 1 - backward, -1)
+    rows, cols = np.nonzero(forward != backward)
+    return int(len(rows)), ((int(rows[0]), int(cols[0])) if len(rows) else None)
+
+
+def keep_layout(corner_uv, resolution: int):
+    """The mesh's own UV layout as the atlas (``template.uv: mesh``), checked for what one texture
+    per face needs.
+
+    Args:
+        corner_uv: (F, 3, 2) float texture coordinates of each face corner, u right, v down.
+        resolution: atlas side W, texels (the layout is read at this size; it is not moved).
+
+    Returns:
+        texcoords (Vt, 2) float32, texcoord_faces (F, 3) int32 (as :func:`build_atlas`), info
+        dict: ``charts``, ``mirrored_faces`` (UV triangles mirrored in stex's convention: a
+        layout may be mirrored as a whole, which nothing downstream minds),
+        ``degenerate_uv_faces``, ``overlap_texels`` (0), ``utilization``.
+
+    Raises:
+        ValueError: coordinates outside [0, 1] (a layout that tiles or wraps), not finite, or
+            UV triangles that overlap (several faces sharing texels, e.g. mirrored halves of a
+            game asset painted once): a time-varying texture needs texels of its own for every
+            face. The message says where.
+    """
+    t = np.asarray(corner_uv, np.float64)
+    bad = ~np.isfinite(t).all(axis=(1, 2)) | (t < 0).any(axis=(1, 2)) | (t > 1).any(axis=(1, 2))
+    if bad.any():
+        f = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"template.uv: mesh: {int(bad.sum())} faces have texture coordinates outside [0, 1] "
+                         f"(e.g. {np.round(t[f], 4).tolist()}): a layout that tiles or wraps cannot give every "
+                         f"face texels of its own; use template.uv: xatlas")
+    texcoords, tfaces = layout_from_corners(t)
+    overlap, where = uv_overlaps(texcoords, tfaces, resolution)
+    if overlap:
+        r, c = where
+        raise ValueError(f"template.uv: mesh: UV triangles overlap at {overlap} texels of the {resolution}^2 atlas "
+                         f"(e.g. texel row {r}, column {c}: u {(c + .5) / resolution:.4f}, v {(r + .5) / resolution:.4f}, "
+                         f"v down): faces sharing texels cannot each get their own texture (mirrored or "
+                         f"stacked islands); lay them out apart, or use template.uv: xatlas")
+    area = uv_signed_area(texcoords, tfaces)
+    face_id, _ = texel_map(texcoords, tfaces, resolution)
+    info = {"source": "mesh", "charts": int(uv_charts(tfaces, len(texcoords)).max()) + 1,
+            "mirrored_faces": int((area > 0).sum()), "degenerate_uv_faces": int((area == 0).sum()),
+            "overlap_texels": 0, "utilization": float((face_id >= 0).mean())}
+    if info["degenerate_uv_faces"]:
+        log.warning("template: %d faces have no area in the mesh's own UV layout: they take the colour of one "
+                    "texel", info["degenerate_uv_faces"])
+    log.info("template: the mesh's own UV layout at %d^2: %d charts, %.1f%% used, %d of %d triangles mirrored",
+             resolution, info["charts"], 100 * info["utilization"], info["mirrored_faces"], len(tfaces))
+    return texcoords.astype(np.float32), tfaces, info
+
+
 # --------------------------------------------------------------------------------------------
 # adjacency, texel map
 # --------------------------------------------------------------------------------------------
@@ -725,15 +866,26 @@ def prepare_template(mesh, params: dict) -> dict:
     Args:
         mesh: :class:`stex.readers.meshes.Mesh` (original template, depth-camera coordinates, m).
         params: the ``template`` config section: ``target_faces``, ``decimate``, ``atlas_size``,
-            ``gutter_px``.
+            ``gutter_px``, ``uv`` (``xatlas``: a new atlas; ``mesh``: the mesh's own texture
+            coordinates, carried through cleaning, decimation and subdivision, see
+            :func:`keep_layout`).
 
     Returns:
         dict with the ``template`` store's arrays (keys as in :data:`stex.io.ARTIFACTS`) and
         ``"attrs"``: a JSON-able dict of the stage's report.
     """
     t0 = time.perf_counter()
-    V, F, report = clean_mesh(mesh.vertices, mesh.faces)
-    V, F, parts = drop_small_parts(V, F, int(params.get("min_part_faces", 0)))
+    keep_uv = params.get("uv", "xatlas") == "mesh"
+    corner_uv = None
+    if keep_uv:
+        if mesh.texcoords is None or mesh.texcoord_faces is None:
+            raise ValueError("template.uv is 'mesh' but the template mesh has no texture coordinates (OBJ vt, "
+                             "glTF TEXCOORD_0); use template.uv: xatlas")
+        corner_uv = np.asarray(mesh.texcoords, np.float64)[np.asarray(mesh.texcoord_faces, np.int64)]
+    V, F, report, corners = clean_mesh(mesh.vertices, mesh.faces, return_corners=True)
+    V, F, parts, kept = drop_small_parts(V, F, int(params.get("min_part_faces", 0)), return_kept=True)
+    if keep_uv:  # the corners' coordinates follow the faces that stay, turned round or not
+        corner_uv = corner_uv.reshape(-1, 2)[corners][kept]
     report.update(parts)
     if parts["dropped_parts"]:
         log.info("template: dropped %d of %d parts with fewer than %d faces (%d faces)", parts["dropped_parts"],
@@ -747,14 +899,20 @@ def prepare_template(mesh, params: dict) -> dict:
                                      "unreferenced_vertices", "nonmanifold_edges", "boundary_edges")})
     t1 = time.perf_counter()
     decimated = bool(params.get("decimate", True)) and len(F) > int(params["target_faces"])
-    if decimated:
+    if decimated and keep_uv:
+        V, F, corner_uv = decimate(V, F, int(params["target_faces"]), corner_uv=corner_uv)
+        log.info("template: decimated to %d faces, %d vertices (UV layout kept)", len(F), len(V))
+    elif decimated:
         V, F = decimate(V, F, int(params["target_faces"]))
         log.info("template: decimated to %d faces, %d vertices", len(F), len(V))
     # Low-poly assets (e.g. game models) are split until they have enough vertices to carry the
     # tracker's data term; midpoint splits leave the shape exactly as it was.
     subdivided = 0
     while not decimated and len(F) * 4 <= int(params.get("min_faces", 0)):
-        V, F = subdivide_midpoint(V, F)
+        if keep_uv:
+            V, F, corner_uv = subdivide_midpoint(V, F, corner_uv)
+        else:
+            V, F = subdivide_midpoint(V, F)
         subdivided += 1
     if subdivided:
         log.info("template: subdivided %d times to %d faces", subdivided, len(F))
@@ -764,17 +922,21 @@ def prepare_template(mesh, params: dict) -> dict:
     V = closest
     t3 = time.perf_counter()
     size, gutter = int(params["atlas_size"]), int(params["gutter_px"])
-    tc, tf, info = build_atlas(V, F, size, gutter, return_info=True)
+    if keep_uv:
+        tc, tf, info = keep_layout(corner_uv, size)
+    else:
+        tc, tf, info = build_atlas(V, F, size, gutter, return_info=True)
     t4 = time.perf_counter()
     pairs, edges = face_adjacency(F)
     face_id, bary = texel_map(tc, tf, size)
     chart = uv_charts(tf, len(tc))
     conflicts = gutter_conflicts(face_id, chart, gutter)
+    whose = " in the mesh's own UV layout (bilinear lookups there mix in the neighbour)" if keep_uv else ""
     if conflicts:
-        log.warning("template: %d texels closer than %d texels to another chart", conflicts, gutter)
+        log.warning("template: %d texels closer than %d texels to another chart%s", conflicts, gutter, whose)
     to_border = border_gap(face_id)
     if to_border < gutter:
-        log.warning("template: a chart %d texels from the atlas border (gutter %d)", to_border, gutter)
+        log.warning("template: a chart %d texels from the atlas border (gutter %d)%s", to_border, gutter, whose)
     t5 = time.perf_counter()
     attrs = {
         "atlas_size": size, "gutter_px": gutter,
@@ -784,7 +946,8 @@ def prepare_template(mesh, params: dict) -> dict:
         "clean_report": report,
         "decimated": decimated,
         "subdivided": subdivided,
-        "flipped_fixed": info["flipped_xatlas"],
+        "uv": "mesh" if keep_uv else "xatlas",
+        "flipped_fixed": info.get("flipped_xatlas", 0),
         "atlas": {k: v for k, v in info.items()},
         "gutter_conflicts": conflicts,
         "border_gap_px": to_border,
@@ -892,6 +1055,9 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
     if params.get("from_depth", False):
         if frames_path is None or masks_path is None:
             raise ValueError("template.from_depth needs the first frame block and its masks")
+        if params.get("uv", "xatlas") == "mesh":
+            raise ValueError("template.uv: mesh keeps the source template's own UV layout, but template.from_depth "
+                             "builds a mesh without one; use template.uv: xatlas")
         frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
         fid = int(frames.attrs["frame_ids"][0])
         if has_template:
@@ -908,8 +1074,11 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         log.info("template: %d faces from the depth of frame %d", len(F), fid)
         mesh, origin = Mesh(V, F), f"depth of frame {fid}"
     elif has_template:
+        has_uv = "template/texcoords" in scene and "template/texcoord_faces" in scene
         mesh = Mesh(np.asarray(scene["template/vertices"][...], np.float64),
-                    np.asarray(scene["template/faces"][...], np.int32))
+                    np.asarray(scene["template/faces"][...], np.int32),
+                    np.asarray(scene["template/texcoords"][...], np.float64) if has_uv else None,
+                    np.asarray(scene["template/texcoord_faces"][...], np.int32) if has_uv else None)
         origin = "source"
     else:
         kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
