@@ -476,3 +476,39 @@ def test_fox_gltf_equals_glb(fox, fox_glb):
         times = [0.0, 0.37, 0.61, 2.0]
         np.testing.assert_array_equal(pose_sequence(fox, name, times, loop=True),
                                       pose_sequence(fox_glb, name, times, loop=True))
+
+
+@needs_fox
+def test_the_foxs_own_uv_layout_as_the_atlas_takes_its_own_texture(fox):
+    """template.uv: mesh on a real asset: the Fox's layout passes the checks (no overlaps), and
+    the Fox's own texture on the (subdivided) template looks as it does on the asset, so slices
+    in this atlas drop into its material. The atlas xatlas makes does not take it (the control)."""
+    from stex.readers.meshes import Mesh
+    from stex.render import render_textured
+    from stex.template import prepare_template
+
+    V = fox.vertices - fox.vertices.mean(0)
+    V = V / np.ptp(V, axis=0).max() * 0.6
+    mesh = Mesh(V, fox.faces, fox.texcoords, fox.texcoord_faces)
+    params = dict(target_faces=20000, decimate=True, min_faces=4000, atlas_size=1024, gutter_px=4, uv="mesh")
+    own = prepare_template(mesh, params)
+    a = own["attrs"]
+    assert a["uv"] == "mesh" and a["subdivided"] == 1 and len(own["faces"]) == 4 * 576
+    assert a["atlas"]["overlap_texels"] == 0 and a["atlas"]["charts"] == 14
+
+    def side_view(vertices):  # glTF y up, the fox along z: seen from its side, 1 m away
+        v = np.asarray(vertices, np.float64)
+        return np.column_stack([v[:, 2], -v[:, 1], v[:, 0] + 1.0])
+
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    ref, m_ref = render_textured(side_view(V), fox.faces, fox.texcoords, fox.texcoord_faces, fox.texture, K, 640, 480)
+    img, m = render_textured(side_view(own["vertices"]), own["faces"], own["texcoords"], own["texcoord_faces"],
+                             fox.texture, K, 640, 480)
+    assert m_ref.sum() > 15000 and (m != m_ref).sum() < 0.005 * m_ref.sum()
+    both = m & m_ref
+    diff = np.abs(img - ref)[both]
+    assert diff.mean() < 0.5 and np.percentile(diff, 99) < 4, (diff.mean(), np.percentile(diff, 99))
+    new = prepare_template(mesh, dict(params, uv="xatlas"))
+    img_x, m_x = render_textured(side_view(new["vertices"]), new["faces"], new["texcoords"], new["texcoord_faces"],
+                                 fox.texture, K, 640, 480)
+    assert np.abs(img_x - ref)[m_x & m_ref].mean() > 10 * diff.mean() + 5
