@@ -147,7 +147,7 @@ def _rgb_to_nv12(rgb: np.ndarray) -> bytes:
 
 def write_test_mkv(path, n_frames, color_size, depth_size, calibration_json, *, tags=True,
                    depth_title="DEPTH", bad_depth_frame=None, drop_depth_frames=(), fps=30,
-                   color_format="MJPG"):
+                   color_format="MJPG", truncated_color_frame=None):
     """Write a k4arecorder-like .mkv with PyAV.
 
     Tracks: COLOR (MJPEG, colour from ``synthetic_color``), DEPTH (raw 'b16g' big-endian uint16,
@@ -158,6 +158,8 @@ def write_test_mkv(path, n_frames, color_size, depth_size, calibration_json, *, 
     Options: ``tags=False`` omits the K4A_*_MODE track tags; ``depth_title`` renames the depth
     track; ``bad_depth_frame=k`` writes a short depth packet for frame k;
     ``drop_depth_frames`` writes no depth for those frames (colour only);
+    ``truncated_color_frame=k`` writes the first 60 % of frame k's JPEG (as a camera that lost
+    USB packets);
     ``color_format='BGRA'`` or ``'NV12'`` writes raw colour like k4arecorder's raw modes.
     Returns the list of (color, depth) arrays written.
     """
@@ -191,6 +193,8 @@ def write_test_mkv(path, n_frames, color_size, depth_size, calibration_json, *, 
             ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
             assert ok
             payload = jpg.tobytes()
+            if i == truncated_color_frame:
+                payload = payload[: len(payload) * 6 // 10]
         elif color_format == "BGRA":
             payload = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA).tobytes()
         else:
@@ -440,6 +444,29 @@ def test_bad_depth_packet_names_frame(tmp_path):
         with pytest.raises(ValueError, match=r"frame 2 .*depth packet has 92160 bytes, expected 184320") as e:
             next(it)
         assert str(p) in str(e.value)
+
+
+def test_truncated_colour_jpeg_names_frame(tmp_path):
+    """A JPEG cut short decodes (OpenCV refuses it, the FFmpeg fallback fills its lower rows) with
+    only a note on stderr: refused, named."""
+    p = tmp_path / "badcolor.mkv"
+    write_test_mkv(p, 4, COLOR_SIZE, DEPTH_SIZE, K4A_CALIBRATION, truncated_color_frame=2)
+    with open_kinect_mkv(p, backend="pyav") as rec:
+        it = rec.frames()
+        assert next(it)[0] == 0 and next(it)[0] == 1
+        with pytest.raises(ValueError, match=r"frame 2.*ends without the JPEG end marker.*source\.mkv\.start / stop") as e:
+            next(it)
+        assert str(p) in str(e.value)
+    # what the check prevents: the decoder fallback turns the same bytes into a full-size image
+    # whose lower rows are not the picture
+    from stex.readers.kinect_mkv import _decode_mjpeg_ffmpeg
+    rgb = synthetic_color(2, COLOR_SIZE)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    img = _decode_mjpeg_ffmpeg(jpg.tobytes()[: jpg.size * 6 // 10])
+    assert img is not None and img.shape[:2] == (COLOR_SIZE[1], COLOR_SIZE[0])
+    bottom = np.abs(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)[-50:].astype(int) - rgb[-50:]).mean()
+    top = np.abs(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)[:50].astype(int) - rgb[:50]).mean()
+    assert top < 3 and bottom > 20, (top, bottom)
 
 
 def test_damaged_depth_data_is_named(recwarn):

@@ -372,11 +372,26 @@ def _decode_depth(buf: bytes, size: tuple[int, int], dtype: str, what: str) -> n
     return depth
 
 
+def _check_jpeg_ends(buf: bytes, what: str) -> None:
+    """Refuse a JPEG without its end-of-image marker (FF D9; trailing zero padding allowed).
+
+    Decoders fill a truncated JPEG's missing rows with grey and only say so on stderr ("Corrupt
+    JPEG data: premature end of data segment"), so the frame would enter the texture looking
+    whole. The Azure Kinect writes such frames when USB bandwidth or storage cannot keep up
+    (Azure-Kinect-Sensor-SDK issue 1354)."""
+    end = bytes(buf).rstrip(b"\x00")
+    if len(end) and end[-2:] != b"\xff\xd9":
+        raise ValueError(f"{what}: colour MJPEG packet ({len(buf)} bytes) ends without the JPEG end marker: "
+                         f"the image is truncated (its lower rows would decode grey); the file is corrupt. "
+                         f"To use the captures before or after it, set source.mkv.start / stop")
+
+
 def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.ndarray:
     """Packet bytes -> (H, W, 3) uint8 RGB."""
     w, h = size
     a = np.frombuffer(buf, dtype=np.uint8)
     if fmt == "MJPG":
+        _check_jpeg_ends(buf, what)
         img = None
         if a.size:
             img = cv2.imdecode(a, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
