@@ -456,11 +456,12 @@ def test_decimation_keeps_the_meshs_own_uv_layout(sphere, sphere_atlas):
     p_in, hit_in = _surface_at_texels(V, F, tc, tf, 256)
     p_out, hit_out = _surface_at_texels(out["vertices"], out["faces"], out["texcoords"], out["texcoord_faces"], 256)
     both = hit_in & hit_out
-    assert both.sum() > 0.9 * hit_in.sum()
-    # unit sphere, 1280 -> 640 faces (measured: 93 % of the texels still covered, median 0.008,
-    # 99th percentile 0.08 at the charts' simplified borders; a layout not carried along is ~1 off)
+    assert both.sum() > 0.99 * hit_in.sum()
+    # unit sphere, 1280 -> 640 faces, the vertices then put back on the input surface (measured:
+    # every texel still covered, median 0.006, 99th percentile 0.017; with MeshLab's default
+    # texture weight 1: 93 %, 0.008, 0.08; a layout not carried along is ~1 off)
     d = np.linalg.norm(p_in[both] - p_out[both], axis=1)
-    assert np.median(d) < 0.02 and np.percentile(d, 99) < 0.15, (np.median(d), np.percentile(d, 99))
+    assert np.median(d) < 0.01 and np.percentile(d, 99) < 0.04, (np.median(d), np.percentile(d, 99))
 
 
 @pytest.mark.parametrize("case, match", [
