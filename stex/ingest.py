@@ -138,17 +138,28 @@ class MkvSource(Source):
             raise ValueError("source.mkv.path must name the .mkv recording")
         self.cfg = cfg
         self.path = Path(cfg["path"])
-        self._allow_truncated = bool(cfg.get("allow_truncated", False))
-        with open_kinect_mkv(self.path, allow_truncated=self._allow_truncated) as rec:
+        self._open = dict(allow_truncated=bool(cfg.get("allow_truncated", False)),
+                          skip_damaged_color=bool(cfg.get("skip_damaged_color", False)))
+        with open_kinect_mkv(self.path, **self._open) as rec:
             raw_cal = rec.calibration
             n = rec.n_frames
+            damaged = rec.damaged_color_captures
+            skipped = rec.n_damaged_color_skipped
         stop = n if cfg["stop"] is None else min(cfg["stop"], n)
         if cfg["start"] >= stop:
             raise ValueError(f"{self.path}: no captures in [{cfg['start']}, {cfg['stop']}) (recording has {n})")
         self.frame_ids = list(range(cfg["start"], stop))
+        # refused here, before any frame block is read, and all of them at once
+        damaged = [i for i in damaged if cfg["start"] <= i < stop]
+        if damaged:
+            raise ValueError(f"{self.path}: the colour images of {len(damaged)} captures are cut short (no JPEG end "
+                             f"marker; their lower rows would be invented): captures {damaged[:10]}"
+                             f"{' ...' if len(damaged) > 10 else ''}. Set source.mkv.skip_damaged_color: true to "
+                             f"leave them out, or read around them with source.mkv.start / stop")
         self._undistort = Undistorter(raw_cal) if cfg["undistort"] else None
         self.calibration = self._undistort.calibration if self._undistort else raw_cal
-        self.description = {"kind": "mkv", "path": str(self.path), "undistorted": bool(cfg["undistort"])}
+        self.description = {"kind": "mkv", "path": str(self.path), "undistorted": bool(cfg["undistort"]),
+                            "damaged_color_skipped": skipped}
 
     def template(self) -> Mesh | None:
         return load_mesh(self.cfg["template"]) if self.cfg.get("template") else None
@@ -163,7 +174,7 @@ class MkvSource(Source):
     def frames(self, start: int, stop: int):
         from stex.readers.kinect_mkv import open_kinect_mkv
         first = self.frame_ids[0]
-        with open_kinect_mkv(self.path, allow_truncated=self._allow_truncated) as rec:
+        with open_kinect_mkv(self.path, **self._open) as rec:
             for idx, ts_us, color, depth in rec.frames(first + start, first + stop):
                 if self._undistort is not None:
                     color, depth = self._undistort(color, depth)

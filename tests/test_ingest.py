@@ -60,6 +60,34 @@ def test_a_truncated_recording_is_read_with_source_mkv_allow_truncated(synthetic
     assert open_store(tmp_path / "f.zarr", "frames").attrs["frame_ids"] == [0, 1, 2]
 
 
+def test_captures_with_a_cut_short_colour_jpeg_are_refused_or_left_out(tmp_path):
+    """A recording whose colour images 2 and 4 are cut short: the scene is refused before any
+    frame is read, naming both captures; a range around them is read; with
+    source.mkv.skip_damaged_color the other captures are read, and only they."""
+    from test_kinect_mkv import COLOR_SIZE, DEPTH_SIZE, K4A_CALIBRATION, write_test_mkv
+    p = tmp_path / "damaged.mkv"
+    written = write_test_mkv(p, 6, COLOR_SIZE, DEPTH_SIZE, K4A_CALIBRATION, truncated_color_frame=(2, 4))
+    with pytest.raises(ValueError, match=r"2 captures are cut short .*captures \[2, 4\].*skip_damaged_color: true"):
+        write_scene(_mkv_source(p, undistort=False), 3, tmp_path / "scene.zarr")
+    assert not (tmp_path / "scene.zarr").exists()
+    assert count_frames(_mkv_source(p, undistort=False, stop=2)) == 2  # the captures before them
+    src = _mkv_source(p, undistort=False, skip_damaged_color=True)
+    with pytest.warns(UserWarning, match=r"2 colour images are cut short .*left out.*0\.067 s, 0\.133 s"):
+        write_scene(src, 3, tmp_path / "scene.zarr")
+    scene = open_store(tmp_path / "scene.zarr", "scene")
+    assert scene.attrs["frame_ids"] == [0, 1, 2, 3] and scene.attrs["source"]["damaged_color_skipped"] == 2
+    with pytest.warns(UserWarning, match="cut short"):
+        write_frames_block(src, 0, 4, tmp_path / "f.zarr")
+    frames = open_store(tmp_path / "f.zarr", "frames")
+    kept = [0, 1, 3, 5]  # the written frames whose colour is whole
+    np.testing.assert_array_equal(frames["depth"][...], np.stack([written[i][1] for i in kept]))
+    for k, i in enumerate(kept):  # JPEG: near the written colour, far from its neighbours'
+        err = np.abs(frames["color"][k].astype(int) - written[i][0]).mean()
+        assert err < 3 and all(np.abs(frames["color"][k].astype(int) - written[j][0]).mean() > err for j in kept if j != i)
+    steps = np.diff(frames["timestamps"][...])
+    np.testing.assert_allclose(steps, [1 / 30, 2 / 30, 2 / 30], atol=2e-3)  # the gaps stay in the timestamps
+
+
 @pytest.mark.skipif(not REAL_MKV.is_file(), reason="shared data samples absent")
 def test_mkv_ingest_of_the_real_recording(tmp_path):
     src = _mkv_source(REAL_MKV)

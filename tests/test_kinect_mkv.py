@@ -158,8 +158,8 @@ def write_test_mkv(path, n_frames, color_size, depth_size, calibration_json, *, 
     Options: ``tags=False`` omits the K4A_*_MODE track tags; ``depth_title`` renames the depth
     track; ``bad_depth_frame=k`` writes a short depth packet for frame k;
     ``drop_depth_frames`` writes no depth for those frames (colour only);
-    ``truncated_color_frame=k`` writes the first 60 % of frame k's JPEG (as a camera that lost
-    USB packets);
+    ``truncated_color_frame=k`` (or a tuple of frames) writes the first 60 % of frame k's JPEG
+    (as a camera that lost USB packets);
     ``color_format='BGRA'`` or ``'NV12'`` writes raw colour like k4arecorder's raw modes.
     Returns the list of (color, depth) arrays written.
     """
@@ -193,7 +193,7 @@ def write_test_mkv(path, n_frames, color_size, depth_size, calibration_json, *, 
             ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
             assert ok
             payload = jpg.tobytes()
-            if i == truncated_color_frame:
+            if i in np.atleast_1d(truncated_color_frame if truncated_color_frame is not None else []):
                 payload = payload[: len(payload) * 6 // 10]
         elif color_format == "BGRA":
             payload = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA).tobytes()

@@ -372,6 +372,23 @@ def _decode_depth(buf: bytes, size: tuple[int, int], dtype: str, what: str) -> n
     return depth
 
 
+def _jpeg_ends(buf) -> bool:
+    """Whether JPEG bytes end with the end-of-image marker FF D9 (trailing zero padding allowed);
+    ``buf`` is bytes or a memoryview (only its tail is read)."""
+    m = memoryview(buf).cast("B")
+    n = len(m)
+    while n and m[n - 1] == 0:
+        n -= 1
+    return n == 0 or (n >= 2 and m[n - 2] == 0xFF and m[n - 1] == 0xD9)
+
+
+def _list(items, most: int = 10) -> str:
+    """'a, b, c' of up to ``most`` items, then '... (N in all)'."""
+    items = list(items)
+    head = ", ".join(str(x) for x in items[:most])
+    return head if len(items) <= most else f"{head}, ... ({len(items)} in all)"
+
+
 def _check_jpeg_ends(buf: bytes, what: str) -> None:
     """Refuse a JPEG without its end-of-image marker (FF D9; trailing zero padding allowed).
 
@@ -379,11 +396,11 @@ def _check_jpeg_ends(buf: bytes, what: str) -> None:
     JPEG data: premature end of data segment"), so the frame would enter the texture looking
     whole. The Azure Kinect writes such frames when USB bandwidth or storage cannot keep up
     (Azure-Kinect-Sensor-SDK issue 1354)."""
-    end = bytes(buf).rstrip(b"\x00")
-    if len(end) and end[-2:] != b"\xff\xd9":
+    if not _jpeg_ends(buf):
         raise ValueError(f"{what}: colour MJPEG packet ({len(buf)} bytes) ends without the JPEG end marker: "
                          f"the image is truncated (its lower rows would decode grey); the file is corrupt. "
-                         f"To use the captures before or after it, set source.mkv.start / stop")
+                         f"To leave out such captures set source.mkv.skip_damaged_color: true, or read around it with "
+                         f"source.mkv.start / stop")
 
 
 def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.ndarray:
@@ -472,9 +489,10 @@ def _pair_captures(color_us: np.ndarray, depth_us: np.ndarray, tolerance_us: flo
     return np.asarray(ic, dtype=np.int64), np.asarray(idp, dtype=np.int64)
 
 
-def open_kinect_mkv(path, backend: str = "auto", allow_truncated: bool = False) -> "KinectRecording":
+def open_kinect_mkv(path, backend: str = "auto", allow_truncated: bool = False,
+                    skip_damaged_color: bool = False) -> "KinectRecording":
     """Open an Azure Kinect recording; see :class:`KinectRecording`."""
-    return KinectRecording(path, backend=backend, allow_truncated=allow_truncated)
+    return KinectRecording(path, backend=backend, allow_truncated=allow_truncated, skip_damaged_color=skip_damaged_color)
 
 
 class KinectRecording:
@@ -487,6 +505,11 @@ class KinectRecording:
             ``'auto'`` (pyk4a when importable, else PyAV).
         allow_truncated: read a truncated file's complete captures instead of refusing it
             (PyAV backend; a warning is issued).
+        skip_damaged_color: leave out the colour images whose MJPEG is cut short (no JPEG end
+            marker; the Azure Kinect writes such frames when USB bandwidth or storage cannot keep
+            up), so their depth images go unpaired and those captures are skipped (PyAV backend;
+            a warning says how many and when). Without it they stay captures, listed in
+            ``damaged_color_captures``, and reading one raises ValueError.
 
     Attributes:
         path: ``pathlib.Path`` of the file.
@@ -506,11 +529,17 @@ class KinectRecording:
         start_offset_us: device time of the file's time 0 (``K4A_START_OFFSET_NS`` / 1000).
         frame_period_us: median spacing of the depth images (pairing tolerance is half of it).
         n_unpaired_color, n_unpaired_depth: images that found no partner (skipped).
+        damaged_color_captures: capture indices whose colour MJPEG is cut short (PyAV backend;
+            empty with ``skip_damaged_color``). n_damaged_color_skipped: such colour images left
+            out with ``skip_damaged_color``.
         metadata: container-level tags (dict of str).
     """
 
-    def __init__(self, path, backend: str = "auto", allow_truncated: bool = False):
+    def __init__(self, path, backend: str = "auto", allow_truncated: bool = False, skip_damaged_color: bool = False):
         self.path = Path(path)
+        self.skip_damaged_color = bool(skip_damaged_color)
+        self.damaged_color_captures: list[int] = []
+        self.n_damaged_color_skipped = 0
         if backend not in ("auto", "pyav", "pyk4a"):
             raise ValueError(f"backend must be 'auto', 'pyav' or 'pyk4a', got {backend!r}")
         if not self.path.exists():
@@ -660,7 +689,8 @@ class KinectRecording:
             depth_delay_us = _int_tag(self.metadata, "K4A_DEPTH_DELAY_NS", self.path) / 1000.0
 
             # One pass over the packets (no decoding) to build the capture index.
-            c_pts, c_dur, d_pts, d_dur = [], [], [], []
+            c_pts, c_dur, c_whole, d_pts, d_dur = [], [], [], [], []
+            mjpeg = self.color_format == "MJPG"
             try:
                 for pkt in container.demux(cs, ds):
                     if pkt.pts is None or pkt.size == 0:
@@ -668,6 +698,7 @@ class KinectRecording:
                     if pkt.stream.index == cs.index:
                         c_pts.append(pkt.pts)
                         c_dur.append(pkt.duration or 0)
+                        c_whole.append(not mjpeg or _jpeg_ends(memoryview(pkt)))
                     else:
                         d_pts.append(pkt.pts)
                         d_dur.append(pkt.duration or 0)
@@ -683,6 +714,15 @@ class KinectRecording:
         d_pts = np.asarray(d_pts, dtype=np.int64)
         oc, od = np.argsort(c_pts, kind="stable"), np.argsort(d_pts, kind="stable")
         c_pts, d_pts = c_pts[oc], d_pts[od]
+        c_whole = np.asarray(c_whole, bool)[oc]
+        if self.skip_damaged_color and not c_whole.all():
+            cut = c_pts[~c_whole]
+            self.n_damaged_color_skipped = int(len(cut))
+            warnings.warn(f"{self.path}: {len(cut)} colour images are cut short (no JPEG end marker) and are left "
+                          f"out with their depth images (source.mkv.skip_damaged_color), at "
+                          f"{_list([f'{float(_to_us(p, self._color_tb)) * 1e-6:.3f} s' for p in cut])} "
+                          f"(recording time); the captures after them are numbered on", stacklevel=3)
+            c_pts, c_whole = c_pts[c_whole], c_whole[c_whole]
         c_us = np.array([_to_us(p, self._color_tb) for p in c_pts], dtype=np.int64)
         d_us = np.array([_to_us(p, self._depth_tb) for p in d_pts], dtype=np.int64)
         period = self._frame_period_us(d_us, [d_dur[i] for i in od], self._depth_tb)
@@ -693,6 +733,7 @@ class KinectRecording:
         self.timestamps_us = d_us[idp] + self.start_offset_us
         self.color_timestamps_us = c_us[ic] + self.start_offset_us
         self.n_frames = int(len(idp))
+        self.damaged_color_captures = np.flatnonzero(~c_whole[ic]).tolist()
         self.n_unpaired_color = int(len(c_us) - len(ic))
         self.n_unpaired_depth = int(len(d_us) - len(idp))
         if self.n_unpaired_color or self.n_unpaired_depth:
