@@ -699,7 +699,7 @@ def keep_layout(corner_uv, resolution: int):
     bad = ~np.isfinite(t).all(axis=(1, 2)) | (t < 0).any(axis=(1, 2)) | (t > 1).any(axis=(1, 2))
     if bad.any():
         f = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"template.uv: mesh: {int(bad.sum())} faces have texture coordinates outside [0, 1] "
+        raise ValueError(f"template.uv: mesh: {int(bad.sum())} faces have texture coordinates outside [0, 1] or not finite "
                          f"(e.g. {np.round(t[f], 4).tolist()}): a layout that tiles or wraps cannot give every "
                          f"face texels of its own; use template.uv: xatlas")
     texcoords, tfaces = layout_from_corners(t)

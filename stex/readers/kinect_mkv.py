@@ -392,13 +392,13 @@ def _list(items, most: int = 10) -> str:
 def _check_jpeg_ends(buf: bytes, what: str) -> None:
     """Refuse a JPEG without its end-of-image marker (FF D9; trailing zero padding allowed).
 
-    Decoders fill a truncated JPEG's missing rows with grey and only say so on stderr ("Corrupt
-    JPEG data: premature end of data segment"), so the frame would enter the texture looking
-    whole. The Azure Kinect writes such frames when USB bandwidth or storage cannot keep up
+    OpenCV refuses such a JPEG, but the FFmpeg fallback decodes it to a full-size image with
+    its missing rows invented and only says so on stderr, so the frame would enter the texture
+    looking whole. The Azure Kinect writes such frames when USB bandwidth or storage cannot keep up
     (Azure-Kinect-Sensor-SDK issue 1354)."""
     if not _jpeg_ends(buf):
         raise ValueError(f"{what}: colour MJPEG packet ({len(buf)} bytes) ends without the JPEG end marker: "
-                         f"the image is truncated (its lower rows would decode grey); the file is corrupt. "
+                         f"the image is truncated (a decoder would invent its lower rows); the file is corrupt. "
                          f"To leave out such captures set source.mkv.skip_damaged_color: true, or read around it with "
                          f"source.mkv.start / stop")
 
