@@ -657,19 +657,15 @@ def layout_from_corners(corner_uv):
     return uniq[order], rank[inv.reshape(-1)].reshape(-1, 3).astype(np.int32)
 
 
-def uv_overlaps(texcoords, texcoord_faces, size: int) -> tuple[int, tuple[int, int] | None]:
+def uv_overlaps(texcoords, texcoord_faces, size: int, face_id=None) -> tuple[int, tuple[int, int] | None]:
     """Texel centres that lie in two or more UV triangles: (their number, (row, col) of one of
-    them or None). The layout is rasterised twice (:func:`texel_map`), faces in order and in
-    reverse; where the two disagree, a centre has two owners. The rasteriser's fill rule gives a
-    centre on a shared edge, or on the touching borders of two charts, to one triangle either
-    way, so that is not counted."""
-    from stex.render import rasterize
-
-    tc = np.asarray(texcoords, np.float64)
+    them or None). The layout is rasterised (:func:`texel_map`) with the faces in order (or
+    ``face_id``, that raster if already made) and in reverse; where the two disagree, a centre has
+    two owners. The rasteriser's fill rule gives a centre on a shared edge, or on the touching
+    borders of two charts, to one triangle either way, so that is not counted."""
     tf = np.asarray(texcoord_faces, np.int64)
-    px = np.column_stack([tc[:, 0] * size - 0.5, tc[:, 1] * size - 0.5, np.ones(len(tc))])
-    forward = rasterize(px, tf, np.eye(3), size, size).face_id
-    backward = rasterize(px, tf[::-1], np.eye(3), size, size).face_id
+    forward = texel_map(texcoords, tf, size)[0] if face_id is None else np.asarray(face_id)
+    backward, _ = texel_map(texcoords, tf[::-1], size)
     backward = np.where(backward >= 0, len(tf) - 1 - backward, -1)
     rows, cols = np.nonzero(forward != backward)
     return int(len(rows)), ((int(rows[0]), int(cols[0])) if len(rows) else None)
@@ -703,7 +699,8 @@ def keep_layout(corner_uv, resolution: int):
                          f"(e.g. {np.round(t[f], 4).tolist()}): a layout that tiles or wraps cannot give every "
                          f"face texels of its own; use template.uv: xatlas")
     texcoords, tfaces = layout_from_corners(t)
-    overlap, where = uv_overlaps(texcoords, tfaces, resolution)
+    face_id, _ = texel_map(texcoords, tfaces, resolution)
+    overlap, where = uv_overlaps(texcoords, tfaces, resolution, face_id)
     if overlap:
         r, c = where
         raise ValueError(f"template.uv: mesh: UV triangles overlap at {overlap} texels of the {resolution}^2 atlas "
@@ -711,7 +708,6 @@ def keep_layout(corner_uv, resolution: int):
                          f"v down): faces sharing texels cannot each get their own texture (mirrored or "
                          f"stacked islands); lay them out apart, or use template.uv: xatlas")
     area = uv_signed_area(texcoords, tfaces)
-    face_id, _ = texel_map(texcoords, tfaces, resolution)
     info = {"source": "mesh", "charts": int(uv_charts(tfaces, len(texcoords)).max()) + 1,
             "mirrored_faces": int((area > 0).sum()), "degenerate_uv_faces": int((area == 0).sum()),
             "overlap_texels": 0, "utilization": float((face_id >= 0).mean())}

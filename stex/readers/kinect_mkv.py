@@ -382,13 +382,6 @@ def _jpeg_ends(buf) -> bool:
     return n == 0 or (n >= 2 and m[n - 2] == 0xFF and m[n - 1] == 0xD9)
 
 
-def _list(items, most: int = 10) -> str:
-    """'a, b, c' of up to ``most`` items, then '... (N in all)'."""
-    items = list(items)
-    head = ", ".join(str(x) for x in items[:most])
-    return head if len(items) <= most else f"{head}, ... ({len(items)} in all)"
-
-
 def _check_jpeg_ends(buf: bytes, what: str) -> None:
     """Refuse a JPEG without its end-of-image marker (FF D9; trailing zero padding allowed).
 
@@ -720,7 +713,7 @@ class KinectRecording:
             self.n_damaged_color_skipped = int(len(cut))
             warnings.warn(f"{self.path}: {len(cut)} colour images are cut short (no JPEG end marker) and are left "
                           f"out with their depth images (source.mkv.skip_damaged_color), at "
-                          f"{_list([f'{float(_to_us(p, self._color_tb)) * 1e-6:.3f} s' for p in cut])} "
+                          f"{', '.join(f'{float(_to_us(p, self._color_tb)) * 1e-6:.3f} s' for p in cut[:10])}{' ...' if len(cut) > 10 else ''} "
                           f"(recording time); the captures after them are numbered on", stacklevel=3)
             c_pts, c_whole = c_pts[c_whole], c_whole[c_whole]
         c_us = np.array([_to_us(p, self._color_tb) for p in c_pts], dtype=np.int64)
