@@ -730,16 +730,18 @@ def seen_mask_in_view(vertices, faces, face_visible, K, width, height) -> np.nda
     return _face_flag_image(rasterize(vertices, faces, K, width, height).face_id, vis)
 
 
-def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False) -> dict:
+def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False,
+                min_pixels: int = 1) -> dict:
     """PSNR (and optionally SSIM) over ``mask``, split into ``mask & region`` and ``mask & ~region``.
 
     Typical use: ``reference`` = render of the true texture from a novel view, ``test`` = render
     of the reconstruction from the same view, ``region`` = :func:`seen_mask_in_view`.
 
     Returns:
-        dict with ``psnr_all``, ``psnr_seen``, ``psnr_unseen`` (dB, NaN if the region is empty),
-        ``mse_*`` and ``n_all``, ``n_seen``, ``n_unseen`` (pixels); with ``ssim=True`` also
-        ``ssim_all``, ``ssim_seen``, ``ssim_unseen`` (:func:`masked_ssim` over each region).
+        dict with ``psnr_all``, ``psnr_seen``, ``psnr_unseen`` (dB, NaN if the region has fewer
+        than ``min_pixels`` pixels: a score of a few pixels says nothing about the texture),
+        ``mse_*`` and ``n_all``, ``n_seen``, ``n_unseen`` (pixels, always); with ``ssim=True``
+        also ``ssim_all``, ``ssim_seen``, ``ssim_unseen`` (:func:`masked_ssim` over each region).
     """
     # every region lies in the mask: its bounding box, with room for the SSIM window, suffices
     # (a box edge that is not the image's stays more than the window from every scored pixel)
@@ -749,12 +751,16 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False) -> 
     reg = _mask(region, ref.shape[:2], name="region")
     out = {}
     regions = (("all", m), ("seen", m & reg), ("unseen", m & ~reg))
+    small = {}
     for name, sel in regions:
         p = masked_psnr(ref, tst, sel, data_range)
+        small[name] = p["n_pixels"] < min_pixels
         out[f"psnr_{name}"], out[f"mse_{name}"], out[f"n_{name}"] = p["psnr"], p["mse"], p["n_pixels"]
+        if small[name]:
+            out[f"psnr_{name}"] = out[f"mse_{name}"] = np.nan
     if ssim:  # one SSIM map for the three regions
         for (name, _), s in zip(regions, _ssim_means(ref, tst, [sel for _, sel in regions], data_range)):
-            out[f"ssim_{name}"] = s["ssim"]
+            out[f"ssim_{name}"] = np.nan if small[name] else s["ssim"]
     return out
 
 

@@ -42,6 +42,29 @@ def test_label_step_falls_and_interiors_stay(quad, factor):
     assert out.dtype == np.uint8 and out.shape == img.shape
 
 
+@pytest.mark.parametrize("factor", [1, 2])
+def test_keep_own_frame_moves_only_the_borrowed_texels(quad, factor):
+    V, F, tc, tf, face = quad
+    img, lm = _two_labels(face)                 # label 1 is 20 levels brighter than label 0
+    cs = CorrectionSystem(face, tc, tf, F, factor=factor, screen_length=1 / 16, gutter_px=2)
+    own = lm == 0
+    out = cs.correct(img, lm, frame=0)
+    np.testing.assert_array_equal(out[own], img[own])           # the observed texels as they were
+    before, after = label_boundary_step(img, lm), label_boundary_step(out, lm)
+    assert after <= 0.4 * before, (before, after)
+    # the whole step went to the borrowed side: next to the boundary it moved by about -20
+    h = W // 2
+    rows = np.flatnonzero(own[:, h - 1] & (lm[:, h] == 1))
+    shift = out[rows, h].astype(float) - img[rows, h]
+    assert -22 < shift.mean() < -14, shift.mean()
+    # without a frame (or the slice's frame unused) the screened solve of both sides is unchanged
+    free = CorrectionSystem(face, tc, tf, F, factor=factor, screen_length=1 / 16, gutter_px=2,
+                            keep_own_frame=False)
+    np.testing.assert_array_equal(cs.correct(img, lm), free.correct(img, lm))
+    np.testing.assert_array_equal(cs.correct(img, lm, frame=5), free.correct(img, lm, frame=5))
+    assert np.abs(free.correct(img, lm, frame=0)[own].astype(int) - img[own]).max() > 3
+
+
 def test_ramp_across_a_label_boundary_keeps_its_slope(quad):
     V, F, tc, tf, face = quad
     cov = face >= 0
@@ -145,7 +168,7 @@ def test_temporal_coupling_damps_borrowed_regions(quad):
     cur = img.astype(int)
     cur[lm == 0] += 25  # the borrowed region (label 0 at frame 1) flickers by +25
     cur = np.clip(cur, 0, 255).astype(np.uint8)
-    kw = dict(screen_length=1 / 16, temporal_length=1 / 64, gutter_px=2)
+    kw = dict(screen_length=1 / 16, temporal_length=1 / 64, gutter_px=2, keep_own_frame=False)
     cs = CorrectionSystem(face, tc, tf, F, **kw)
     plain = cs.correct(cur, lm)
     damped = cs.correct(cur, lm, previous=prev, frame=1)
@@ -153,6 +176,11 @@ def test_temporal_coupling_damps_borrowed_regions(quad):
     d_plain = np.abs(plain[inner].astype(float) - prev[inner]).mean()
     d_damped = np.abs(damped[inner].astype(float) - prev[inner]).mean()
     assert d_damped < 0.5 * d_plain, (d_plain, d_damped)
+    # with the own frame's texels kept (the default) the borrowed ones are damped all the same
+    kept = CorrectionSystem(face, tc, tf, F, **{**kw, "keep_own_frame": True})
+    damped = kept.correct(cur, lm, previous=prev, frame=1)
+    np.testing.assert_array_equal(damped[lm == 1], cur[lm == 1])
+    assert np.abs(damped[inner].astype(float) - prev[inner]).mean() < 0.5 * d_plain
     # without temporal coupling the option is ignored
     cs0 = CorrectionSystem(face, tc, tf, F, **{**kw, "temporal_length": None})
     np.testing.assert_array_equal(cs0.correct(cur, lm, previous=prev, frame=1), cs0.correct(cur, lm))

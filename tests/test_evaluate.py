@@ -185,6 +185,22 @@ def test_region_scores_on_the_masks_box_equal_the_full_image_ones():
             assert r[f"n_{name}"] == sel.sum()
 
 
+def test_regions_below_min_pixels_are_not_scored():
+    ref = textured_image(seed=13)
+    tst = np.clip(ref + np.random.default_rng(14).normal(0, 10, ref.shape), 0, 255)
+    H, W = ref.shape[:2]
+    mask = disk(H, W, 30, cy=70, cx=150)
+    region = np.zeros((H, W), bool)
+    region[70, 150:153] = True                              # 3 px seen
+    full = ev.region_psnr(ref, tst, mask, region, ssim=True)
+    r = ev.region_psnr(ref, tst, mask, region, ssim=True, min_pixels=100)
+    assert np.isfinite(full["psnr_seen"]) and full["n_seen"] == 3
+    assert np.isnan(r["psnr_seen"]) and np.isnan(r["ssim_seen"]) and np.isnan(r["mse_seen"])
+    assert r["n_seen"] == 3                                  # the size is still reported
+    for k in ("psnr_all", "psnr_unseen", "ssim_unseen"):     # the large regions are scored as before
+        assert r[k] == full[k]
+
+
 # ---------------------------------------------------------------------------------------- blur
 
 def test_blur_orders_sharp_and_blurred():
