@@ -25,7 +25,8 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
     coordinate descent over even/odd frames, selective weighting.
 11. ``stex.volume``  — one atlas slice per frame from the labelled source frames; never-seen
     faces filled; gutter dilated.
-12. ``stex.correction`` — gradient-domain colour correction of every slice (screened Poisson).
+12. ``stex.correction`` — gradient-domain colour correction of every slice (screened Poisson;
+    the slice's own frame's texels kept, the borrowed ones corrected towards them).
 13. ``stex.export``  — PNG slices, MP4, OBJ/glTF per frame, preview videos.
 
 Baselines: ``stex.baseline`` (Kim et al. 2019's global texture, naive projection). Metrics:
