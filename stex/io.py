@@ -342,7 +342,9 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
     "corrected": ArtifactSpec(
         description="Colour-corrected texture volume of one frame block (stex.correction): each "
         "volume slice after the gradient-domain correction (screened Poisson, gradients kept "
-        "inside a source label, zeroed across label boundaries, chart seams coupled).",
+        "inside a source label, continued one-sidedly across label boundaries, chart seams "
+        "coupled; texels sampled from the slice's own frame kept as they are, with "
+        "correction.keep_own_frame).",
         path="corrected/block_{block}.zarr",
         arrays={
             "texture": ArraySpec(("T", "W", "W", 3), "uint8", "sRGB", "corrected texture slice of each frame in the template atlas, RGB", (1, 1024, 1024, 3)),
