@@ -294,13 +294,11 @@ class _Graph:
             free = np.flatnonzero(~kept)
             if len(free) == 0:
                 return c, iters
-            A = self.A + sp.diags(np.where(borrowed, mu, 0.0)) if use_prev else self.A
-            A_free = A[free][:, free].tocsr()
+            D = np.where(borrowed, mu, 0.0) if use_prev else np.zeros(n)
+            A_free = (self.A + sp.diags(D))[free][:, free].tocsr()
             ml = pyamg.ruge_stuben_solver(A_free, **self.amg_kwargs)
             for ch in range(3):
-                b = rhs[free, ch]
-                if use_prev:
-                    b = b + np.where(borrowed, mu, 0.0)[free] * (prev[free, ch] - f0[free, ch])
+                b = rhs[free, ch] + D[free] * (prev[free, ch] - f0[free, ch]) if use_prev else rhs[free, ch]
                 if not b.any():
                     continue
                 res = []
