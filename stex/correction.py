@@ -285,30 +285,22 @@ class _Graph:
         c = np.zeros((n, 3))
         iters = []
         use_prev = prev is not None and mu > 0 and borrowed is not None and borrowed.any()
+        D = np.where(borrowed, mu, 0.0) if use_prev else None
         if kept is not None and kept.any():
             # c = 0 on the kept unknowns: the system of the free ones (their coupling to the kept
             # ones only leaves the diagonal), with an AMG hierarchy of its own, since which
             # unknowns are free changes with every slice
             import pyamg
 
-            free = np.flatnonzero(~kept)
-            if len(free) == 0:
+            idx = np.flatnonzero(~kept)
+            if len(idx) == 0:
                 return c, iters
-            D = np.where(borrowed, mu, 0.0) if use_prev else np.zeros(n)
-            A_free = (self.A + sp.diags(D))[free][:, free].tocsr()
-            ml = pyamg.ruge_stuben_solver(A_free, **self.amg_kwargs)
-            for ch in range(3):
-                b = rhs[free, ch] + D[free] * (prev[free, ch] - f0[free, ch]) if use_prev else rhs[free, ch]
-                if not b.any():
-                    continue
-                res = []
-                c[free, ch] = ml.solve(b, x0=np.zeros(len(free)), tol=tol, accel="cg",
-                                       maxiter=maxiter, residuals=res)
-                iters.append(len(res) - 1)
-        elif use_prev:
+            A = self.A if D is None else self.A + sp.diags(D)
+            ml = pyamg.ruge_stuben_solver(A[idx][:, idx].tocsr(), **self.amg_kwargs)
+        elif D is not None:
+            # the diagonal makes the matrix label-dependent: CG preconditioned by A's hierarchy
             from scipy.sparse.linalg import cg
 
-            D = np.where(borrowed, mu, 0.0)
             A2 = (self.A + sp.diags(D)).tocsr()
             M = self.ml.aspreconditioner(cycle="V")
             for ch in range(3):
@@ -322,15 +314,17 @@ class _Graph:
 
                 c[:, ch], _ = cg(A2, b, x0=np.zeros(n), rtol=tol, maxiter=maxiter, M=M, callback=cb)
                 iters.append(count[0])
+            return c, iters
         else:
-            for ch in range(3):
-                b = rhs[:, ch]
-                if not b.any():
-                    continue
-                res = []
-                c[:, ch] = self.ml.solve(b, x0=np.zeros(n), tol=tol, accel="cg", maxiter=maxiter,
-                                         residuals=res)
-                iters.append(len(res) - 1)
+            idx, ml = slice(None), self.ml
+        for ch in range(3):
+            b = rhs[idx, ch] if D is None else rhs[idx, ch] + D[idx] * (prev[idx, ch] - f0[idx, ch])
+            if not b.any():
+                continue
+            res = []
+            c[idx, ch] = ml.solve(b, x0=np.zeros(len(b)), tol=tol, accel="cg", maxiter=maxiter,
+                                  residuals=res)
+            iters.append(len(res) - 1)
         return c, iters
 
 
@@ -402,10 +396,12 @@ def _downsample(k, c_cov_r, c_cov_c, c_chart, f_chart, f_lab, img, prev, has_pre
 
 
 @njit(cache=True, nogil=True)
-def _upsample_apply(k, f_rows, f_cols, f_chart_v, f_lab, c_idx, c_chart, c_lab, corr, img):
+def _upsample_apply(k, f_rows, f_cols, f_chart_v, f_lab, c_idx, c_chart, c_lab, corr, img, kept_label):
     """Add the coarse correction to the fine covered texels of ``img`` (uint8, in place, rounded
     and clamped): bilinear over same-chart same-label coarse texels, then same-chart any label,
-    then nearest same-chart within 2 coarse texels (else no change)."""
+    then nearest same-chart within 2 coarse texels (else no change). Fine texels labelled
+    ``kept_label`` stay as they are (-2: none), also inside a coarse texel of another majority
+    label."""
     n = f_rows.shape[0]
     Wc = c_idx.shape[0]
     cv = np.zeros(3)
@@ -414,6 +410,8 @@ def _upsample_apply(k, f_rows, f_cols, f_chart_v, f_lab, c_idx, c_chart, c_lab, 
         c = f_cols[i]
         ch = f_chart_v[i]
         l = f_lab[r, c]
+        if l == kept_label:
+            continue
         cv[0] = 0.0
         cv[1] = 0.0
         cv[2] = 0.0
@@ -610,11 +608,7 @@ class CorrectionSystem:
             out.reshape(-1, 3)[g.index] = np.clip(np.floor(f0 + corr + 0.5), 0, 255).astype(np.uint8)
         else:
             _upsample_apply(self.factor, self._f_rows, self._f_cols, self._f_chart, lm, g.idx,
-                            self._c_chart, lab, corr, out)
-            if keep:
-                # a fine texel of the own frame in a coarse texel of another majority label
-                own = lm == frame
-                out[own] = img[own]
+                            self._c_chart, lab, corr, out, frame if keep else -2)
         fill_gutter(out, self.covered, self.covered, self.gutter_px)
         t3 = time.perf_counter()
         self.last_stats = {"iterations": iters, "prepare_s": t1 - t0, "solve_s": t2 - t1,
