@@ -75,7 +75,7 @@ boundary instead of the screening towards f0 alone) and only the borrowed texels
 so each step at a boundary of the own frame's region goes entirely to the borrowed side. The free
 texels change with every slice, so their system gets an AMG hierarchy of its own per slice (about
 0.4 s a slice at 1024²). At k > 1 a coarse texel is kept when its majority label is t, and every
-fine texel labelled t is copied back unchanged. The screened solve of both sides (the paper's)
+fine texel labelled t is skipped by the upsampling. The screened solve of both sides (the paper's)
 pulled the observed texels half-way towards their borrowed neighbours: on the Fox (69 % of the
 visible faces labelled with their own frame) input-view patch-shift PSNR 26.22 → 26.83 dB, PSNR
 against the true appearance in the input view 26.11 → 26.49 dB, in the novel view's unseen
