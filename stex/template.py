@@ -76,6 +76,7 @@ log = logging.getLogger("stex.template")
 __all__ = [
     "clean_mesh",
     "nonmanifold_edges",
+    "nonmanifold_vertices",
     "decimate",
     "build_atlas",
     "uv_signed_area",
@@ -127,13 +128,52 @@ def nonmanifold_edges(faces) -> tuple[np.ndarray, np.ndarray]:
     return uniq[counts > 2].astype(np.int32), uniq[counts == 1].astype(np.int32)
 
 
+def nonmanifold_vertices(faces) -> np.ndarray:
+    """Vertices whose faces form more than one fan (e.g. two cones touching at their tips, a
+    "bowtie"): the faces around a vertex are joined across the edges at that vertex that exactly
+    two faces share, and a manifold vertex's faces are then one group.
+
+    Args:
+        faces: (F, 3) integer vertex indices.
+
+    Returns:
+        (N,) int32 vertex ids, sorted.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, np.int64)
+    if len(f) == 0:
+        return np.zeros(0, np.int32)
+    n = 3 * len(f)
+    corner_vertex = f.ravel()                     # corner 3 i + k is vertex f[i, k]
+    e, fid = _edge_table(f)                       # edge j of face i: corners (k, k + 1 mod 3)
+    k0 = np.repeat(np.arange(3), len(f))
+    c_lo = 3 * fid + np.where(f[fid, k0] == e[:, 0], k0, (k0 + 1) % 3)
+    c_hi = 3 * fid + np.where(f[fid, k0] == e[:, 0], (k0 + 1) % 3, k0)
+    order = np.lexsort((e[:, 1], e[:, 0]))
+    es = e[order]
+    start = np.flatnonzero(np.r_[True, (es[1:] != es[:-1]).any(1)])
+    count = np.diff(np.r_[start, len(es)])
+    two = start[count == 2]                       # manifold edges: join the two faces' corners
+    a, b = order[two], order[two + 1]
+    rows = np.concatenate([c_lo[a], c_hi[a]])
+    cols = np.concatenate([c_lo[b], c_hi[b]])
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    groups = np.unique(corner_vertex * n + comp) // n      # (vertex, fan) pairs -> their vertex
+    vid, per_vertex = np.unique(groups, return_counts=True)
+    return vid[per_vertex > 1].astype(np.int32)
+
+
 def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = False):
     """Clean a triangle mesh for decimation and unwrapping.
 
     Steps: merge vertices with exactly equal coordinates; drop faces that use a vertex twice or
     whose area is below ``area_tol`` x (bounding-box diagonal)^2; drop repeated faces (same three
     vertices in any order, keeping the first); drop vertices no face uses. Non-manifold edges
-    (shared by more than two faces) and boundary edges are counted, not repaired.
+    (shared by more than two faces), non-manifold vertices (:func:`nonmanifold_vertices`) and
+    boundary edges are counted, not repaired.
 
     Args:
         vertices: (V, 3) float, metres.
@@ -144,8 +184,8 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = 
         (vertices (V', 3) float64 m, faces (F', 3) int32, report): ``report`` is a JSON-able dict
         with ``vertices_in/out``, ``faces_in/out``, ``duplicate_vertices`` (merged),
         ``degenerate_faces``, ``duplicate_faces``, ``unreferenced_vertices`` (removed),
-        ``nonmanifold_edges``, ``boundary_edges`` (counts) and ``nonmanifold_examples`` (up to 10
-        vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
+        ``nonmanifold_edges``, ``nonmanifold_vertices``, ``boundary_edges`` (counts) and
+        ``nonmanifold_examples`` (up to 10 vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
         With ``return_corners`` also ``corners`` (F', 3) int64: the input corner ``3 f + k``
         (corner k of input face f) that each output corner is, so that per-corner data such as
         texture coordinates can follow (``data.reshape(3 F, ...)[corners]``), faces turned round
@@ -197,13 +237,19 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = 
     if len(F2) == 0:
         raise ValueError("the mesh has no non-degenerate faces")
     nm, boundary = nonmanifold_edges(F2)
+    nm_vertices = nonmanifold_vertices(F2)
     F2, winding, turned = _orient_closed_parts(V2, F2)
     corners[turned] = corners[turned][:, [0, 2, 1]]
     report.update(vertices_out=len(V2), faces_out=len(F2), nonmanifold_edges=int(len(nm)),
-                  boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist(), **winding)
+                  nonmanifold_vertices=int(len(nm_vertices)), boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist(), **winding)
     if len(nm):
         log.warning("template: %d non-manifold edges (shared by > 2 faces), e.g. %s",
                     len(nm), nm[:3].tolist())
+    # at the vertices of non-manifold edges the fans are counted with those edges, not alone
+    lone = np.setdiff1d(nm_vertices, nm.ravel())
+    if len(lone):
+        log.warning("template: %d non-manifold vertices (their faces form more than one fan), e.g. %s",
+                    len(lone), lone[:3].tolist())
     if winding["inverted_parts_flipped"]:
         log.warning("template: %d closed parts of the mesh faced inwards (clockwise seen from outside); "
                     "their faces were turned round", winding["inverted_parts_flipped"])
@@ -901,7 +947,8 @@ def prepare_template(mesh, params: dict) -> dict:
                     "is it in millimetres or centimetres? (it must be in metres)", extent)
     log.info("template: cleaned %d -> %d faces (%s)", report["faces_in"], report["faces_out"],
              {k: report[k] for k in ("duplicate_vertices", "degenerate_faces", "duplicate_faces",
-                                     "unreferenced_vertices", "nonmanifold_edges", "boundary_edges")})
+                                     "unreferenced_vertices", "nonmanifold_edges", "nonmanifold_vertices",
+                                     "boundary_edges")})
     t1 = time.perf_counter()
     decimated = bool(params.get("decimate", True)) and len(F) > int(params["target_faces"])
     if decimated and keep_uv:

@@ -5,7 +5,8 @@ import pytest
 import trimesh
 
 from stex.template import (border_gap, build_atlas, clean_mesh, decimate, embed_vertices, face_adjacency,
-                           gutter_conflicts, texel_map, transfer_vertices, uv_charts, uv_flipped,
+                           gutter_conflicts, nonmanifold_vertices, texel_map, transfer_vertices,
+                           uv_charts, uv_flipped,
                            uv_signed_area, write_template)
 
 
@@ -46,6 +47,25 @@ def test_clean_report_counts_every_defect():
     np.testing.assert_array_equal(V2[F2[0]], V[[0, 1, 2]])
     pairs, edges, nm = face_adjacency(F2, return_nonmanifold=True)
     assert len(nm) == 1 and not any(set(e) == {a, b} for e in edges.tolist())
+
+
+def test_nonmanifold_vertices_are_the_bowties():
+    # two closed tetrahedra touching at one vertex: every edge manifold, that vertex two fans
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1],
+                  [-1, 0, 0], [0, -1, 0], [0, 0, -1]], float)
+    F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3],
+                  [0, 4, 5], [0, 6, 4], [0, 5, 6], [4, 6, 5]])
+    np.testing.assert_array_equal(nonmanifold_vertices(F), [0])
+    _, _, rep = clean_mesh(V, F)
+    assert rep["nonmanifold_vertices"] == 1 and rep["nonmanifold_edges"] == 0
+    # a closed sphere and an open patch (boundary vertices are one open fan): none
+    s = trimesh.creation.icosphere(subdivisions=2)
+    assert len(nonmanifold_vertices(s.faces)) == 0
+    assert len(nonmanifold_vertices(s.faces[: len(s.faces) // 2])) == 0
+    # the two tetrahedra's vertices apart again: none
+    F2 = F.copy()
+    F2[4:][F2[4:] == 0] = 7
+    assert len(nonmanifold_vertices(F2)) == 0
 
 
 def test_decimate_hits_target_and_stays_closed():
