@@ -52,6 +52,11 @@ class Intrinsics:
         d = np.asarray(self.distortion, dtype=np.float64).ravel()
         if d.size > 8:
             raise ValueError(f"at most 8 distortion coefficients, got {d.size}")
+        if not np.isfinite(d).all():
+            raise ValueError(f"distortion coefficients must be finite, got {d.tolist()}")
+        for what, v in (("width", self.width), ("height", self.height)):
+            if isinstance(v, (float, np.floating)) and v != int(v):
+                raise ValueError(f"image {what} must be a whole number of pixels, got {v}")
         dist[: d.size] = d
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "width", int(self.width))

@@ -218,6 +218,16 @@ def write_scene(source_cfg: dict, block: int, out: str | Path) -> None:
                 store.write("template/texcoord_faces", tmpl.texcoord_faces)
         store.attrs["has_template"] = tmpl is not None
         first = src.given_vertices(0)
+        if first is None and isinstance(src, FolderSource):
+            # meshes for later frames but not the first would be dropped without a word
+            having = [fid for fid in src.frame_ids if src.ds.mesh_path(fid) is not None]
+            if having:
+                base = (f" (the authors' layout numbers them from frame {src.ds.mesh_base}: mesh/Frame_000)"
+                        if src.ds.layout == "authors" else "")
+                raise ValueError(f"{src.description['path']}: given meshes exist for {len(having)} of the "
+                                 f"{T} frames, from frame {having[0]}, but not for the first frame "
+                                 f"{src.frame_ids[0]}{base}: every frame needs one, or none (source.folder.start "
+                                 f"selects where the sequence begins)")
         if first is not None:
             if tmpl is not None and first.shape != tmpl.vertices.shape:
                 raise ValueError(f"given mesh of frame {src.frame_ids[0]} has {len(first)} vertices, template has {len(tmpl.vertices)}")

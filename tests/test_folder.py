@@ -696,3 +696,146 @@ def test_stex_calibration_is_validated(stex_ds, synth):
 def test_unknown_layout(stex_ds):
     with pytest.raises(ValueError, match="unknown folder layout 'kim'"):
         FolderDataset(stex_ds, "kim")
+
+
+# -- damaged or ambiguous files (each found by an adversarial review) ---------------------------
+
+def _as_jpeg(root: Path, fid: int, exif_orientation=None) -> Path:
+    """Replace colour frame ``fid`` of a stex-layout dataset by a JPEG (optionally with EXIF)."""
+    from PIL import Image
+
+    png = root / "color" / f"{fid:06d}.png"
+    jpg = png.with_suffix(".jpg")
+    im = Image.fromarray(cv2.imread(str(png if png.exists() else jpg))[..., ::-1].copy())
+    png.unlink(missing_ok=True)
+    if exif_orientation is None:
+        im.save(jpg, quality=95)
+    else:
+        exif = im.getexif()
+        exif[0x0112] = exif_orientation
+        im.save(jpg, quality=95, exif=exif.tobytes())
+    return jpg
+
+
+def test_a_truncated_colour_jpeg_is_refused(stex_ds):
+    jpg = _as_jpeg(stex_ds, IDS[1])
+    ds = FolderDataset(stex_ds, "stex")
+    whole = ds.color(IDS[1])
+    jpg.write_bytes(jpg.read_bytes()[: int(jpg.stat().st_size * 0.66)])
+    # libjpeg would decode it to a full-size image with its lower rows invented
+    with pytest.raises(ValueError, match=rf"{IDS[1]:06d}\.jpg: the JPEG ends without its end-of-image marker"):
+        ds.color(IDS[1])
+    assert whole.shape == (SYN["color"]["height"], SYN["color"]["width"], 3)
+
+
+def test_exif_orientation_of_a_colour_jpeg_is_not_applied(stex_ds):
+    from PIL import Image
+
+    jpg = _as_jpeg(stex_ds, IDS[2], exif_orientation=3)   # "rotate 180" in the EXIF only
+    stored = np.asarray(Image.open(jpg).convert("RGB"))    # the pixels as stored, unrotated
+    got = FolderDataset(stex_ds, "stex").color(IDS[2])
+    # aligned with the depth: not turned round (turned, it is off by tens of grey levels)
+    assert np.abs(got.astype(int) - stored).mean() < 1.0
+    assert np.abs(got.astype(int) - stored[::-1, ::-1]).mean() > 5.0
+
+
+def test_two_files_for_one_frame_are_refused(stex_ds):
+    src = stex_ds / "color" / f"{IDS[1]:06d}.png"
+    shutil.copy(src, stex_ds / "color" / f"{IDS[1]}.png")
+    with pytest.raises(ValueError, match=rf"two files for frame {IDS[1]}: {IDS[1]:06d}\.png and {IDS[1]}\.png"):
+        FolderDataset(stex_ds, "stex")
+
+
+def test_a_stray_frame_with_a_far_index_is_counted_not_listed(authors):
+    for d in ("color", "depth"):
+        shutil.copy(authors / "stream" / d / f"Frame_{IDS[0]:06d}.png",
+                    authors / "stream" / d / "Frame_1000000000.png")
+    # the gap is 10^9 frames long: named by its first frames and counted, at once
+    with pytest.raises(ValueError, match=rf"frame\(s\) \[{IDS[-1] + 1}, .*\] missing \(and {10**9 - IDS[-1] - 11} more\)"):
+        FolderDataset(authors)
+
+
+def test_jpeg_masks_are_refused(stex_ds, synth):
+    m = stex_ds / "mask" / f"{IDS[0]:06d}.png"
+    m.unlink()
+    assert cv2.imwrite(str(m.with_suffix(".jpg")), synth.mask[0].astype(np.uint8) * 255)
+    with pytest.raises(ValueError, match=r"masks must be PNG.*000007\.jpg"):
+        FolderDataset(stex_ds, "stex")
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_meshes_missing_for_the_first_frame_only_are_refused(tmp_path, datasets, layout):
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    first = (root / "mesh" / "Frame_000.off") if layout == "authors" else (root / "meshes" / f"{IDS[0]:06d}.obj")
+    first.unlink()
+    with pytest.raises(ValueError, match=rf"given meshes exist for {N - 1} of the {N} frames, from frame "
+                                         rf"{IDS[1]}, but not for the first frame {IDS[0]}"):
+        write_scene(folder_cfg(root, layout), 2, tmp_path / "scene.zarr")
+    assert not (tmp_path / "scene.zarr").exists()
+
+
+@pytest.mark.parametrize("conf, match", [
+    ([1, 2], "the file must hold an object of cases, got list"),
+    ({"case": {"mapper4D": None}}, "mapper4D must be an object"),
+    ({"case": {"mapper4D": "x"}}, "mapper4D must be an object"),
+])
+def test_conf_json_of_the_wrong_shape(authors, conf, match):
+    (authors / "conf.json").write_text(json.dumps(conf))
+    with pytest.raises(ValueError, match=rf"conf\.json: invalid camera settings \({match}"):
+        FolderDataset(authors)
+
+
+def test_conf_json_main_of_the_wrong_type(authors):
+    conf = json.loads((authors / "conf.json").read_text())
+    case = conf["case_test"]
+    case["main"] = None          # allowed: no main section
+    (authors / "conf.json").write_text(json.dumps(conf))
+    FolderDataset(authors)
+    case["main"] = {"tex_mesh_path": 5}
+    (authors / "conf.json").write_text(json.dumps(conf))
+    with pytest.raises(ValueError, match=r"main\.tex_mesh_path must be a path"):
+        FolderDataset(authors)
+
+
+def test_stex_calibration_that_is_not_an_object(stex_ds):
+    (stex_ds / "calibration.json").write_text("[]")
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration \(the file must hold an object"):
+        FolderDataset(stex_ds, "stex")
+
+
+def test_obj_negative_indices_count_back_from_the_vertices_read_so_far(tmp_path):
+    p = tmp_path / "rel.obj"
+    p.write_text("o A\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf -3/-3 -2/-2 -1/-1\n"
+                 "o B\nv 5 5 5\nv 6 5 5\nv 5 6 5\nvt .5 .5\nvt 1 .5\nvt .5 1\nf -3/-3 -2/-2 -1/-1\n")
+    m = load_mesh(p)
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [3, 4, 5]])
+    np.testing.assert_array_equal(m.texcoord_faces, [[0, 1, 2], [3, 4, 5]])
+
+
+def test_obj_with_texture_coordinates_on_some_faces_only_warns(tmp_path):
+    p = tmp_path / "part.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\nf 2 4 3\n")
+    with pytest.warns(UserWarning, match=r"1 of 2 faces have no texture coordinates"):
+        m = load_mesh(p)
+    assert m.texcoords is None and len(m.faces) == 2
+
+
+@pytest.mark.parametrize("bad", [9, -1])
+def test_ply_face_index_out_of_range(tmp_path, bad):
+    p = tmp_path / "bad.ply"
+    p.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                 "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                 f"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 {bad}\n")
+    with pytest.raises(ValueError, match=rf"bad\.ply: face 1 refers to vertex \[0, 1, {bad}\], outside 0\.\.2"):
+        load_mesh(p)
+
+
+def test_intrinsics_refuse_non_finite_distortion_and_fractional_sizes():
+    from stex.camera import Intrinsics
+
+    Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160, 120, [0.1, 0.0])
+    with pytest.raises(ValueError, match=r"distortion coefficients must be finite"):
+        Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160, 120, [0.1, float("nan")])
+    with pytest.raises(ValueError, match=r"image width must be a whole number of pixels, got 160\.9"):
+        Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160.9, 120)
+    assert Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160.0, 120).width == 160

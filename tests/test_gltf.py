@@ -342,6 +342,10 @@ def test_errors(tmp_path, bar_files):
         pose_vertices(mesh, "Dance", 0.0)
     with pytest.raises(GltfError, match="out of range"):
         pose_vertices(mesh, 9, 0.0)
+    doc, binary, _ = make_bar()
+    binary = struct.pack("<f", float("nan")) + bytes(binary[4:])   # vertex 0's x (first interleaved view)
+    with pytest.raises(GltfError, match=r"nan\.gltf: mesh 0 .* primitive 0: POSITION 0 is not finite"):
+        load_skinned_gltf(write_gltf(tmp_path / "nan.gltf", doc, binary))
     (tmp_path / "junk.gltf").write_text("{not json")
     with pytest.raises(GltfError, match="junk.gltf"):
         load_skinned_gltf(tmp_path / "junk.gltf")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import warnings
 from fractions import Fraction
 from pathlib import Path
 
@@ -289,7 +290,7 @@ def test_modes_inferred_from_track_sizes_and_unpaired_frames(tmp_path):
     path = tmp_path / "notags.mkv"
     written = write_test_mkv(path, 5, (1280, 720), (640, 576), K4A_CALIBRATION, tags=False,
                              drop_depth_frames=(2,))
-    with open_kinect_mkv(path, backend="pyav") as rec:
+    with pytest.warns(UserWarning, match="not evenly spaced"), open_kinect_mkv(path, backend="pyav") as rec:
         assert rec.color_mode == "720P" and rec.depth_mode == "NFOV_UNBINNED"
         assert rec.n_frames == 4 and rec.n_unpaired_color == 1 and rec.n_unpaired_depth == 0
         frames = list(rec.frames())
@@ -768,3 +769,42 @@ def test_pyk4a_backend_with_fake_module(synthetic_mkv, monkeypatch):
     with pytest.raises(ValueError, match="out of range"):
         with open_kinect_mkv(path, backend="pyk4a") as rec:
             rec.read_frame(10)
+
+
+def test_a_calibration_rotation_that_is_no_rotation_is_refused():
+    calib = copy.deepcopy(K4A_CALIBRATION)
+    calib["CalibrationInformation"]["Cameras"][1]["Rt"]["Rotation"] = [0.0] * 9
+    with pytest.raises(ValueError, match=r"colour camera: Rt\.Rotation is not a rotation matrix"):
+        calibration_from_k4a_json(calib, "720P", "NFOV_UNBINNED")
+    calib["CalibrationInformation"]["Cameras"][1]["Rt"]["Rotation"] = [1.0] * 8
+    with pytest.raises(ValueError, match=r"colour camera: Rt needs 9 rotation and 3 translation numbers, got 8"):
+        calibration_from_k4a_json(calib, "720P", "NFOV_UNBINNED")
+    calib["CalibrationInformation"]["Cameras"] = ["a", "b"]
+    with pytest.raises(ValueError, match=r"must be a list of camera objects"):
+        calibration_from_k4a_json(calib, "720P", "NFOV_UNBINNED")
+
+
+def test_non_finite_distortion_is_refused_naming_the_camera():
+    calib = copy.deepcopy(K4A_CALIBRATION)
+    cams = calib["CalibrationInformation"]["Cameras"]
+    colour = next(c for c in cams if c["Location"] == "CALIBRATION_CameraLocationPV0")
+    colour["Intrinsics"]["ModelParameters"][4] = float("nan")
+    # undistorted with NaN, every colour image would come out black
+    with pytest.raises(ValueError, match=r"colour camera: distortion coefficients must be finite"):
+        calibration_from_k4a_json(calib, "720P", "NFOV_UNBINNED")
+
+
+def test_a_capture_lost_inside_the_recording_warns(tmp_path):
+    path = tmp_path / "gap.mkv"
+    write_test_mkv(path, 6, (1280, 720), (640, 576), K4A_CALIBRATION, drop_depth_frames=(3,))
+    with pytest.warns(UserWarning, match=r"not evenly spaced: 1 gap\(s\) .* after capture\(s\) \[2\]"):
+        rec = open_kinect_mkv(path, backend="pyav")
+    with rec:
+        assert rec.n_frames == 5
+    # unpaired images at the ends only: no such warning
+    path2 = tmp_path / "ends.mkv"
+    write_test_mkv(path2, 6, (1280, 720), (640, 576), K4A_CALIBRATION, drop_depth_frames=(0, 5))
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*not evenly spaced.*")
+        with open_kinect_mkv(path2, backend="pyav") as rec:
+            assert rec.n_frames == 4

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, Intrinsics
+from stex.readers.kinect_mkv import jpeg_ends
 from stex.readers.meshes import Mesh, load_mesh
 
 _MESH_EXT = (".off", ".obj", ".ply")
@@ -46,6 +47,12 @@ class FolderDataset:
         root: dataset folder. layout: 'authors' or 'stex'.
         calibration: :class:`~stex.camera.Calibration`.
         frame_ids: list of absolute frame indices (sorted).
+        mesh_base: authors' layout: the frame of ``mesh/Frame_000`` (conf.json's ``main.start_idx``,
+            else the first colour frame on disk); None in stex's layout.
+
+    Colour JPEGs are read as stored (their EXIF orientation is ignored, as the depth and the
+    calibration know nothing of it) and refused when cut short; masks must be PNG; two files for
+    one frame (``8.png`` and ``000008.png``, or ``.png`` and ``.jpg``) are refused.
     """
 
     def __init__(self, root: str | Path, layout: str = "authors", start: int = 0, stop: int | None = None):
@@ -56,7 +63,7 @@ class FolderDataset:
             raise ValueError(f"unknown folder layout {layout!r} (authors | stex)")
         self.layout = layout
         self.template_hint: str | None = None
-        self._mesh_base: int | None = None  # authors: frame id of mesh/Frame_000 (conf.json start_idx)
+        self.mesh_base: int | None = None  # authors: frame id of mesh/Frame_000 (conf.json start_idx)
         if layout == "authors":
             self.calibration_path = self.root / "conf.json"
             self.calibration = self._authors_calibration()
@@ -67,8 +74,11 @@ class FolderDataset:
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: missing (stex layout needs calibration.json)")
             try:
-                self.calibration = Calibration.from_dict(json.loads(path.read_text()))
-            except (KeyError, ValueError, TypeError) as exc:
+                cal = json.loads(path.read_text())
+                if not isinstance(cal, dict):
+                    raise ValueError(f"the file must hold an object, got {type(cal).__name__}")
+                self.calibration = Calibration.from_dict(cal)
+            except (KeyError, ValueError, TypeError, AttributeError) as exc:
                 raise ValueError(f"{path}: invalid calibration ({exc})") from exc
             if self.calibration.color.distortion.any() or self.calibration.depth.distortion.any():
                 warnings.warn(f"{path}: non-zero distortion coefficients; the folder reader does not undistort "
@@ -86,31 +96,41 @@ class FolderDataset:
         missing = [i for i in ids if i not in depth_ids]
         if missing:
             raise ValueError(f"{self._depth_dir}: depth missing for frame(s) {missing[:10]}")
-        missing = [i for a, b in zip(ids, ids[1:]) for i in range(a + 1, b)]
-        if missing:
-            raise ValueError(f"{self._color_dir}: frames are not consecutive: frame(s) {missing[:10]} missing"
-                             f"{f' (and {len(missing) - 10} more)' if len(missing) > 10 else ''} between "
+        gaps = np.diff(np.asarray(ids, np.int64)) - 1
+        if gaps.any():
+            # counted, not listed: one stray file with a far index would make the list huge
+            n_missing = int(gaps.sum())
+            first = [i for a, b in zip(ids, ids[1:]) if b > a + 1 for i in range(a + 1, min(b, a + 11))][:10]
+            raise ValueError(f"{self._color_dir}: frames are not consecutive: frame(s) {first} missing"
+                             f"{f' (and {n_missing - 10} more)' if n_missing > 10 else ''} between "
                              f"{ids[0]} and {ids[-1]} (source.folder.start/stop select a consecutive part)")
         self.frame_ids = ids
         self._color_files = color_ids
         self._depth_files = depth_ids
         self._mask_files = self._ids(self._mask_dir) if self._mask_dir.is_dir() else {}
+        lossy = [p.name for p in self._mask_files.values() if p.suffix.lower() != ".png"]
+        if lossy:
+            raise ValueError(f"{self._mask_dir}: masks must be PNG (JPEG noise turns background pixels into "
+                             f"foreground), got {lossy[:3]}")
         with_mask = [i for i in ids if i in self._mask_files]
         if with_mask and len(with_mask) != len(ids):
             raise ValueError(f"{self._mask_dir}: masks missing for frame(s) {[i for i in ids if i not in self._mask_files][:10]} "
                              "(give a mask for every frame or none)")
         self.has_masks = bool(with_mask)
-        if layout == "authors" and self._mesh_base is None:
-            self._mesh_base = min(color_ids)
+        if layout == "authors" and self.mesh_base is None:
+            self.mesh_base = min(color_ids)
 
     def _ids(self, folder: Path) -> dict[int, Path]:
         if not folder.is_dir():
             return {}
         out = {}
-        for p in folder.iterdir():
+        for p in sorted(folder.iterdir()):
             m = self._pattern.match(p.name)
             if m:
-                out[int(m.group(1))] = p
+                i = int(m.group(1))
+                if i in out:  # e.g. 8.png and 000008.png, or 000008.png and 000008.jpg
+                    raise ValueError(f"{folder}: two files for frame {i}: {out[i].name} and {p.name}; keep one")
+                out[i] = p
         return out
 
     def _authors_calibration(self) -> Calibration:
@@ -119,8 +139,12 @@ class FolderDataset:
             raise FileNotFoundError(f"{path}: missing (the authors' layout keeps the cameras in conf.json)")
         try:
             conf = json.loads(path.read_text())
+            if not isinstance(conf, dict):
+                raise ValueError(f"the file must hold an object of cases, got {type(conf).__name__}")
             case = next(v for v in conf.values() if isinstance(v, dict) and "mapper4D" in v)
             m = case["mapper4D"]
+            if not isinstance(m, dict):
+                raise ValueError(f"mapper4D must be an object, got {type(m).__name__}")
             color, depth = (Intrinsics.from_dict(m.get(key), key) for key in ("color_intrinsic", "depth_intrinsic"))
             ext = np.asarray(m["d_c_extrinsic"], np.float64)
             if ext.size != 12:
@@ -132,23 +156,35 @@ class FolderDataset:
             # The authors' extrinsic is rounded to 8 digits; re-orthonormalise the rotation.
             u, _, vt = np.linalg.svd(R)
             T[:3, :3] = u @ vt
-            main = case.get("main", {})
+            main = case.get("main") or {}
+            if not isinstance(main, dict):
+                raise ValueError(f"main must be an object, got {type(main).__name__}")
             self.template_hint = main.get("tex_mesh_path")
+            if self.template_hint is not None and not isinstance(self.template_hint, str):
+                raise ValueError(f"main.tex_mesh_path must be a path (text), got {self.template_hint!r}")
             if main.get("start_idx") is not None:
                 if int(main["start_idx"]) != main["start_idx"] or main["start_idx"] < 0:
                     raise ValueError(f"main.start_idx must be a non-negative integer, got {main['start_idx']!r}")
-                self._mesh_base = int(main["start_idx"])
+                self.mesh_base = int(main["start_idx"])
             return Calibration(color, depth, T)
         except StopIteration:
             raise ValueError(f"{path}: no case with a 'mapper4D' section") from None
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{path}: invalid camera settings ({exc})") from exc
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
     def _read(self, path: Path, flags: int) -> np.ndarray:
-        img = cv2.imread(str(path), flags)
+        # pixels as stored: an EXIF orientation would turn the image against its depth and calibration
+        if path.suffix.lower() in (".jpg", ".jpeg"):
+            buf = path.read_bytes()
+            if not jpeg_ends(buf):
+                # libjpeg decodes a JPEG cut short to a full-size image with invented rows
+                raise ValueError(f"{path}: the JPEG ends without its end-of-image marker (the file is cut short)")
+            img = cv2.imdecode(np.frombuffer(buf, np.uint8), flags | cv2.IMREAD_IGNORE_ORIENTATION)
+        else:
+            img = cv2.imread(str(path), flags)
         if img is None:
             raise ValueError(f"{path}: cannot decode image (missing or corrupt)")
         return img
@@ -195,7 +231,7 @@ class FolderDataset:
         if self.layout == "authors":
             # Relative index: mesh/Frame_000 belongs to conf.json's start_idx (else the first
             # colour frame on disk), whatever source.folder.start selects.
-            rel = frame_id - self._mesh_base
+            rel = frame_id - self.mesh_base
             if rel < 0:
                 return None
             stem, base = f"Frame_{rel:03d}", self.root / "mesh"

@@ -52,6 +52,7 @@ __all__ = [
     "KinectRecording",
     "Undistorter",
     "calibration_from_k4a_json",
+    "jpeg_ends",
     "open_kinect_mkv",
     "undistort_frame",
 ]
@@ -152,18 +153,28 @@ _MODEL_RATIONAL_6KT = "CALIBRATION_LensDistortionModelRational6KT"
 
 
 def _camera_entry(info: dict, location: str) -> dict:
-    for cam in info.get("Cameras", []):
+    cams = info.get("Cameras")
+    if not isinstance(cams, list) or not all(isinstance(c, dict) for c in cams):
+        raise ValueError("calibration JSON: 'CalibrationInformation.Cameras' must be a list of camera objects")
+    for cam in cams:
         if cam.get("Location") == location:
             return cam
-    found = [c.get("Location") for c in info.get("Cameras", [])]
+    found = [c.get("Location") for c in cams]
     raise ValueError(f"calibration has no camera with Location {location!r} (found {found})")
 
 
-def _rt_matrix(cam: dict) -> np.ndarray:
+def _rt_matrix(cam: dict, which: str) -> np.ndarray:
     """4x4 'world -> this camera' transform from a camera's Rt (row-major R, translation in m)."""
     rt = cam["Rt"]
-    R = np.asarray(rt["Rotation"], dtype=np.float64).reshape(3, 3)
-    t = np.asarray(rt["Translation"], dtype=np.float64).reshape(3)
+    R = np.asarray(rt["Rotation"], dtype=np.float64)
+    t = np.asarray(rt["Translation"], dtype=np.float64)
+    if R.size != 9 or t.size != 3:
+        raise ValueError(f"{which} camera: Rt needs 9 rotation and 3 translation numbers, got {R.size} and {t.size}")
+    R, t = R.reshape(3, 3), t.reshape(3)
+    # stored rounded, so re-orthonormalised below; anything farther off is not a rotation
+    if not (np.isfinite(R).all() and np.isfinite(t).all() and np.allclose(R @ R.T, np.eye(3), atol=1e-3)
+            and np.linalg.det(R) > 0):
+        raise ValueError(f"{which} camera: Rt.Rotation is not a rotation matrix: {R.ravel().tolist()}")
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t
@@ -219,7 +230,10 @@ def _mode_intrinsics(cam: dict, mode: _ModeInfo, which: str) -> Intrinsics:
     cy = cy_n * bh - oy - 0.5
     # Brown-Conrady as k4a evaluates it equals OpenCV's rational model (codx = cody = 0).
     dist = np.array([k1, k2, p1, p2, k3, k4, k5, k6], dtype=np.float64)
-    return Intrinsics.from_focal(fx, fy, cx, cy, mode.output[0], mode.output[1], dist)
+    try:
+        return Intrinsics.from_focal(fx, fy, cx, cy, mode.output[0], mode.output[1], dist)
+    except ValueError as e:
+        raise ValueError(f"{which} camera: {e}") from None
 
 
 def calibration_from_k4a_json(calib, color_resolution, depth_mode) -> Calibration:
@@ -282,7 +296,7 @@ def calibration_from_k4a_json(calib, color_resolution, depth_mode) -> Calibratio
     try:
         depth = _mode_intrinsics(cam_d, depth_info, "depth")
         color = _mode_intrinsics(cam_c, color_mode, "colour")
-        T = _rt_matrix(cam_c) @ np.linalg.inv(_rt_matrix(cam_d))
+        T = _rt_matrix(cam_c, "colour") @ np.linalg.inv(_rt_matrix(cam_d, "depth"))
     except (KeyError, TypeError) as e:
         raise ValueError(f"calibration JSON is missing or has a malformed field: {e!r}") from e
     T[:3, :3] = _orthonormalise(T[:3, :3])
@@ -372,7 +386,7 @@ def _decode_depth(buf: bytes, size: tuple[int, int], dtype: str, what: str) -> n
     return depth
 
 
-def _jpeg_ends(buf) -> bool:
+def jpeg_ends(buf) -> bool:
     """Whether JPEG bytes end with the end-of-image marker FF D9 (trailing zero padding allowed);
     ``buf`` is bytes or a memoryview (only its tail is read)."""
     m = memoryview(buf).cast("B")
@@ -389,7 +403,7 @@ def _check_jpeg_ends(buf: bytes, what: str) -> None:
     its missing rows invented and only says so on stderr, so the frame would enter the texture
     looking whole. The Azure Kinect writes such frames when USB bandwidth or storage cannot keep up
     (Azure-Kinect-Sensor-SDK issue 1354)."""
-    if not _jpeg_ends(buf):
+    if not jpeg_ends(buf):
         raise ValueError(f"{what}: colour MJPEG packet ({len(buf)} bytes) ends without the JPEG end marker: "
                          f"the image is truncated (a decoder would invent its lower rows); the file is corrupt. "
                          f"To leave out such captures set source.mkv.skip_damaged_color: true, or read around it with "
@@ -691,7 +705,7 @@ class KinectRecording:
                     if pkt.stream.index == cs.index:
                         c_pts.append(pkt.pts)
                         c_dur.append(pkt.duration or 0)
-                        c_whole.append(not mjpeg or _jpeg_ends(memoryview(pkt)))
+                        c_whole.append(not mjpeg or jpeg_ends(memoryview(pkt)))
                     else:
                         d_pts.append(pkt.pts)
                         d_dur.append(pkt.duration or 0)
@@ -732,6 +746,13 @@ class KinectRecording:
         if self.n_unpaired_color or self.n_unpaired_depth:
             log.info("%s: %d colour and %d depth images have no partner and are skipped",
                      self.path, self.n_unpaired_color, self.n_unpaired_depth)
+        # unpaired images at the ends are usual; a hole inside the sequence is a lost capture
+        gap = np.flatnonzero(np.diff(self.timestamps_us) > 1.5 * period)
+        if len(gap):
+            warnings.warn(f"{self.path}: the captures are not evenly spaced: {len(gap)} gap(s) of more than one "
+                          f"frame period ({period / 1000:.1f} ms), after capture(s) {gap[:10].tolist()} (lost or "
+                          f"damaged data, or an image without its partner); the frames after each gap are "
+                          f"numbered on without it", stacklevel=3)
 
     @staticmethod
     def _frame_period_us(d_us: np.ndarray, durations: list, tb: Fraction) -> float:

@@ -6,6 +6,7 @@ at import, and nowhere else).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,8 +41,9 @@ def _read_obj(path: Path) -> Mesh:
                     tcs.append([float(parts[1]), float(parts[2]) if len(parts) > 2 else 0.0])
                 elif parts[0] == "f":
                     corners = [p.split("/") for p in parts[1:]]
-                    vi = [int(c[0]) for c in corners]
-                    ti = [int(c[1]) if len(c) > 1 and c[1] else 0 for c in corners]
+                    # negative indices count back from the last vertex read so far (OBJ spec)
+                    vi = [_obj_index(int(c[0]), len(verts)) for c in corners]
+                    ti = [_obj_index(int(c[1]), len(tcs)) if len(c) > 1 and c[1] else 0 for c in corners]
                     for k in range(1, len(vi) - 1):  # fan-triangulate polygons
                         faces.append([vi[0], vi[k], vi[k + 1]])
                         tfaces.append([ti[0], ti[k], ti[k + 1]])
@@ -51,18 +53,27 @@ def _read_obj(path: Path) -> Mesh:
         raise ValueError(f"{path}: OBJ has no vertices or no faces")
     V = np.asarray(verts, np.float64)
     F = np.asarray(faces, np.int64)
-    F = np.where(F < 0, F + len(V) + 1, F) - 1  # OBJ indices are 1-based, negatives relative
+    F = F - 1  # OBJ indices are 1-based
     if F.min() < 0 or F.max() >= len(V):
         raise ValueError(f"{path}: face refers to a vertex outside 1..{len(V)}")
     tc = tf = None
     TF = np.asarray(tfaces, np.int64)
+    if tcs and not (TF != 0).all():
+        warnings.warn(f"{path}: {int((TF == 0).any(1).sum())} of {len(TF)} faces have no texture coordinates "
+                      f"(f v/vt); the mesh's texture coordinates are left out", stacklevel=2)
     if tcs and (TF != 0).all():
         tc = np.asarray(tcs, np.float64)
         tc[:, 1] = 1.0 - tc[:, 1]  # OBJ v points up; stex v points down
-        tf = (np.where(TF < 0, TF + len(tc) + 1, TF) - 1).astype(np.int32)
+        tf = (TF - 1).astype(np.int32)
         if tf.min() < 0 or tf.max() >= len(tc):
             raise ValueError(f"{path}: face refers to a texcoord outside 1..{len(tc)}")
     return Mesh(V, F.astype(np.int32), tc, tf)
+
+
+def _obj_index(i: int, n_read: int) -> int:
+    """1-based OBJ index; a negative one counts back from the ``n_read`` elements read so far
+    (-1 = the last). 0, or one before the first element, stays invalid (refused later)."""
+    return i + n_read + 1 if i < 0 else i
 
 
 def load_mesh(path: str | Path) -> Mesh:
@@ -87,6 +98,10 @@ def load_mesh(path: str | Path) -> Mesh:
         if len(tm.faces) == 0:
             raise ValueError(f"{path}: mesh has no faces")
         mesh = Mesh(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int32))
+    F = mesh.faces
+    if len(F) and (F.min() < 0 or F.max() >= len(mesh.vertices)):
+        bad = int(np.flatnonzero((F < 0).any(1) | (F >= len(mesh.vertices)).any(1))[0])
+        raise ValueError(f"{path}: face {bad} refers to vertex {F[bad].tolist()}, outside 0..{len(mesh.vertices) - 1}")
     if not np.isfinite(mesh.vertices).all():
         bad = int(np.flatnonzero(~np.isfinite(mesh.vertices).all(1))[0])
         raise ValueError(f"{path}: vertex {bad} is not finite")

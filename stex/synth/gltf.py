@@ -765,6 +765,8 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
         pos = np.asarray(reader.accessor(attrs["POSITION"]), dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise GltfError(f"{where}: POSITION must be VEC3")
+        if not np.isfinite(pos).all():
+            raise GltfError(f"{where}: POSITION {int(np.flatnonzero(~np.isfinite(pos).all(1))[0])} is not finite")
         n = pos.shape[0]
         if "indices" in prim:
             idx = np.asarray(reader.accessor(prim["indices"]), dtype=np.int64).reshape(-1)
