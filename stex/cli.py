@@ -42,6 +42,11 @@ def inspect_store(path: str) -> str:
         hint = (f"a folder of stores: {listed}" if stores
                 else "give a store a run writes, e.g. results/demo/labels.zarr")
         raise StoreError(f"{path}: not a stex store ({hint})") from exc
+    except zarr.errors.ContainsArrayError:
+        raise StoreError(f"{path}: an array inside a store, not a store; give the store's folder "
+                         f"({Path(path).parent})") from None
+    except Exception as exc:  # e.g. a damaged zarr.json
+        raise StoreError(f"{path}: not a readable zarr store ({type(exc).__name__}: {exc})") from exc
     kind = raw.attrs.get("stex_artifact")
     if kind not in ARTIFACTS:
         raise StoreError(f"{path}: not a stex artifact store (stex_artifact={kind!r})")
@@ -67,10 +72,14 @@ class _Counter:
         self.what = what
         self.live = sys.stderr.isatty()
 
+    #: a counter line is being rewritten (not ended): an error message starts a new line
+    open_line = False
+
     def __call__(self, done: int, total: int | None) -> None:
         text = f"{self.what}: frame {done}/{total if total is not None else '?'}"
         if self.live:
             print("\r" + text, end="\n" if done == total else "", file=sys.stderr, flush=True)
+            _Counter.open_line = done != total
         elif done == total or done % 10 == 0:
             print(text, file=sys.stderr, flush=True)
 
@@ -144,9 +153,11 @@ def _run_evaluate(args) -> int:
         if name not in others:
             raise ValueError(f"--uv-mesh {item!r}: no --texture {name}=PATH")
         others[name] = {"slices": others[name], "uv_mesh": mesh}
+    from stex.evaluation import check_replaceable
     from stex.export import output_folder
 
     output_folder(args.out)
+    check_replaceable(args.out)
     frames = None
     if args.frames is not None:
         ids = open_store(f"{args.results}/scene.zarr", "scene").attrs["frame_ids"]
@@ -167,6 +178,13 @@ def _run_evaluate(args) -> int:
     return 0
 
 
+def _panel_size(text: str) -> int:
+    value = int(text)
+    if not 16 <= value <= 4096:
+        raise argparse.ArgumentTypeError(f"must be 16..4096 pixels, got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -177,7 +195,7 @@ def _positive_int(text: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     from stex.export import EXPORT_KINDS, PIX_FMTS, SOURCES
 
-    parser = argparse.ArgumentParser(prog="stex", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="stex", description=__doc__.splitlines()[0].replace("``", ""))
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("inspect", help="summarise artifact stores")
     p.add_argument("stores", nargs="+")
@@ -187,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("export", help="export the texture volume (PNG slices, MP4, OBJ or glTF per frame)")
     p.add_argument("results", help="results/<scene> folder holding the stores")
     p.add_argument("--what", choices=EXPORT_KINDS, required=True)
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder (mp4: the video is <out>/texture.mp4)")
     p.add_argument("--frames", default=None, help=frames_help)
     p.add_argument("--source", choices=SOURCES, default="corrected",
                    help="texture volume to export (default: corrected)")
@@ -201,9 +219,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("results", help="results/<scene> folder holding the stores")
     p.add_argument("--out", required=True, help="output .mp4")
     p.add_argument("--frames", default=None, help=frames_help)
-    p.add_argument("--source", choices=SOURCES, default="corrected")
+    p.add_argument("--source", choices=SOURCES, default="corrected",
+                   help="texture volume to show (default: corrected)")
     p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the frames' timestamps)")
-    p.add_argument("--size", type=int, default=360, help="panel height in pixels (default 360)")
+    p.add_argument("--size", type=_panel_size, default=360, help="panel height in pixels, 16..4096 (default 360)")
     p.set_defaults(run=_run_preview)
 
     p = sub.add_parser("tables", help="the paper-style tables over runs, one column per run "
@@ -223,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the slices of --texture NAME are in this mesh's UV layout (OBJ with vt, or "
                         "glTF; in the run's template coordinates), not the run's atlas: each slice is "
                         "carried into the run's atlas; repeatable")
-    p.add_argument("--out", required=True, help="output folder (not the run's own evaluation/)")
+    p.add_argument("--out", required=True, help="output folder, new or an earlier evaluation's (replaced); "
+                                                "not the run's own evaluation/")
     p.add_argument("--frames", default=None, help=frames_help)
     p.add_argument("--stride", type=_positive_int, default=None,
                    help="score every k-th frame (default: the run's evaluation.stride)")
@@ -234,8 +254,21 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.run(args)
     except (StoreError, ValueError, OSError) as exc:
+        if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in str(exc):
+            exc = f"{exc.strerror or exc}: {exc.filename}"
+        _end_counter_line()
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # outputs are written under temporary names, removed on the way out
+        _end_counter_line()
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _end_counter_line() -> None:
+    if _Counter.open_line:
+        print(file=sys.stderr)
+        _Counter.open_line = False
 
 
 if __name__ == "__main__":

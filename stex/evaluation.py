@@ -64,6 +64,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 import threading
 import time
@@ -86,6 +87,7 @@ __all__ = [
     "METHOD_NAMES",
     "method_name",
     "TextureSlices",
+    "check_replaceable",
     "evaluation_params",
     "image_scores",
     "coverage_scores",
@@ -1367,6 +1369,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
+    check_replaceable(out_dir)       # before the scoring, which takes minutes
     sampling = None
     if sampling_path is not None:
         try:
@@ -1457,12 +1460,38 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         shutil.rmtree(out_dir, ignore_errors=True)
         raise
     if final_dir.exists():
+        check_replaceable(final_dir)
         shutil.rmtree(final_dir)
     os.replace(out_dir, final_dir)
     log.info("evaluation: %d frames in %.1f s; written to %s", len(records),
              time.perf_counter() - t_start, final_dir)
     return _finite_or_none(result)
 
+
+
+#: what an evaluation folder holds (write_evaluation): only such a folder is replaced
+_EVALUATION_FILES = re.compile(r"^(evaluation\.json|per_frame\.csv|table_\w+\.csv|tables\.(rst|html)|\w+\.png)$")
+
+
+def check_replaceable(out_dir) -> None:
+    """Refuse to replace ``out_dir`` unless it is missing, empty or an earlier evaluation's folder (an
+    ``evaluation.json`` and only the files an evaluation writes): a mistyped ``--out`` must not
+    delete a run, its textures or anything else."""
+    out_dir = Path(out_dir)
+    if not out_dir.exists():
+        if not out_dir.name or out_dir.name in (".", ".."):
+            raise ValueError(f"{out_dir}: give the evaluation a folder of its own (a new name)")
+        return
+    if not out_dir.is_dir():
+        raise ValueError(f"{out_dir} exists and is not a folder: give the evaluation a new folder")
+    names = sorted(p.name for p in out_dir.iterdir())
+    if not names:  # an empty folder: nothing to lose
+        return
+    others = [n for n in names if not (_EVALUATION_FILES.match(n) and (out_dir / n).is_file())]
+    if "evaluation.json" not in names or others:
+        what = f"it holds {others[:3]}" if others else "it has no evaluation.json"
+        raise ValueError(f"{out_dir} exists and is not an evaluation folder ({what}); it would be "
+                         f"replaced: give a new folder, or an earlier evaluation's")
 
 
 def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=None,

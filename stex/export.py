@@ -195,8 +195,8 @@ def _rate(fps) -> Fraction:
         rate = Fraction(fps).limit_denominator(1001) if not isinstance(fps, Fraction) else fps
     except (TypeError, ValueError, OverflowError):
         raise ValueError(f"fps must be a positive finite number, got {fps!r}") from None
-    if not rate > 0:
-        raise ValueError(f"fps must be positive, got {fps!r}")
+    if not (rate > 0 and 0.01 <= fps <= 1000):  # the encoder's time base takes no more
+        raise ValueError(f"fps must be 0.01 .. 1000, got {fps!r}")
     return rate
 
 
@@ -311,6 +311,10 @@ def write_obj_frame(path_obj, vertices, faces, texcoords, texcoord_faces, textur
     corners[:, 1::2] = tf + 1
     axes = ("x right, y up, z toward the viewer = OpenCV camera (x, -y, -z)" if viewer_axes
             else "OpenCV camera: x right, y down, z forward")
+    # the .obj last: it names the .mtl (which names the texture), so an .obj on disk is whole
+    with _written_whole(path_mtl) as tmp, open(tmp, "w") as fh:
+        fh.write(f"newmtl {material}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
+                 f"map_Kd {texture_png_name}\n")
     with _written_whole(path_obj) as tmp, open(tmp, "w") as fh:
         fh.write(f"# stex textured mesh; metres; axes: {axes}\n")
         fh.write(f"mtllib {path_mtl.name}\n")
@@ -318,9 +322,6 @@ def write_obj_frame(path_obj, vertices, faces, texcoords, texcoord_faces, textur
         np.savetxt(fh, vt, fmt="vt %.8f %.8f")
         fh.write(f"usemtl {material}\n")
         np.savetxt(fh, corners, fmt="f %d/%d %d/%d %d/%d")
-    with _written_whole(path_mtl) as tmp, open(tmp, "w") as fh:
-        fh.write(f"newmtl {material}\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
-                 f"map_Kd {texture_png_name}\n")
     return path_obj, path_mtl
 
 
@@ -573,6 +574,9 @@ class _Results:
         self.dir = Path(results_dir)
         if not self.dir.is_dir():
             raise StoreError(f"{self.dir}: no such results folder")
+        if (self.dir / "zarr.json").exists():
+            raise StoreError(f"{self.dir}: a store, not a results folder; give the results/<scene> folder "
+                             f"that holds the run's stores")
         self.scene = open_store(self.dir / "scene.zarr", "scene")
         self.textures = FrameSequence(self._blocks(source), source)
         template = open_store(self.dir / "template.zarr", "template")
@@ -626,12 +630,30 @@ class _Results:
         return float(1.0 / np.median(steps)) if steps.size else default
 
 
+def _check_writable(folder: Path, what: str, text) -> None:
+    """Refuse (ValueError naming ``text``) an output whose nearest existing folder cannot take a
+    new file, before any work is done: a probe file is created there and removed."""
+    import tempfile
+
+    base = folder
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        raise ValueError(f"{what} {text}: {base} is a file, not a folder")
+    try:
+        with tempfile.NamedTemporaryFile(dir=base, prefix=".stex-probe-"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"{what} {text}: cannot write into {base} ({exc.strerror or exc})") from None
+
+
 def output_folder(out, what: str = "--out") -> Path:
-    """``out`` as an output folder: refused (ValueError) when it is an existing file, before any
-    work is done."""
+    """``out`` as an output folder: refused (ValueError) when it is an existing file or cannot be
+    written, before any work is done."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{what} {out}: is a file; give a folder")
+    _check_writable(out, what, out)
     return out
 
 
@@ -644,6 +666,7 @@ def output_file(out, suffix: str, what: str = "--out") -> Path:
         raise ValueError(f"{what} {text}: is a folder; give a {suffix} file name")
     if out.suffix.lower() != suffix:
         raise ValueError(f"{what} {text}: give a {suffix} file name")
+    _check_writable(out.parent, what, text)
     out.parent.mkdir(parents=True, exist_ok=True)
     return out
 

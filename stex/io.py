@@ -11,7 +11,10 @@ shapes, and marks it ``complete``. A crash leaves no store that looks complete, 
 
 Every store carries attrs: ``stex_artifact`` (its kind), ``stex_version``, ``complete``,
 ``frame_ids`` (global frame indices, where the store is per-frame), ``params`` (the settings that
-produced it), ``units`` (per array) and ``conventions``.
+produced it), ``units`` (per array), ``conventions`` and ``chunk_files`` (per array, the chunk
+files written: zarr reads a missing chunk as zeros, so :func:`open_store` refuses a store that
+lacks some, e.g. a partial copy; it also re-checks the arrays against ``ARTIFACTS``, and
+:meth:`FrameSequence.read` names the store and frame of a chunk it cannot decode).
 
 Per-frame arrays are chunked one frame per chunk along axis 0, so frame-block jobs and readers
 touch only the frames they need. Frame-block artifacts (one store per block of frames) are read
@@ -486,6 +489,8 @@ def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = No
             "params": _jsonable(params or {}),
             "units": {k: v.units for k, v in spec.arrays.items() if k in group},
             "conventions": CONVENTIONS,
+            # counted so that a reader can tell a partial copy: zarr reads a missing chunk as zeros
+            "chunk_files": {k: _chunk_files(tmp, k) for k in spec.arrays if k in group},
             "complete": True,
         })
     except BaseException:
@@ -510,7 +515,23 @@ def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
         raise StoreError(f"{path}: holds artifact {kind!r}, expected {artifact!r}")
     if not group.attrs.get("complete", False):
         raise StoreError(f"{path}: store is incomplete (its writer did not finish)")
+    try:
+        _check_complete(group, artifact, str(path))
+    except StoreError as exc:
+        raise StoreError(f"{exc} (the store is damaged: re-run the stage that writes it)") from None
+    except Exception as exc:  # unreadable array metadata
+        raise StoreError(f"{path}: damaged store ({exc}): re-run the stage that writes it") from exc
+    for name, n in (group.attrs.get("chunk_files") or {}).items():
+        have = _chunk_files(path, name)
+        if have != n:
+            raise StoreError(f"{path}: array {name!r} has {have} of the {n} chunk files it was written with "
+                             f"(a partial copy?); the store is damaged: re-run the stage that writes it")
     return group
+
+
+def _chunk_files(root: Path, name: str) -> int:
+    """Chunk files of array ``name`` in the store at ``root`` (zarr v3: ``<name>/c/...``)."""
+    return sum(len(files) for _, _, files in os.walk(Path(root) / name / "c"))
 
 
 def _jsonable(obj):
@@ -562,6 +583,7 @@ class FrameSequence:
 
     def __init__(self, paths, artifact: str):
         self.artifact = artifact
+        self.paths = [Path(p) for p in paths]
         self.groups = [open_store(p, artifact) for p in paths]
         self.frame_ids: list[int] = []
         self._where: dict[int, tuple[int, int]] = {}
@@ -585,7 +607,11 @@ class FrameSequence:
         if frame_id not in self._where:
             raise KeyError(f"frame {frame_id} is not in the {self.artifact!r} blocks")
         b, i = self._where[frame_id]
-        return self.groups[b][name][i]
+        try:
+            return self.groups[b][name][i]
+        except Exception as exc:  # a damaged chunk: zstd / blosc raise RuntimeError, zarr others
+            raise StoreError(f"{self.paths[b]}: array {name!r} of frame {frame_id} cannot be read ({exc}); "
+                             f"the store is damaged: re-run the stage that writes it") from exc
 
     def frame_attr(self, name: str, frame_id: int, default=None):
         """Entry ``frame_id`` of a per-frame list attr of its block (e.g. masks' support_planes),
@@ -607,7 +633,9 @@ def artifacts_markdown() -> str:
         "",
         "Every stage writes zarr v3 stores under `results/<scene>/`. Writes are atomic (built in "
         "`<path>.partial`, moved into place when complete). Every store has the attrs "
-        "`stex_artifact`, `stex_version`, `complete`, `params`, `units` and `conventions`.",
+        "`stex_artifact`, `stex_version`, `complete`, `params`, `units`, `conventions` and "
+        "`chunk_files` (per array, the chunk files it was written with: a reader refuses a store "
+        "missing some, e.g. a partial copy, which zarr would read as zeros).",
         "",
         f"Conventions: {CONVENTIONS}",
         "",

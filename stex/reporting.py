@@ -25,7 +25,10 @@ def stage_timings(benchmark_dir) -> dict:
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh, delimiter="\t"))
         if rows:
-            out[stage] = out.get(stage, 0.0) + float(rows[-1]["s"])
+            try:
+                out[stage] = out.get(stage, 0.0) + float(rows[-1]["s"])
+            except (KeyError, TypeError, ValueError):
+                raise ValueError(f"{path}: not a Snakemake benchmark file (no seconds in column 's')") from None
     return out
 
 
@@ -57,14 +60,19 @@ def runs_tables(run_dirs) -> str:
 
     summaries, timing, sampling = {}, {}, {}
     for d in map(Path, run_dirs):
-        path = d / "evaluation" / "evaluation.json"
+        # a run's folder, or an evaluation folder itself (as ``stex evaluate --out`` writes)
+        path = d / "evaluation.json" if (d / "evaluation.json").is_file() else d / "evaluation" / "evaluation.json"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no evaluation in {d} (run the workflow on that "
-                                    f"scene first)")
+                                    f"scene first, or give a folder 'stex evaluate' wrote)")
         try:
             doc = json.loads(path.read_text())
-            name, summary = str(doc.get("scene") or d.name), doc["summary"]
-        except (ValueError, KeyError, TypeError) as e:
+            # an evaluation folder of its own is named by its folder (it re-scores some run's scene)
+            own = path.parent == d
+            name, summary = (d.resolve().name if own else str(doc.get("scene") or d.name)), doc["summary"]
+            if not isinstance(summary, dict) or "all" not in summary:
+                raise ValueError("its summary has no scores")
+        except (ValueError, KeyError, TypeError, AttributeError) as e:
             raise ValueError(f"{path}: not an evaluation.json ({e})") from e
         if name in summaries:
             raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")

@@ -287,6 +287,18 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     F = np.asarray(faces, np.int64)
     TF = np.asarray(other_texcoord_faces, np.int64)
     T = np.asarray(other_texcoords, np.float64)
+    used = T[np.unique(TF)]
+    outside = int(((used < -1e-6) | (used > 1 + 1e-6)).any(1).sum())
+    if outside:  # a tiling layout: the slices hold [0, 1]² once, not repeated
+        raise ValueError(f"{where}: {outside} of its {len(used)} texture coordinates lie outside [0, 1] "
+                         f"(a tiling layout, e.g. u up to {used[:, 0].max():.3g}); the slices cover the unit "
+                         f"square once")
+    from stex.template import nonmanifold_edges
+
+    holes, own = len(nonmanifold_edges(other_faces)[1]), len(nonmanifold_edges(F)[1])
+    if holes > 2 * own + 16:  # its holes' texels read the nearest faces' texels instead
+        log.warning("%s: %d boundary edges against the template's %d: where it has holes the template's "
+                    "texels read its nearest faces", where, holes, own)
     idx = np.flatnonzero(tf.ravel() >= 0)
     bary_flat = np.asarray(texel_bary).reshape(-1, 3)
 

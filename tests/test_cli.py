@@ -190,3 +190,91 @@ def test_tables_over_runs(tmp_path, capsys):
     assert "second run of scene 'demo'" in capsys.readouterr().err
     assert main(["tables", str(a), "--out", str(tmp_path / "t.txt")]) == 1
     assert ".rst or .html" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# guards an adversarial review of the CLI asked for
+# --------------------------------------------------------------------------------------------
+
+def test_evaluate_never_replaces_a_folder_that_is_not_an_evaluation(tmp_path, capsys):
+    res = make_results(tmp_path / "cube")
+    precious = tmp_path / "precious"
+    precious.mkdir()
+    (precious / "thesis.tex").write_text("x")
+    for out in (precious, res, res / "corrected"):
+        assert main(["evaluate", str(res), "--out", str(out)]) == 1
+        assert "is not an evaluation folder" in capsys.readouterr().err
+    assert (precious / "thesis.tex").read_text() == "x"
+    assert (res / "scene.zarr").is_dir() and (res / "corrected" / "block_0000.zarr").is_dir()
+    # an earlier evaluation's folder may be replaced
+    from stex.evaluation import check_replaceable
+
+    earlier = tmp_path / "earlier"
+    earlier.mkdir()
+    for name in ("evaluation.json", "per_frame.csv", "table_coverage.csv", "tables.rst", "side_by_side.png"):
+        (earlier / name).write_text("{}")
+    check_replaceable(earlier)
+    (earlier / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"holds \['notes.txt'\]"):
+        check_replaceable(earlier)
+
+
+def test_interrupt_and_errors_after_a_progress_line(tmp_path, capsys, monkeypatch):
+    from stex import cli
+
+    def stop(args):
+        cli._Counter("export png")(1, 3)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_run_export", stop)
+    res = make_results(tmp_path / "cube")
+    assert main(["export", str(res), "--what", "png", "--out", str(tmp_path / "o")]) == 130
+    assert capsys.readouterr().err.splitlines()[-1] == "interrupted"
+    # an output under a file, and a frame rate no encoder takes: refused before any work
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    monkeypatch.undo()
+    assert main(["export", str(res), "--what", "mp4", "--out", str(afile / "x")]) == 1
+    assert f"{afile} is a file, not a folder" in capsys.readouterr().err
+    assert main(["export", str(res), "--what", "mp4", "--fps", "1e12", "--out", str(tmp_path / "v")]) == 1
+    assert "fps must be 0.01 .. 1000" in capsys.readouterr().err
+    with pytest.raises(SystemExit):                 # argparse: usage and status 2
+        main(["preview", str(res), "--size", "100000", "--out", str(tmp_path / "p.mp4")])
+    assert "must be 16..4096" in capsys.readouterr().err
+    assert main(["export", str(res / "scene.zarr"), "--what", "png", "--out", str(tmp_path / "o")]) == 1
+    assert "a store, not a results folder" in capsys.readouterr().err
+    assert main(["inspect", str(res / "template.zarr" / "faces")]) == 1
+    assert "an array inside a store, not a store" in capsys.readouterr().err
+
+
+def test_obj_export_writes_the_obj_last(tmp_path):
+    """The .obj names the .mtl: if the .mtl cannot be written there is no .obj."""
+    from stex import export
+
+    res = make_results(tmp_path / "cube")
+    out = tmp_path / "objx"
+    out.mkdir()
+    (out / ".frame_00011.partial.mtl").mkdir()      # the second frame's .mtl cannot be written
+    with pytest.raises(OSError):
+        export.export_results(res, "obj", out)
+    names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+    assert "frame_00010.obj" in names and "frame_00010.mtl" in names
+    assert "frame_00011.obj" not in names
+
+
+def test_tables_read_an_evaluation_folder_and_refuse_malformed_ones(tmp_path, capsys):
+    import json
+
+    run = _fake_run(tmp_path / "demo", "demo", 30.0)
+    own = tmp_path / "eval_mine"
+    shutil.copytree(run / "evaluation", own)        # as `stex evaluate --out eval_mine` writes
+    assert main(["tables", str(run), str(own)]) == 0
+    header = next(line for line in capsys.readouterr().out.splitlines() if "eval_mine" in line)
+    assert "demo" in header
+    for doc in ([], {"summary": 3}, {"summary": {}}):
+        (own / "evaluation.json").write_text(json.dumps(doc))
+        assert main(["tables", str(own)]) == 1
+        assert "not an evaluation.json" in capsys.readouterr().err
+    (run / "benchmarks" / "labeling.tsv").write_text("x\n1\n")
+    assert main(["tables", str(run)]) == 1
+    assert "labeling.tsv: not a Snakemake benchmark file" in capsys.readouterr().err

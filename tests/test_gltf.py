@@ -516,3 +516,24 @@ def test_the_foxs_own_uv_layout_as_the_atlas_takes_its_own_texture(fox):
     img_x, m_x = render_textured(side_view(new["vertices"]), new["faces"], new["texcoords"], new["texcoord_faces"],
                                  fox.texture, K, 640, 480)
     assert np.abs(img_x - ref)[m_x & m_ref].mean() > 10 * diff.mean() + 5
+
+
+def test_a_static_gltf_is_read_as_a_plain_mesh(tmp_path):
+    """load_mesh reads a glTF without a skin (e.g. another method's UV layout, or stex's own
+    export) as a plain mesh, its TEXCOORD_0 in glTF's (and stex's) v-down convention."""
+    import trimesh
+    from PIL import Image
+
+    from stex.readers.meshes import load_mesh
+
+    m = trimesh.creation.icosphere(subdivisions=1)
+    uv = np.column_stack([np.linspace(0.1, 0.9, len(m.vertices)), np.linspace(0.2, 0.3, len(m.vertices))])
+    m.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.new("RGB", (4, 4)))
+    path = tmp_path / "static.glb"
+    m.export(path)
+    got = load_mesh(path)
+    np.testing.assert_allclose(got.vertices, m.vertices, atol=1e-6)
+    np.testing.assert_array_equal(got.faces, m.faces)
+    # trimesh's uv points up (OBJ); the file and stex hold 1 - v
+    np.testing.assert_allclose(got.texcoords, np.column_stack([uv[:, 0], 1 - uv[:, 1]]), atol=1e-6)
+    np.testing.assert_array_equal(got.texcoord_faces, got.faces)

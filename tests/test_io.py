@@ -84,6 +84,34 @@ def test_frame_sequence_across_blocks(tmp_path):
         FrameSequence([tmp_path / "b0.zarr", tmp_path / "dup.zarr"], "frames")
 
 
+def test_a_damaged_copy_is_refused_not_read_as_zeros(tmp_path):
+    import shutil
+
+    _frames(tmp_path / "b.zarr", [0, 1, 2, 3])       # frame 0 is all zeros: zarr writes no chunk
+    g = open_store(tmp_path / "b.zarr", "frames")
+    assert g.attrs["chunk_files"]["color"] == 3
+    chunks = sorted((tmp_path / "b.zarr" / "color" / "c").rglob("*"))
+    chunk = [c for c in chunks if c.is_file()][1]
+    # a partial copy: one chunk file missing would read as zeros without a word
+    lost = shutil.copytree(tmp_path / "b.zarr", tmp_path / "lost.zarr")
+    (lost / chunk.relative_to(tmp_path / "b.zarr")).unlink()
+    with pytest.raises(StoreError, match=r"lost\.zarr: array 'color' has 2 of the 3 chunk files"):
+        open_store(lost, "frames")
+    # a chunk cut short: named with its frame when read
+    cut = shutil.copytree(tmp_path / "b.zarr", tmp_path / "cut.zarr")
+    target = cut / chunk.relative_to(tmp_path / "b.zarr")
+    target.write_bytes(target.read_bytes()[:5])
+    seq = FrameSequence([cut], "frames")
+    fid = int(chunk.relative_to(tmp_path / "b.zarr" / "color" / "c").parts[0])
+    with pytest.raises(StoreError, match=rf"cut\.zarr: array 'color' of frame {fid} cannot be read"):
+        seq.read("color", fid)
+    # a required array gone
+    gone = shutil.copytree(tmp_path / "b.zarr", tmp_path / "gone.zarr")
+    shutil.rmtree(gone / "depth")
+    with pytest.raises(StoreError, match=r"required array 'depth' was not written .*damaged"):
+        open_store(gone, "frames")
+
+
 def test_docs_page_is_generated_from_the_registry():
     doc = (REPO / "docs" / "artifacts.md").read_text()
     assert doc == artifacts_markdown(), "regenerate: python -m stex.io > docs/artifacts.md"

@@ -57,7 +57,7 @@ def _paint(texel_face, texel_bary, V, F):
     return img
 
 
-def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob):
+def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob, caplog):
     """A colour field of the 3-D position painted in one UV layout, carried into another layout
     of the same surface, equals the field painted there directly (to the bilinear read), and the
     new layout's gutter is filled."""
@@ -92,3 +92,11 @@ def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob):
     assert far.any() and not tr2.apply(_paint(face_a, bary_a, V, F))[far].any()
     with pytest.raises(ValueError, match="square"):
         tr.apply(np.zeros((16, 32, 3), np.uint8))
+    # a tiling layout is refused (it scored 4 dB, silently); a mesh with holes warns
+    with pytest.raises(ValueError, match=r"tiled\.obj: \d+ of its \d+ texture coordinates lie outside \[0, 1\]"):
+        atlas_transfer(face_b, bary_b, V, F, V, F, uv_a * 3, tf_a, where="tiled.obj")
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="stex.resample"):
+        atlas_transfer(face_b, bary_b, V, F, V, F[::2], uv_a, tf_a[::2], where="half.obj")
+    assert "half.obj" in caplog.text and "boundary edges" in caplog.text

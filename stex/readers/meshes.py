@@ -76,8 +76,30 @@ def _obj_index(i: int, n_read: int) -> int:
     return i + n_read + 1 if i < 0 else i
 
 
+def _read_static_gltf(path: Path) -> Mesh:
+    """A glTF/GLB without a skin, read with trimesh (node transforms applied, meshes joined);
+    TEXCOORD_0 kept per vertex (glTF's v already points down, as stex's)."""
+    import trimesh
+
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:
+        raise ValueError(f"{path}: cannot read glTF ({exc})") from exc
+    if len(tm.faces) == 0:
+        raise ValueError(f"{path}: glTF has no triangles")
+    F = np.asarray(tm.faces, np.int32)
+    uv = getattr(tm.visual, "uv", None)
+    if uv is None or len(uv) != len(tm.vertices):
+        return Mesh(np.asarray(tm.vertices, np.float64), F)
+    tc = np.asarray(uv, np.float64).copy()
+    tc[:, 1] = 1.0 - tc[:, 1]  # trimesh turns glTF's v into OBJ's upward v; back to glTF's
+    return Mesh(np.asarray(tm.vertices, np.float64), F, tc, F.copy())
+
+
 def load_mesh(path: str | Path) -> Mesh:
-    """Load a triangle mesh from OBJ, OFF, PLY, STL, glTF or GLB, keeping vertex order."""
+    """Load a triangle mesh from OBJ, OFF, PLY, STL, glTF or GLB, keeping vertex order. A glTF
+    with a skin is read in its bind pose (:func:`stex.synth.gltf.load_skinned_gltf`), one without
+    as a plain mesh."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
@@ -85,10 +107,13 @@ def load_mesh(path: str | Path) -> Mesh:
     if suffix == ".obj":
         mesh = _read_obj(path)
     elif suffix in (".gltf", ".glb"):
-        from stex.synth.gltf import load_skinned_gltf
-        sk = load_skinned_gltf(path)
-        mesh = Mesh(np.asarray(sk.vertices, np.float64), np.asarray(sk.faces, np.int32),
-                    np.asarray(sk.texcoords, np.float64), np.asarray(sk.texcoord_faces, np.int32))
+        from stex.synth.gltf import GltfNoSkinError, load_skinned_gltf
+        try:
+            sk = load_skinned_gltf(path)
+            mesh = Mesh(np.asarray(sk.vertices, np.float64), np.asarray(sk.faces, np.int32),
+                        np.asarray(sk.texcoords, np.float64), np.asarray(sk.texcoord_faces, np.int32))
+        except GltfNoSkinError:
+            mesh = _read_static_gltf(path)
     else:
         import trimesh
         try:

@@ -65,6 +65,11 @@ class GltfError(ValueError):
     """A glTF file is malformed or uses a feature this reader does not support."""
 
 
+class GltfNoSkinError(GltfError):
+    """A glTF file has no skinned mesh (a static asset: :func:`stex.readers.meshes.load_mesh`
+    reads it as a plain mesh)."""
+
+
 # --------------------------------------------------------------------------------------------
 # Data classes
 # --------------------------------------------------------------------------------------------
@@ -529,7 +534,7 @@ def _find_skinned_node(doc: dict, mesh_index: int | None, path: Path) -> tuple[i
                             f"is not used by any node with a skin")
     if not candidates:
         names = [m.get("name", f"mesh_{i}") for i, m in enumerate(meshes)]
-        raise GltfError(f"{path}: no skinned mesh (no node has both 'mesh' and 'skin'); "
+        raise GltfNoSkinError(f"{path}: no skinned mesh (no node has both 'mesh' and 'skin'); "
                         f"meshes in the file: {names}")
     if mesh_index is None and len({c[1] for c in candidates}) > 1:
         warnings.warn(f"{path}: several skinned meshes; using mesh {candidates[0][1]} "
