@@ -1,8 +1,8 @@
 # stex workflow: spatiotemporal texture reconstruction from one RGB-D camera.
 # Run: snakemake --cores 2   (scene: config/config.yaml; others: --configfile config/scenes/<name>.yaml)
-from snakemake.utils import min_version, validate
+from snakemake.utils import min_version
 
-from stex.config import SCHEMA_PATH
+from stex.config import validate_config
 
 min_version("9.0")
 
@@ -10,8 +10,12 @@ min_version("9.0")
 configfile: "config/config.yaml"
 
 
-# the schema ships inside the package: library functions read their defaults from it too
-validate(config, str(SCHEMA_PATH))
+# the schema ships inside the package: library functions read their defaults from it too.
+# stex's validator (the same schema and defaults, in the same key order as snakemake's) names
+# the key and what is allowed in one line, instead of printing the schema and the config
+_validated = validate_config(config)
+config.clear()
+config.update(_validated)
 
 
 report: "workflow/report/workflow.rst"

@@ -1,7 +1,7 @@
 """Configuration: load YAML, validate against the schema (stex/schema.yaml) and fill in the defaults.
 
-The workflow validates with ``snakemake.utils.validate`` (same schema); this module does the
-same for library users, the CLI and tests, without importing snakemake.
+The workflow (the Snakefile, ``workflow/dataset.smk``), library users, the CLI and tests all
+validate with :func:`validate_config`: one schema, one set of defaults, errors in one line.
 """
 
 from __future__ import annotations
@@ -43,19 +43,62 @@ def validate_config(config: dict, schema: dict | None = None) -> dict:
     validator = _with_defaults(jsonschema.Draft202012Validator)(schema)
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
     if errors:
-        e = errors[0]
-        where = "/".join(str(p) for p in e.path) or "<top level>"
-        raise ValueError(f"config error at {where}: {e.message}")
+        raise ValueError(_error_message(errors[0]))
     check_relations(cfg)
     return cfg
 
 
+def _error_message(e: jsonschema.ValidationError) -> str:
+    """One line: where, what is wrong, and what is allowed (or why YAML read it so)."""
+    where = "/".join(str(p) for p in e.path) or "<top level>"
+    msg = f"config error at {where}: {e.message}"
+    if e.validator == "additionalProperties" and isinstance(e.schema.get("properties"), dict):
+        msg += f"; allowed: {', '.join(sorted(e.schema['properties']))}"
+    elif e.validator == "enum" and isinstance(e.instance, bool):
+        msg += " (YAML reads an unquoted off / on / yes / no as false / true: quote it, e.g. 'off')"
+    elif e.validator == "type" and isinstance(e.instance, str):
+        try:
+            float(e.instance)
+            msg += f" (YAML reads {e.instance} as text: write it with a decimal point, e.g. 1.0e-4)"
+        except ValueError:
+            pass
+    return msg
+
+
+#: method names of the evaluation (stex.evaluation.METHODS and its references): not for other methods
+RESERVED_METHOD_NAMES = ("ours", "ours_uncorrected", "global", "projection", "input", "truth")
+
+
 def check_relations(config: dict) -> None:
-    """Rules between settings that the JSON schema cannot state; ValueError naming the keys."""
+    """Rules between settings that the JSON schema cannot state; ValueError naming the keys.
+
+    Checked with the config, so that a run stops before its first job rather than in the stage
+    that needs the rule, after the stages before it."""
     masks = config.get("masks") or {}
     near, far = masks.get("depth_near_m"), masks.get("depth_far_m")
     if near is not None and far is not None and near >= far:
         raise ValueError(f"config error at masks: depth_near_m ({near:g} m) must be below depth_far_m ({far:g} m)")
+    template = config.get("template") or {}
+    W, solve = template.get("atlas_size"), (config.get("correction") or {}).get("solve_size")
+    if W is not None and solve is not None and W % max(1, W // solve):
+        raise ValueError(f"config error at correction/solve_size: the atlas side template.atlas_size {W} is "
+                         f"not divisible by the factor {W // solve} = {W} // {solve}; give a solve_size whose "
+                         f"factor divides it, or {W} (full resolution)")
+    steps = (config.get("sampling_table") or {}).get("steps")
+    if steps and 1 not in steps:
+        raise ValueError(f"config error at sampling_table/steps: {steps} needs 1 (every frame a key frame: "
+                         f"the reference the error ratios are taken against)")
+    if template.get("from_depth") and template.get("uv") == "mesh":
+        raise ValueError("config error at template: uv: mesh keeps the source template's own UV layout, but "
+                         "from_depth builds a mesh without one; use uv: xatlas")
+    if template.get("from_depth") and (config.get("tracking") or {}).get("mode") == "given":
+        raise ValueError("config error at tracking/mode: given meshes refer to the source's template, but "
+                         "template.from_depth builds another one; use tracking.mode: track")
+    others = ((config.get("evaluation") or {}).get("other_methods") or {})
+    reserved = sorted(set(others) & set(RESERVED_METHOD_NAMES))
+    if reserved:
+        raise ValueError(f"config error at evaluation/other_methods: {reserved} name methods the evaluation "
+                         f"scores itself; not {', '.join(RESERVED_METHOD_NAMES)}")
 
 
 def deep_update(base: dict, override: dict) -> dict:
@@ -110,9 +153,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
     validator = _with_defaults(jsonschema.Draft202012Validator)(schema)
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
     if errors:
-        e = errors[0]
-        where = "/".join(str(p) for p in e.path)
-        raise ValueError(f"config error at {where}: {e.message}")
+        raise ValueError(_error_message(errors[0]))
     check_relations(cfg)
     return cfg[section]
 
@@ -157,7 +198,10 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     for entry in files:
         merged = common
         for part in [entry] if isinstance(entry, str) else entry:
-            merged = deep_update(merged, read_settings(part, where, "scene file"))
+            settings = read_settings(part, where, "scene file")
+            if not settings:  # it would run the default scene under the scene file's name
+                raise ValueError(f"{where}: scene file {part} is empty")
+            merged = deep_update(merged, settings)
         f = entry if isinstance(entry, str) else " + ".join(entry)
         try:
             # Snakemake's order: the command-line files, the Snakefile's configfile: under them,

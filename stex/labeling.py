@@ -476,12 +476,13 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
 
 
 def preview_labels(volume_paths, corrected_paths, observations_path, template_path, out,
-                   n_show: int = 4, size: int = 384) -> None:
+                   n_show: int = 4, size: int = 384, theta_omega: float = 0.95) -> None:
     """The label maps of a few frames spread over the sequence, as in the paper's figures.
 
     One row per frame: the colour-corrected slice, its label map (each source frame its own
     colour, :func:`stex.volume.label_colors`; black = gutter / never seen), and once, the SSIM
-    dynamism S_m(f) = min over the face's frames (dark = dynamic, red below θ_Ω = 0.95).
+    dynamism S_m(f) = min over the face's frames (dark = dynamic, red below ``theta_omega``,
+    the labeling's θ_Ω).
     """
     import cv2
 
@@ -498,7 +499,7 @@ def preview_labels(volume_paths, corrected_paths, observations_path, template_pa
     tf = open_store(template_path, "template")["texel/face_id"][...]
     s_min = label_set_min(obs["dynamism"][...], np.asarray(obs["face_visible"][...], bool))
     rs = lambda im: cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA)
-    dyn = _label(rs(ssim_map_image(s_min, tf, theta=0.95)), "SSIM dynamism (min over frames)")
+    dyn = _label(rs(ssim_map_image(s_min, tf, theta=theta_omega)), "SSIM dynamism (min over frames)")
     tiles = []
     for k, fid in enumerate(pick):
         lm = vol.read("label_map", fid)

@@ -34,3 +34,38 @@ def test_the_workflow_refuses_an_unordered_depth_range_before_any_job(tmp_path):
     assert run.returncode != 0
     assert "depth_near_m (2 m) must be below depth_far_m (1 m)" in run.stdout + run.stderr
     assert not (tmp_path / "results").exists()
+
+
+def test_settings_that_only_a_late_stage_needed_are_checked_with_the_config():
+    from stex.config import validate_config
+
+    for overrides, message in [
+            ({"correction": {"solve_size": 100}, "template": {"atlas_size": 512}}, r"correction/solve_size: .* 512 .*factor 5"),
+            ({"sampling_table": {"steps": [2, 3]}}, r"sampling_table/steps: \[2, 3\] needs 1"),
+            ({"template": {"from_depth": True, "uv": "mesh"}}, r"template: uv: mesh .* from_depth"),
+            ({"template": {"from_depth": True}, "tracking": {"mode": "given"}}, r"tracking/mode: given"),
+            ({"evaluation": {"other_methods": {"global": "x"}}}, r"other_methods: \['global'\]"),
+            ({"scene": ".."}, r"config error at scene"),
+            ({"results": ""}, r"config error at results"),
+            # YAML 1.1: an unquoted off is false, 1e-4 is text; the message says so
+            ({"labeling": {"temporal": False}}, r"quote it, e.g. 'off'"),
+            ({"labeling": {"rel_tol": "1e-4"}}, r"write it with a decimal point"),
+            ({"trackng": {}}, r"'trackng' was unexpected\); allowed: correction, .*tracking, volume$")]:
+        with pytest.raises(ValueError, match=message):
+            validate_config(overrides)
+    validate_config({"correction": {"solve_size": 1024}, "template": {"atlas_size": 4096}})
+
+
+def test_the_schema_has_no_description_cut_by_a_comma():
+    """An unquoted comma in a flow mapping ends the description and makes a key of the rest."""
+    import yaml
+
+    from stex.config import SCHEMA_PATH
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            assert not [k for k, v in node.items() if v is None and k != "default"], path
+            for k, v in node.items():
+                walk(v, path + [k])
+
+    walk(yaml.safe_load(SCHEMA_PATH.read_text()), [])

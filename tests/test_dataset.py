@@ -64,6 +64,10 @@ def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
         dataset_scene_configs({"scene_files": [a, [a, also_a]]}, None)
     with pytest.raises(ValueError, match="common must be a mapping"):
         dataset_scene_configs({"scene_files": [a], "common": [1]}, None)
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    with pytest.raises(ValueError, match=r"scene file .*empty\.yaml is empty"):   # it ran the demo scene
+        dataset_scene_configs({"scene_files": [a, str(empty)]}, None)
 
 
 def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path):

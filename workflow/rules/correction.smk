@@ -35,6 +35,8 @@ rule labels_preview:
             category="Labeling",
             subcategory=config["scene"],
         ),
+    params:
+        theta_omega=config["labeling"]["theta_omega"],
     log:
         f"{RESULTS}/logs/labels_preview.log",
     benchmark:

@@ -4,4 +4,5 @@ from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])
 preview_labels(list(snakemake.input.volume), list(snakemake.input.corrected),
-               snakemake.input.observations, snakemake.input.template, snakemake.output[0])
+               snakemake.input.observations, snakemake.input.template, snakemake.output[0],
+               theta_omega=snakemake.params.theta_omega)
