@@ -4,7 +4,8 @@ Each pipeline job writes one zarr v3 store (a directory ``*.zarr``). ``ARTIFACTS
 single definition of what each store holds; ``docs/artifacts.md`` is generated from it
 (``python -m stex.io > docs/artifacts.md``; a test checks the two agree).
 
-Writing is atomic: :func:`create_store` builds the store in ``<path>.partial`` and moves it to
+Writing is atomic: :func:`create_store` builds the store in ``<path>.partial-<host>-<pid>``
+(one folder per writer) and moves it to
 ``<path>`` only after every required array is present with the declared dtype and consistent
 shapes, and marks it ``complete``. A crash leaves no store that looks complete, and
 :func:`open_store` refuses incomplete stores and stores of another artifact kind.
@@ -472,9 +473,7 @@ def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = No
     if artifact not in ARTIFACTS:
         raise StoreError(f"unknown artifact {artifact!r}; known: {sorted(ARTIFACTS)}")
     path = Path(path)
-    tmp = path.with_name(path.name + ".partial")
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    tmp = _private_partial(path)
     tmp.parent.mkdir(parents=True, exist_ok=True)
     group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
     writer = StoreWriter(group, artifact)
@@ -527,6 +526,38 @@ def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
             raise StoreError(f"{path}: array {name!r} has {have} of the {n} chunk files it was written with "
                              f"(a partial copy?); the store is damaged: re-run the stage that writes it")
     return group
+
+
+def _private_partial(path: Path) -> Path:
+    """The temporary name of one writer of ``path``: ``<path>.partial-<host>-<pid>``. Two writers
+    of one store (a job orphaned by a killed Snakemake and its re-run, on a cluster) must not
+    build in, delete or move each other's folder. Left-overs of this host's dead writers (and the
+    old shared ``<path>.partial``) are removed; other hosts' are left to their writers."""
+    import socket
+
+    host = socket.gethostname().replace("-", "_")
+    for old in path.parent.glob(path.name + ".partial*") if path.parent.is_dir() else ():
+        rest = old.name[len(path.name) + len(".partial"):]
+        if rest == "":
+            shutil.rmtree(old, ignore_errors=True)
+            continue
+        h, _, pid = rest[1:].rpartition("-")
+        if h == host and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    tmp = path.with_name(f"{path.name}.partial-{host}-{os.getpid()}")
+    if tmp.exists():  # this process's own earlier attempt
+        shutil.rmtree(tmp)
+    return tmp
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _chunk_files(root: Path, name: str) -> int:
@@ -632,7 +663,7 @@ def artifacts_markdown() -> str:
         "Generated from `stex/io.py` (`python -m stex.io > docs/artifacts.md`); do not edit by hand.",
         "",
         "Every stage writes zarr v3 stores under `results/<scene>/`. Writes are atomic (built in "
-        "`<path>.partial`, moved into place when complete). Every store has the attrs "
+        "`<path>.partial-<host>-<pid>`, one folder per writer, moved into place when complete). Every store has the attrs "
         "`stex_artifact`, `stex_version`, `complete`, `params`, `units`, `conventions` and "
         "`chunk_files` (per array, the chunk files it was written with: a reader refuses a store "
         "missing some, e.g. a partial copy, which zarr would read as zeros).",

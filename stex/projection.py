@@ -199,7 +199,7 @@ def write_projection(tracking_path, template_path, scene_path, masks_paths, para
 
     Streams frame by frame: memory is one frame's mesh, raster and mask. No colour image is read.
     """
-    from stex.io import FrameSequence, create_store, open_store
+    from stex.io import FrameSequence, create_store, open_store, short_ids
 
     p = _params(params)
     scene = open_store(scene_path, "scene")
@@ -208,6 +208,10 @@ def write_projection(tracking_path, template_path, scene_path, masks_paths, para
     cal = Calibration.from_dict(scene.attrs["calibration"])
     F = np.asarray(template["faces"][...], np.int64)
     track_ids = list(tracking.attrs["frame_ids"])
+    scene_ids = list(scene.attrs["frame_ids"])
+    if track_ids != scene_ids:
+        raise ValueError(f"{tracking_path}: tracks frames {short_ids(track_ids)}, but {scene_path} has frames "
+                         f"{short_ids(scene_ids)}: a tracking store of another run? Re-run the tracking stage")
     verts = tracking["vertices"]
     if F.size and verts.shape[1] <= int(F.max()):
         raise ValueError(f"{tracking_path}: {verts.shape[1]} vertices per frame but {template_path} "

@@ -365,8 +365,10 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     write_png_slices((np.zeros((8, 8, 3), np.uint8) for _ in ids), ids, small)
     with pytest.raises(ValueError, match=r"slices are \(8, 8, 3\)"):
         evaluate_results(R, tmp_path / "e2", {"small": small})
-    with pytest.raises(ValueError, match="method name 'ours'"):
+    with pytest.raises(ValueError, match=r"other_methods: \['ours'\] name methods the evaluation scores itself"):
         evaluate_results(R, tmp_path / "e3", {"ours": small})
+    with pytest.raises(ValueError, match="other_methods: 'Bad-Name' does not match"):
+        evaluate_results(R, tmp_path / "e3", {"Bad-Name": small})
     with pytest.raises(StoreError, match="no texture_<frame>.png"):
         evaluate_results(R, tmp_path / "e4", {"x": tmp_path})
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(small / "texture_00000.png")

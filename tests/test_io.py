@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -31,7 +33,7 @@ def test_failed_writer_leaves_nothing(tmp_path):
         with create_store(p, "frames") as s:
             s.create("color", (1, 2, 2, 3))
             raise RuntimeError("boom")
-    assert not p.exists() and not (tmp_path / "f.zarr.partial").exists()
+    assert not p.exists() and not list(tmp_path.glob("f.zarr.partial*"))
 
 
 def test_missing_required_array_is_refused(tmp_path):
@@ -110,6 +112,32 @@ def test_a_damaged_copy_is_refused_not_read_as_zeros(tmp_path):
     shutil.rmtree(gone / "depth")
     with pytest.raises(StoreError, match=r"required array 'depth' was not written .*damaged"):
         open_store(gone, "frames")
+
+
+def test_two_writers_of_one_store_keep_to_their_own_folders(tmp_path):
+    """A job orphaned by a killed Snakemake and its re-run may write one store at once: each
+    builds in a folder of its own, and this host's dead writers' left-overs are removed."""
+    import socket
+    import subprocess
+    import sys
+
+    host = socket.gethostname().replace("-", "_")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    p = tmp_path / "f.zarr"
+    stale = [tmp_path / "f.zarr.partial", tmp_path / f"f.zarr.partial-{host}-{dead}"]
+    elsewhere = tmp_path / "f.zarr.partial-othernode-1"          # another host's writer: not ours to judge
+    for d in stale + [elsewhere]:
+        d.mkdir()
+    with create_store(p, "frames", attrs={"frame_ids": [0]}) as outer:
+        assert not any(d.exists() for d in stale) and elsewhere.exists()
+        mine = sorted(x.name for x in tmp_path.glob("f.zarr.partial*"))
+        assert mine == [elsewhere.name, f"f.zarr.partial-{host}-{os.getpid()}"]
+        outer.write("color", np.ones((1, 2, 2, 3), np.uint8))
+        outer.write("depth", np.ones((1, 2, 2), np.uint16))
+        outer.write("timestamps", np.zeros(1))
+    assert open_store(p, "frames").attrs["complete"]
+    assert sorted(x.name for x in tmp_path.glob("f.zarr.partial*")) == [elsewhere.name]
 
 
 def test_docs_page_is_generated_from_the_registry():

@@ -208,6 +208,17 @@ def test_errors(tiny):
         write_projection(d / "tracking.zarr", d / "template.zarr", d / "scene.zarr",
                          tiny["masks_paths"], tiny["params"], d / "bad.zarr", frames=[99])
     assert not (d / "bad.zarr").exists()
+    # a tracking store of another run (here: its frames but the first) is named as such
+    from stex.io import create_store
+
+    with create_store(d / "other_tracking.zarr", "tracking", attrs={"frame_ids": tiny["frame_ids"][1:]}) as s:
+        s.write("vertices", tiny["vertices"][1:].astype(np.float32))
+        for name in ("residual_m", "depth_fit_m", "silhouette_iou", "seconds"):
+            s.write(name, np.zeros(len(tiny["frame_ids"]) - 1))
+        s.write("n_correspondences", np.zeros(len(tiny["frame_ids"]) - 1, np.int32))
+    with pytest.raises(ValueError, match=r"other_tracking\.zarr: tracks frames .* but .*scene\.zarr has frames .*another run"):
+        write_projection(d / "other_tracking.zarr", d / "template.zarr", d / "scene.zarr",
+                         tiny["masks_paths"], tiny["params"], d / "bad.zarr")
     V = tiny["vertices"][0].copy()
     V[7] = [0.0, 0.0, -1.0]
     with pytest.raises(ValueError, match="vertex 7"):
