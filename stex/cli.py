@@ -153,11 +153,9 @@ def _run_evaluate(args) -> int:
         if name not in others:
             raise ValueError(f"--uv-mesh {item!r}: no --texture {name}=PATH")
         others[name] = {"slices": others[name], "uv_mesh": mesh}
-    from stex.evaluation import check_replaceable
     from stex.export import output_folder
 
-    output_folder(args.out)
-    check_replaceable(args.out)
+    output_folder(args.out)  # the evaluation checks that it may replace it, before scoring
     frames = None
     if args.frames is not None:
         ids = open_store(f"{args.results}/scene.zarr", "scene").attrs["frame_ids"]

@@ -65,7 +65,8 @@ def _error_message(e: jsonschema.ValidationError) -> str:
     return msg
 
 
-#: method names of the evaluation (stex.evaluation.METHODS and its references): not for other methods
+#: method names of the evaluation (stex.evaluation.METHODS, the input images and the truth): not
+#: for other methods (tests/test_config.py keeps the two in step)
 RESERVED_METHOD_NAMES = ("ours", "ours_uncorrected", "global", "projection", "input", "truth")
 
 

@@ -77,6 +77,7 @@ import numpy as np
 from stex import evaluate as ev
 from stex.io import short_ids, write_json
 from stex.camera import Calibration, transform_points
+from stex.config import RESERVED_METHOD_NAMES
 from stex.preview import pyplot
 
 log = logging.getLogger("stex.evaluation")
@@ -237,15 +238,13 @@ class TextureSlices:
 
 def _other_methods(others) -> dict:
     """``{name: TextureSlices}`` of the setting ``other_methods``, names checked."""
-    import re
-
     out = {}
     from stex.config import other_method_paths
 
     for name, (path, uv_mesh) in other_method_paths(others).items():
-        if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in METHODS or name in ("input", "truth"):
+        if not re.fullmatch(r"[a-z][a-z0-9_]*", str(name)) or name in RESERVED_METHOD_NAMES:
             raise ValueError(f"method name {name!r}: use lower-case letters, digits and '_', "
-                             f"not one of {', '.join(METHODS)}, input, truth")
+                             f"not one of {', '.join(RESERVED_METHOD_NAMES)}")
         out[name] = TextureSlices(path, uv_mesh)
     return out
 

@@ -287,13 +287,14 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     F = np.asarray(faces, np.int64)
     TF = np.asarray(other_texcoord_faces, np.int64)
     T = np.asarray(other_texcoords, np.float64)
+    from stex.template import nonmanifold_edges, outside_unit_square
+
     used = T[np.unique(TF)]
-    outside = int(((used < -1e-6) | (used > 1 + 1e-6)).any(1).sum())
-    if outside:  # a tiling layout: the slices hold [0, 1]² once, not repeated
+    outside = int(outside_unit_square(used).sum())
+    if outside:  # as template.uv: mesh refuses it
         raise ValueError(f"{where}: {outside} of its {len(used)} texture coordinates lie outside [0, 1] "
                          f"(a tiling layout, e.g. u up to {used[:, 0].max():.3g}); the slices cover the unit "
                          f"square once")
-    from stex.template import nonmanifold_edges
 
     holes, own = len(nonmanifold_edges(other_faces)[1]), len(nonmanifold_edges(F)[1])
     if holes > 2 * own + 16:  # its holes' texels read the nearest faces' texels instead

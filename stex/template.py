@@ -83,6 +83,7 @@ __all__ = [
     "uv_flipped",
     "layout_from_corners",
     "uv_overlaps",
+    "outside_unit_square",
     "keep_layout",
     "uv_charts",
     "face_adjacency",
@@ -717,6 +718,13 @@ def uv_overlaps(texcoords, texcoord_faces, size: int, face_id=None) -> tuple[int
     return int(len(rows)), ((int(rows[0]), int(cols[0])) if len(rows) else None)
 
 
+def outside_unit_square(uv) -> np.ndarray:
+    """(..., 2) texture coordinates -> (...) bool: not finite or outside [0, 1] (a layout that
+    tiles or wraps; a texture slice holds the unit square once)."""
+    t = np.asarray(uv, np.float64)
+    return ~np.isfinite(t).all(-1) | (t < 0).any(-1) | (t > 1).any(-1)
+
+
 def keep_layout(corner_uv, resolution: int):
     """The mesh's own UV layout as the atlas (``template.uv: mesh``), checked for what one texture
     per face needs.
@@ -738,7 +746,7 @@ def keep_layout(corner_uv, resolution: int):
             face. The message says where.
     """
     t = np.asarray(corner_uv, np.float64)
-    bad = ~np.isfinite(t).all(axis=(1, 2)) | (t < 0).any(axis=(1, 2)) | (t > 1).any(axis=(1, 2))
+    bad = outside_unit_square(t).any(axis=1)
     if bad.any():
         f = int(np.flatnonzero(bad)[0])
         raise ValueError(f"template.uv: mesh: {int(bad.sum())} faces have texture coordinates outside [0, 1] or not finite "

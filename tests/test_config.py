@@ -54,6 +54,10 @@ def test_settings_that_only_a_late_stage_needed_are_checked_with_the_config():
         with pytest.raises(ValueError, match=message):
             validate_config(overrides)
     validate_config({"correction": {"solve_size": 1024}, "template": {"atlas_size": 4096}})
+    from stex.config import RESERVED_METHOD_NAMES
+    from stex.evaluation import METHODS
+
+    assert set(RESERVED_METHOD_NAMES) == set(METHODS) | {"input", "truth"}
 
 
 def test_the_schema_has_no_description_cut_by_a_comma():
