@@ -45,7 +45,26 @@ def validate_config(config: dict, schema: dict | None = None) -> dict:
     if errors:
         raise ValueError(_error_message(errors[0]))
     check_relations(cfg)
-    return cfg
+    return schema_order(cfg, schema)
+
+
+def schema_order(instance, schema: dict):
+    """``instance`` with the keys of every mapping the schema describes in the schema's order
+    (names the schema does not list, e.g. other_methods' method names, after them as given).
+
+    Snakemake compares a job's parameters by their ``repr``, keys in order, and the defaults are
+    filled in after the keys a config file gives: without this, writing a default value out
+    (``masks: {depth_far_m: 1.6}``) re-ran the stage and everything after it.
+    """
+    if isinstance(instance, dict):
+        props = schema.get("properties") or {}
+        extra = schema.get("additionalProperties")
+        extra = extra if isinstance(extra, dict) else {}
+        names = [k for k in props if k in instance] + [k for k in instance if k not in props]
+        return {k: schema_order(instance[k], props.get(k, extra)) for k in names}
+    if isinstance(instance, list) and isinstance(schema.get("items"), dict):
+        return [schema_order(v, schema["items"]) for v in instance]
+    return instance
 
 
 def _error_message(e: jsonschema.ValidationError) -> str:
@@ -63,6 +82,17 @@ def _error_message(e: jsonschema.ValidationError) -> str:
         except ValueError:
             pass
     return msg
+
+
+#: evaluation settings read only by the merge into figures (stex.evaluation.write_evaluation):
+#: left out of the per-block scoring jobs' parameters and records, so that changing them re-draws
+#: the figures without re-scoring every frame
+FIGURE_SETTINGS = ("figure_frame", "dynamism_regions")
+
+
+def scoring_settings(evaluation: dict) -> dict:
+    """The evaluation section without :data:`FIGURE_SETTINGS`: what scoring a frame depends on."""
+    return {k: v for k, v in evaluation.items() if k not in FIGURE_SETTINGS}
 
 
 #: method names of the evaluation (stex.evaluation.METHODS, the input images and the truth): not
@@ -156,7 +186,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
     if errors:
         raise ValueError(_error_message(errors[0]))
     check_relations(cfg)
-    return cfg[section]
+    return schema_order(cfg[section], sub)
 
 
 DATASET_KEYS = {"scene_files", "common"}
@@ -206,8 +236,8 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
         f = entry if isinstance(entry, str) else " + ".join(entry)
         try:
             # Snakemake's order: the command-line files, the Snakefile's configfile: under them,
-            # the command-line files again. Equal values either way, but the jobs' parameters are
-            # compared with their keys in order, and another order re-runs a finished scene.
+            # the command-line files again (the keys of the schema's sections end up in schema
+            # order either way; only free-form names such as other_methods' keep this order)
             cfg = validate_config(deep_update(deep_update(merged, base_cfg), merged))
         except ValueError as e:
             raise ValueError(f"{where}: scene file {f}: {e}") from None

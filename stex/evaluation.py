@@ -77,7 +77,7 @@ import numpy as np
 from stex import evaluate as ev
 from stex.io import short_ids, write_json
 from stex.camera import Calibration, transform_points
-from stex.config import RESERVED_METHOD_NAMES
+from stex.config import RESERVED_METHOD_NAMES, scoring_settings
 from stex.preview import pyplot
 
 log = logging.getLogger("stex.evaluation")
@@ -1253,7 +1253,8 @@ def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
 
-    Writes ``out_path``: ``{"stex_artifact": "evaluation_frames", "params", "frame_ids",
+    Writes ``out_path``: ``{"stex_artifact": "evaluation_frames", "params"`` (the scoring
+    settings, :func:`stex.config.scoring_settings`), ``"frame_ids",
     "source_frames", "scored_frames", "frames": [record, ...], "seconds"}`` with the records of
     ``evaluation.json`` (NaN as null). A block with no frame to score writes an empty list.
 
@@ -1266,7 +1267,7 @@ def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
                   coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=block)
     records = _score(inp, inp.score_ids, threads) if inp.score_ids else []
-    doc = _finite_or_none({"stex_artifact": "evaluation_frames", "params": inp.p,
+    doc = _finite_or_none({"stex_artifact": "evaluation_frames", "params": scoring_settings(inp.p),
                            "frame_ids": inp.ids, "source_frames": inp.sources,
                            "scored_frames": inp.score_ids, "frames": records,
                            "seconds": time.perf_counter() - t_start})
@@ -1282,7 +1283,7 @@ def _load_records(records_paths, inp: _Inputs) -> tuple[list[dict], float]:
     scene order, and the seconds they took."""
     from stex.io import StoreError
 
-    records, seconds, want = [], 0.0, _json_params(inp.p)
+    records, seconds, want = [], 0.0, _json_params(scoring_settings(inp.p))
     for path in records_paths:
         try:
             doc = json.loads(Path(path).read_text())

@@ -73,3 +73,25 @@ def test_the_schema_has_no_description_cut_by_a_comma():
                 walk(v, path + [k])
 
     walk(yaml.safe_load(SCHEMA_PATH.read_text()), [])
+
+
+def test_explicit_defaults_give_the_same_parameters_as_left_out_ones():
+    # Snakemake compares jobs' parameters by repr, keys in order
+    defaults = validate_config({})
+    explicit = validate_config({"masks": {"depth_far_m": defaults["masks"]["depth_far_m"]},
+                                "correction": {"temporal": defaults["correction"]["temporal"]},
+                                "source": {"synthetic": {"degradations": {"motion_blur": {"exposure": 0.5}}}}})
+    assert repr(explicit["masks"]) == repr(defaults["masks"])
+    assert repr(explicit["correction"]) == repr(defaults["correction"])
+    assert list(explicit) == list(defaults)
+    assert repr(section_params("masks", {"depth_far_m": defaults["masks"]["depth_far_m"]})) == repr(defaults["masks"])
+    # free-form names (method names) keep the order they were given in
+    cfg = validate_config({"evaluation": {"other_methods": {"zeta": "a", "alpha": "b"}}})
+    assert list(cfg["evaluation"]["other_methods"]) == ["zeta", "alpha"]
+
+
+def test_scoring_settings_leave_out_only_the_figures():
+    from stex.config import FIGURE_SETTINGS, scoring_settings
+    ev = section_params("evaluation")
+    assert set(FIGURE_SETTINGS) <= set(ev)
+    assert set(scoring_settings(ev)) == set(ev) - set(FIGURE_SETTINGS)

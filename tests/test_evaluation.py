@@ -304,6 +304,11 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tm
         _evaluate(pipe, tmp_path / "m2", truth_paths=pipe["truth"], records_paths=paths + paths[1:])
     with pytest.raises(ValueError, match="other evaluation settings .*radius"):
         _evaluate(pipe, tmp_path / "m3", params={"radius": 2}, truth_paths=pipe["truth"], records_paths=paths)
+    # the figures' settings are the merge's own: other ones re-draw from the same records
+    fig = _evaluate(pipe, tmp_path / "m5", params={"figure_frame": 1, "dynamism_regions": 2},
+                    truth_paths=pipe["truth"], observations_path=pipe["observations"],
+                    tables_paths=pipe["tables"], records_paths=paths)
+    assert fig["frames"] == res["frames"] and fig["summary"] == res["summary"]
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(StoreError, match="junk.json"):
         _evaluate(pipe, tmp_path / "m4", truth_paths=pipe["truth"], records_paths=[tmp_path / "junk.json"])

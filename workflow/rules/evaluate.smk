@@ -22,7 +22,8 @@ rule evaluate_frames:
     output:
         f"{RESULTS}/evaluation_frames/block_{{block}}.json",
     params:
-        evaluation=config["evaluation"],
+        # figure_frame and dynamism_regions are the merge's: changing them re-draws, not re-scores
+        evaluation=scoring_settings(config["evaluation"]),
         positions=block_range,
     log:
         f"{RESULTS}/logs/evaluate_frames_{{block}}.log",
