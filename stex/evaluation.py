@@ -63,7 +63,6 @@ import csv
 import json
 import logging
 import math
-import os
 import re
 import shutil
 import threading
@@ -75,7 +74,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stex import evaluate as ev
-from stex.io import short_ids, write_json
+from stex.io import move_into_place, partial_path, short_ids, write_json
 from stex.camera import Calibration, transform_points
 from stex.config import RESERVED_METHOD_NAMES, scoring_settings
 from stex.preview import pyplot
@@ -1246,7 +1245,7 @@ def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_
     Args:
         scene_path ... frames: the stores, settings and frames to score, as for
             :func:`write_evaluation`.
-        out_path: JSON file to write (built as ``<out_path>.partial`` and moved into place).
+        out_path: JSON file to write (:func:`stex.io.write_json`: built aside, moved into place).
         block: [start, stop) sequence positions: score only the frames to score in it. The
             frame-block stores may then be just the ones holding those frames (and, with
             truth, each one's predecessor, for the flicker).
@@ -1339,8 +1338,8 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         tables_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
             texture (held-out protocol); without, the global texture's ``source_frames``.
         frames: global frame ids to score; None -> every ``stride``-th frame of the scene.
-        out_dir: folder to write (built as ``<out_dir>.partial`` and moved into place when
-            complete, replacing an older one).
+        out_dir: folder to write (built in ``<out_dir>.partial-<host>-<pid>`` and moved into
+            place when complete, replacing an older evaluation's).
         observations_path: ``observations`` store -> the SSIM-dynamism figure.
         records_paths: :func:`score_frames` files whose records together cover the frames to
             score (checked: same settings, frames and sources): merged instead of scoring here.
@@ -1425,10 +1424,9 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         "seconds": {"global_texture": inp.seconds_global, "scoring": seconds_scoring},
     }
 
-    # built in <out_dir>.partial and moved into place: a folder at out_dir is complete
-    final_dir, out_dir = out_dir, out_dir.with_name(out_dir.name + ".partial")
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
+    # built in this writer's <out_dir>.partial-<host>-<pid> and moved into place: a folder at
+    # out_dir is complete
+    final_dir, out_dir = out_dir, partial_path(out_dir)
     out_dir.mkdir(parents=True)
 
     def write_all(out_dir):
@@ -1460,9 +1458,12 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         shutil.rmtree(out_dir, ignore_errors=True)
         raise
     if final_dir.exists():
-        check_replaceable(final_dir)
-        shutil.rmtree(final_dir)
-    os.replace(out_dir, final_dir)
+        try:
+            check_replaceable(final_dir)
+        except BaseException:
+            shutil.rmtree(out_dir, ignore_errors=True)
+            raise
+    move_into_place(out_dir, final_dir)
     log.info("evaluation: %d frames in %.1f s; written to %s", len(records),
              time.perf_counter() - t_start, final_dir)
     return _finite_or_none(result)

@@ -449,14 +449,18 @@ def _check_complete(group: zarr.Group, artifact: str, where: str) -> None:
 
 
 def write_json(path: str | os.PathLike, doc) -> None:
-    """Write ``doc`` as JSON to ``path`` atomically: built in ``<path>.partial`` and moved into
-    place, so a file at ``path`` is complete."""
+    """Write ``doc`` as JSON to ``path`` atomically: built in this writer's
+    :func:`partial_path` and moved into place, so a file at ``path`` is complete."""
     import json
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(doc, indent=1))
+    tmp = partial_path(path)
+    try:
+        tmp.write_text(json.dumps(doc, indent=1))
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, path)
 
 
@@ -473,7 +477,7 @@ def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = No
     if artifact not in ARTIFACTS:
         raise StoreError(f"unknown artifact {artifact!r}; known: {sorted(ARTIFACTS)}")
     path = Path(path)
-    tmp = _private_partial(path)
+    tmp = partial_path(path)
     tmp.parent.mkdir(parents=True, exist_ok=True)
     group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
     writer = StoreWriter(group, artifact)
@@ -495,9 +499,24 @@ def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = No
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if path.exists():
-        shutil.rmtree(path)
+    move_into_place(tmp, path)
+
+
+def move_into_place(tmp: Path, path: Path) -> None:
+    """Replace ``path`` (a file or folder, or nothing) by ``tmp``, built by :func:`partial_path`.
+
+    An old folder at ``path`` is first renamed aside (to ``<tmp>.old``) and removed only once
+    ``tmp`` is in place: removing it first left nothing at ``path`` for as long as the removal of
+    a large store took, and nothing at all if the writer was killed in between. A left-over
+    ``.old`` of a dead writer is removed by the next :func:`partial_path` of ``path``.
+    """
+    tmp, path = Path(tmp), Path(path)
+    aside = tmp.with_name(tmp.name + ".old")
+    if path.is_dir() and not path.is_symlink():
+        os.replace(path, aside)
     os.replace(tmp, path)
+    if aside.exists():
+        shutil.rmtree(aside, ignore_errors=True)
 
 
 def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
@@ -528,26 +547,33 @@ def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
     return group
 
 
-def _private_partial(path: Path) -> Path:
-    """The temporary name of one writer of ``path``: ``<path>.partial-<host>-<pid>``. Two writers
-    of one store (a job orphaned by a killed Snakemake and its re-run, on a cluster) must not
-    build in, delete or move each other's folder. Left-overs of this host's dead writers (and the
-    old shared ``<path>.partial``) are removed; other hosts' are left to their writers."""
+def partial_path(path: str | os.PathLike) -> Path:
+    """The temporary name of one writer of ``path`` (a store, folder or file):
+    ``<path>.partial-<host>-<pid>``, to be moved into place when complete
+    (:func:`move_into_place`). Two writers of one output (a job orphaned by a killed Snakemake and
+    its re-run, on a cluster) must not build in, delete or move each other's. Left-overs of this
+    host's dead writers (and the old shared ``<path>.partial``) are removed; other hosts' are left
+    to their writers."""
     import socket
 
+    path = Path(path)
     host = socket.gethostname().replace("-", "_")
     for old in path.parent.glob(path.name + ".partial*") if path.parent.is_dir() else ():
-        rest = old.name[len(path.name) + len(".partial"):]
-        if rest == "":
-            shutil.rmtree(old, ignore_errors=True)
-            continue
+        rest = old.name[len(path.name) + len(".partial"):].removesuffix(".old")
         h, _, pid = rest[1:].rpartition("-")
-        if h == host and pid.isdigit() and not _alive(int(pid)):
-            shutil.rmtree(old, ignore_errors=True)
+        if rest == "" or (h == host and pid.isdigit() and not _alive(int(pid))):
+            _remove(old)
     tmp = path.with_name(f"{path.name}.partial-{host}-{os.getpid()}")
-    if tmp.exists():  # this process's own earlier attempt
-        shutil.rmtree(tmp)
+    if tmp.exists() or tmp.is_symlink():  # this process's own earlier attempt
+        _remove(tmp)
     return tmp
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        p.unlink(missing_ok=True)
 
 
 def _alive(pid: int) -> bool:
@@ -689,7 +715,9 @@ def artifacts_markdown() -> str:
         "",
         "- `results/<scene>/evaluation_frames/block_<b>.json` — one frame block's scores "
         "(stex.evaluation.score_frames), written atomically: `stex_artifact` "
-        "\"evaluation_frames\", `params` (the evaluation settings), `frame_ids` (every frame of "
+        "\"evaluation_frames\", `params` (the evaluation settings without the figures' "
+        "`figure_frame` and `dynamism_regions`, which only the merge reads: changing them "
+        "re-draws the figures without re-scoring), `frame_ids` (every frame of "
         "the scene), `source_frames`, `scored_frames` (this block's), `seconds`, and `frames`: "
         "one record per scored frame, `{frame, position, held_out, motion_mm, methods: {method: "
         "{metric: value}}}` (metrics in docs/metrics.md; null where a score is undefined, e.g. the "

@@ -107,20 +107,25 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
 
 
 def test_an_interrupted_export_leaves_no_file_under_its_final_name(tmp_path, monkeypatch):
-    """PNG, OBJ/MTL and glTF files are written under a hidden name and renamed when complete: an
-    export stopped inside a write (here a KeyboardInterrupt after half a PNG) leaves neither a
-    truncated file under the final name nor the temporary one."""
+    """A sequence of PNG, OBJ/MTL or glTF files is written in a hidden folder and moved into
+    place when all are complete: an export stopped inside a write (here a KeyboardInterrupt after
+    one whole slice and half of the next) leaves neither the whole slice, which would look like a
+    complete export of fewer frames, nor a truncated one, nor the temporary folder."""
     import cv2
 
     from stex import export
 
     real = cv2.imwrite
+    calls = []
 
     def half_then_stop(path, img):
         real(path, img)
-        with open(path, "r+b") as fh:
-            fh.truncate(100)
-        raise KeyboardInterrupt
+        calls.append(path)
+        if len(calls) == 2:
+            with open(path, "r+b") as fh:
+                fh.truncate(100)
+            raise KeyboardInterrupt
+        return True
 
     monkeypatch.setattr(export.cv2, "imwrite", half_then_stop)
     tex = np.zeros((8, 8, 3), np.uint8)
@@ -247,19 +252,37 @@ def test_interrupt_and_errors_after_a_progress_line(tmp_path, capsys, monkeypatc
     assert "an array inside a store, not a store" in capsys.readouterr().err
 
 
-def test_obj_export_writes_the_obj_last(tmp_path):
-    """The .obj names the .mtl: if the .mtl cannot be written there is no .obj."""
+def test_obj_export_writes_the_obj_last(tmp_path, monkeypatch):
+    """The .obj names the .mtl: if the .mtl cannot be written there is no .obj; and an export that
+    fails at its second frame leaves none of the first frame's files."""
     from stex import export
+
+    one = tmp_path / "one"
+    one.mkdir()
+    (one / ".f.partial.mtl").mkdir()                # the .mtl cannot be written
+    tri = np.array([[0, 1, 2]])
+    with pytest.raises(OSError):
+        export.write_obj_frame(one / "f.obj", np.eye(3), tri, np.eye(3)[:, :2], tri, "f.png")
+    assert not (one / "f.obj").exists()
 
     res = make_results(tmp_path / "cube")
     out = tmp_path / "objx"
-    out.mkdir()
-    (out / ".frame_00011.partial.mtl").mkdir()      # the second frame's .mtl cannot be written
+    real, calls = export.write_obj_frame, []
+
+    def second_fails(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(f"cannot write {path}")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(export, "write_obj_frame", second_fails)
     with pytest.raises(OSError):
         export.export_results(res, "obj", out)
-    names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
-    assert "frame_00010.obj" in names and "frame_00010.mtl" in names
-    assert "frame_00011.obj" not in names
+    assert len(calls) == 2 and list(out.iterdir()) == []
+    monkeypatch.setattr(export, "write_obj_frame", real)
+    written = export.export_results(res, "obj", out)
+    assert [p.parent for p in written] == [out] * len(written) and all(p.exists() for p in written)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
 def test_tables_read_an_evaluation_folder_and_refuse_malformed_ones(tmp_path, capsys):

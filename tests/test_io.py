@@ -139,6 +139,47 @@ def test_two_writers_of_one_store_keep_to_their_own_folders(tmp_path):
     assert open_store(p, "frames").attrs["complete"]
     assert sorted(x.name for x in tmp_path.glob("f.zarr.partial*")) == [elsewhere.name]
 
+    # JSON files and a dead writer's old store renamed aside are cleared the same way
+    from stex.io import write_json
+    (tmp_path / f"r.json.partial-{host}-{dead}").write_text("{half")
+    (tmp_path / f"f.zarr.partial-{host}-{dead}.old").mkdir()
+    write_json(tmp_path / "r.json", {"a": 1})
+    assert sorted(x.name for x in tmp_path.glob("r.json*")) == ["r.json"]
+    with create_store(p, "frames", attrs={"frame_ids": [0]}) as w:
+        w.write("color", np.ones((1, 2, 2, 3), np.uint8))
+        w.write("depth", np.ones((1, 2, 2), np.uint16))
+        w.write("timestamps", np.zeros(1))
+    assert sorted(x.name for x in tmp_path.glob("f.zarr.partial*")) == [elsewhere.name]
+
+
+def test_a_replaced_store_stays_whole_until_the_new_one_is_in_place(tmp_path, monkeypatch):
+    """The old store is renamed aside, not deleted, before the new one moves in: if that move
+    fails the old one is still there, and one complete store is at the path at every moment."""
+    import stex.io as io
+
+    p = tmp_path / "f.zarr"
+
+    def write(value):
+        with create_store(p, "frames", attrs={"frame_ids": [0]}) as w:
+            w.write("color", np.full((1, 2, 2, 3), value, np.uint8))
+            w.write("depth", np.ones((1, 2, 2), np.uint16))
+            w.write("timestamps", np.zeros(1))
+
+    write(1)
+    real = os.replace
+    seen = []
+
+    def replace(src, dst):
+        if str(dst) == str(p):      # the new store moving in: the old one is aside, intact
+            aside = [x for x in tmp_path.iterdir() if x.name.endswith(".old")]
+            seen.append(aside and open_store(aside[0], "frames")["color"][0, 0, 0, 0])
+        return real(src, dst)
+
+    monkeypatch.setattr(io.os, "replace", replace)
+    write(2)
+    assert seen == [1] and open_store(p, "frames")["color"][0, 0, 0, 0] == 2
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["f.zarr"]
+
 
 def test_docs_page_is_generated_from_the_registry():
     doc = (REPO / "docs" / "artifacts.md").read_text()
