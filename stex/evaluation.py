@@ -1290,8 +1290,9 @@ def _load_records(records_paths, inp: _Inputs) -> tuple[list[dict], float]:
             raise StoreError(f"{path}: not a readable evaluation_frames file ({e})") from e
         if not isinstance(doc, dict) or doc.get("stex_artifact") != "evaluation_frames":
             raise StoreError(f"{path}: not an evaluation_frames file")
-        if doc["params"] != want:
-            diff = sorted(k for k in set(want) | set(doc["params"]) if doc["params"].get(k) != want.get(k))
+        got = scoring_settings(doc["params"])  # records of older versions held the figures' too
+        if got != want:
+            diff = sorted(k for k in set(want) | set(got) if got.get(k) != want.get(k))
             raise ValueError(f"{path} was scored with other evaluation settings ({', '.join(diff)})")
         if doc["frame_ids"] != inp.ids or doc["source_frames"] != inp.sources:
             raise ValueError(f"{path} was scored on frames {short_ids(doc['frame_ids'])} with "
