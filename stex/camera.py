@@ -42,6 +42,10 @@ class Intrinsics:
         fx, fy = K[0, 0], K[1, 1]
         if not (np.isfinite(K).all() and fx > 0 and fy > 0):
             raise ValueError(f"camera matrix needs finite positive focal lengths, got fx={fx}, fy={fy}")
+        if K[0, 1] != 0 or K[1, 0] != 0 or K[2].tolist() != [0.0, 0.0, 1.0]:
+            # projection and back-projection use fx, fy, cx, cy only
+            raise ValueError(f"camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), "
+                             f"got {K.tolist()}")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         cx, cy = K[0, 2], K[1, 2]
@@ -213,10 +217,18 @@ def depth_pixels_in_color(depth_m: np.ndarray, calibration: "Calibration", selec
         point lands in front of the colour camera and inside its image; px (N, 2) int64 their
         nearest colour pixel (column, row); z (N,) float64 their colour-camera depth, metres.
     """
-    d = np.asarray(depth_m, np.float64)
+    d = np.asarray(depth_m)
+    if d.ndim != 2:
+        raise ValueError(f"depth_m must be an (Hd, Wd) map, got shape {d.shape}")
+    if not np.issubdtype(d.dtype, np.floating):
+        raise ValueError(f"depth_m must be float metres, got {d.dtype} (uint16 millimetres? divide by 1000)")
+    d = d.astype(np.float64, copy=False)
     valid = d > 0
     if select is not None:
-        valid &= np.asarray(select, bool)
+        sel = np.asarray(select)
+        if sel.shape != d.shape:
+            raise ValueError(f"select must have the depth map's shape {d.shape}, got {sel.shape}")
+        valid &= sel.astype(bool, copy=False)
     idx = np.flatnonzero(valid)
     P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[idx]
     uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
@@ -232,10 +244,16 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
 
     ``up`` is the world direction that should appear upwards in the image (OpenCV's -y).
     """
-    eye = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - eye
+    eye = np.asarray(eye, dtype=np.float64).reshape(3)
+    z = np.asarray(target, dtype=np.float64).reshape(3) - eye
+    if not (np.isfinite(z).all() and np.linalg.norm(z) > 0):
+        raise ValueError(f"look_at needs a finite target apart from the eye, got eye {eye.tolist()}, "
+                         f"target {np.asarray(target).tolist()}")
     z /= np.linalg.norm(z)
-    x = np.cross(-np.asarray(up, dtype=np.float64), z)
+    x = np.cross(-np.asarray(up, dtype=np.float64).reshape(3), z)
+    if not np.linalg.norm(x) > 1e-9:
+        raise ValueError(f"look_at: the viewing direction {z.tolist()} is parallel to up {list(up)}; "
+                         f"give another up")
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])  # rows: camera axes in world coordinates

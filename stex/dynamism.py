@@ -254,6 +254,14 @@ def face_ssim(tex_a, covered_a, tex_b, covered_b, texel_face, n_faces: int, data
             raise ValueError(f"{name} must have shape {(W, W)}, got {m.shape}")
     if ca.dtype != np.bool_ or cb.dtype != np.bool_:
         raise ValueError(f"covered_a/covered_b must be bool, got {ca.dtype}/{cb.dtype}")
+    if not np.issubdtype(tf.dtype, np.integer):
+        raise ValueError(f"texel_face must be integer face ids, got {tf.dtype}")
+    for name, t in (("tex_a", a), ("tex_b", b)):
+        if t.dtype.kind == "f" and not np.isfinite(t).all():
+            # one NaN texel (covered or not: the SSIM windows read their neighbours) made the
+            # faces around it NaN, which the gate reads as static
+            raise ValueError(f"{name} holds {int((~np.isfinite(t)).sum())} non-finite values "
+                             f"(give uncovered texels any finite value, e.g. 0)")
     n_faces = int(n_faces)
     if n_faces < 0 or (tf.size and tf.max() >= n_faces):
         raise ValueError(f"texel_face refers to face {tf.max()} but n_faces is {n_faces}")
@@ -474,8 +482,12 @@ def temporal_pair_weight(gate, faces, label_a, label_b) -> np.ndarray:
         float32 array of that shape in {0, 1}; multiply E_temp(a, b) at face f by it.
     """
     g = np.asarray(gate)
+    if g.ndim != 2:
+        raise ValueError(f"gate must be (T, F), got shape {g.shape}")
     f, a, b = np.broadcast_arrays(np.asarray(faces), np.asarray(label_a), np.asarray(label_b))
     for name, x, n in (("faces", f, g.shape[1]), ("label_a", a, g.shape[0]), ("label_b", b, g.shape[0])):
+        if x.size and not np.issubdtype(x.dtype, np.integer):
+            raise ValueError(f"{name} must be integer, got {x.dtype}")
         if x.size and (x.min() < 0 or x.max() >= n):
             raise ValueError(f"{name} out of range [0, {n})")
     return np.minimum(g[a, f], g[b, f]).astype(np.float32)

@@ -105,6 +105,9 @@ def _image(x, name) -> np.ndarray:
     if a.ndim not in (2, 3) or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
         raise ValueError(f"{name} must be an (H, W) or (H, W, C) numeric image, got shape {a.shape}"
                          f" dtype {a.dtype}")
+    if a.ndim == 3 and a.shape[2] not in (1, 3):
+        raise ValueError(f"{name} must have 1 or 3 channels (grey or RGB), got shape {a.shape}"
+                         f"{'; drop the alpha channel: image[..., :3]' if a.shape[2] == 4 else ''}")
     finite = not np.issubdtype(a.dtype, np.floating)  # integers and bools cannot be NaN
     a = a.astype(np.float64, copy=False)
     if not finite and not np.isfinite(a).all():
@@ -112,7 +115,21 @@ def _image(x, name) -> np.ndarray:
     return a[..., None] if a.ndim == 2 else a
 
 
-def _pair(reference, test):
+def _check_scale(x, name, data_range, fix="pass data_range=1.0, or the image times 255") -> None:
+    """Refuse a float image in [0, 1] scored with a ``data_range`` of grey levels: it would score
+    some 48 dB too high (or, beside a uint8 image, absurdly low) without any error. Grey-level
+    images never lie entirely below 1 with fractional values."""
+    a = np.asarray(x)
+    if float(data_range) <= 1.0 or not np.issubdtype(a.dtype, np.floating) or not a.size:
+        return
+    if a.max() <= 1.0 and a.min() >= 0.0 and bool(np.any(a != np.rint(a))):  # NaN: _image's error
+        raise ValueError(f"{name} is a float image in [0, 1], but grey levels 0..{data_range:g} are "
+                         f"expected: {fix}")
+
+
+def _pair(reference, test, data_range=255.0):
+    _check_scale(reference, "reference", data_range)
+    _check_scale(test, "test", data_range)
     ref = _image(reference, "reference")
     tst = _image(test, "test")
     if ref.shape != tst.shape:
@@ -124,8 +141,8 @@ def _same_shape(reference, test) -> tuple[int, int]:
     """(H, W) of two images :func:`_pair` would accept, checked without converting them."""
     a, b = np.asarray(reference), np.asarray(test)
     for x, name in ((a, "reference"), (b, "test")):
-        if x.ndim not in (2, 3):
-            _image(x, name)  # raises its error
+        if x.ndim not in (2, 3) or (x.ndim == 3 and x.shape[2] not in (1, 3)):
+            _image(x, name)  # raises its error (before converting anything)
     sa = a.shape if a.ndim == 3 else a.shape + (1,)
     sb = b.shape if b.ndim == 3 else b.shape + (1,)
     if sa != sb:
@@ -306,7 +323,9 @@ def patch_shift_psnr(reference, test, mask, patch=DEFAULT_PATCH, radius=DEFAULT_
     N = py.size
     if N == 0:
         return nan_result
-    ref = _image(np.asarray(reference)[r0:r0 + hh, c0:c0 + ww], "reference")
+    ref = np.asarray(reference)[r0:r0 + hh, c0:c0 + ww]
+    _check_scale(ref, "reference", data_range)
+    ref = _image(ref, "reference")
     C = ref.shape[2]
     refg = np.zeros((Hg, Wg, C))
     refg[:hh, :ww] = ref
@@ -315,7 +334,9 @@ def patch_shift_psnr(reference, test, mask, patch=DEFAULT_PATCH, radius=DEFAULT_
     # the part of test the search reads, rows r0 - r .. r0 + Hg + r (columns alike), edge-padded
     # where that runs past the image: test[y, x] = tp[y - r0 + r, x - c0 + r]
     y0, y1, x0, x1 = r0 - r, r0 + Hg + r, c0 - r, c0 + Wg + r
-    tst = _image(np.asarray(test)[max(0, y0):min(H, y1), max(0, x0):min(W, x1)], "test")
+    tst = np.asarray(test)[max(0, y0):min(H, y1), max(0, x0):min(W, x1)]
+    _check_scale(tst, "test", data_range)
+    tst = _image(tst, "test")
     pads = ((max(0, -y0), max(0, y1 - H)), (max(0, -x0), max(0, x1 - W)), (0, 0))
     tp = np.ascontiguousarray(np.pad(tst, pads, mode="edge") if any(map(any, pads)) else tst)
     shifts = np.asarray(_shift_order(r), dtype=np.int64)  # (0, 0) first
@@ -357,7 +378,7 @@ def masked_psnr(reference, test, mask=None, data_range=255.0) -> dict:
         dict ``psnr`` (dB, capped at 100), ``mse`` (grey levels^2), ``n_pixels``.
     """
     mask, (reference, test) = _crop(mask, [reference, test], 0)
-    ref, tst = _pair(reference, test)
+    ref, tst = _pair(reference, test, data_range)
     m = _mask(mask, ref.shape[:2])
     n = int(m.sum())
     if n == 0:
@@ -390,7 +411,7 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
     # the box plus twice the window keeps every scored pixel's window inside the crop, and the
     # image border where the box reaches it (as region_psnr)
     mask, (reference, test) = _crop(mask, [reference, test], 2 * _SSIM_PAD + 2)
-    ref, tst = _pair(reference, test)
+    ref, tst = _pair(reference, test, data_range)
     return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range)[0]
 
 
@@ -465,8 +486,8 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
     from skimage.measure import blur_effect
 
     raw = np.asarray(image)
-    if raw.ndim not in (2, 3):
-        _image(raw, "image")  # raises its error
+    if raw.ndim not in (2, 3) or (raw.ndim == 3 and raw.shape[2] not in (1, 3)):
+        _image(raw, "image")  # raises its error (before converting anything)
     H, W = raw.shape[:2]
     m = _mask(mask, (H, W))
     if fill not in ("nearest", "mean", "none"):
@@ -526,6 +547,7 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
     import cv2
     from skimage.color import rgb2gray
 
+    _check_scale(image, "image", 255.0, fix="give the image times 255")
     img = _image(image, "image")
     H, W = img.shape[:2]
     m = _mask(mask, (H, W)).copy()
@@ -553,7 +575,14 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
 def face_areas(vertices, faces) -> np.ndarray:
     """(F,) float64 triangle areas (m^2 for metre vertices) of (V, 3) vertices and (F, 3) faces."""
     V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces, dtype=np.int64)
+    F = np.asarray(faces)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise ValueError(f"vertices must be (V, 3), got shape {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3 or not (np.issubdtype(F.dtype, np.integer) or F.size == 0):
+        raise ValueError(f"faces must be (F, 3) integer vertex indices, got shape {F.shape} dtype {F.dtype}")
+    F = F.astype(np.int64, copy=False)
+    if F.size and (F.min() < 0 or F.max() >= len(V)):
+        raise ValueError(f"faces index vertices {int(F.min())}..{int(F.max())}, outside 0..{len(V) - 1}")
     return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 
@@ -562,7 +591,8 @@ def face_coverage(face_has_texture, face_area=None) -> np.ndarray:
 
     Args:
         face_has_texture: (T, F) or (F,) bool (True = the face has texture at that frame), or
-            integer frame labels (T, F) where ``label >= 0`` means textured (-1 = never seen).
+            signed integer frame labels (T, F) where ``label >= 0`` means textured (-1 = never
+            seen); 0/1 flags must be bool (as integers they are labels, all textured).
         face_area: (F,) face areas (any unit) -> area fraction; None -> fraction of faces (the
             paper's "29.5-39.6 % of the mesh faces" counts faces).
 
@@ -570,7 +600,13 @@ def face_coverage(face_has_texture, face_area=None) -> np.ndarray:
         (T,) float64 fractions in [0, 1] (a scalar array of shape () for (F,) input).
     """
     a = np.asarray(face_has_texture)
-    has = a >= 0 if (np.issubdtype(a.dtype, np.integer) and a.dtype != bool) else a.astype(bool)
+    if np.issubdtype(a.dtype, np.unsignedinteger):
+        # labels need -1; 0/1 flags read as labels would all count as textured
+        raise ValueError(f"face_has_texture is {a.dtype}: give bool flags, or signed frame labels "
+                         f"(-1 = no texture)")
+    if not (a.dtype == bool or np.issubdtype(a.dtype, np.signedinteger)):
+        raise ValueError(f"face_has_texture must be bool flags or signed integer frame labels, got {a.dtype}")
+    has = a >= 0 if a.dtype != bool else a
     if face_area is None:
         return has.mean(axis=-1)
     w = np.asarray(face_area, dtype=np.float64)
@@ -609,6 +645,8 @@ def mesh_view(vertices, faces, texcoords, texcoord_faces, K, width, height) -> M
 def view_texture(view: MeshView, texture, quantize=True) -> np.ndarray:
     """:func:`render_texture`'s image of ``texture`` on the mesh of ``view``: (H, W, C) float32
     grey levels, rounded and clipped to 0..255 unless ``quantize`` is False, 0 where empty."""
+    if quantize:
+        _check_scale(texture, "texture", 255.0, fix="give the texture times 255")
     image = sample_texture(view.mask, view.uv, texture)
     # the image is 0 where empty: round and clip only the mask's bounding box
     if quantize and view.uv.shape[0]:
@@ -679,6 +717,9 @@ def novel_view(vertices, angle_deg, center=None, axis=(0.0, 1.0, 0.0)) -> np.nda
     """
     c = (np.asarray(vertices, dtype=np.float64).reshape(-1, 3).mean(axis=0) if center is None
          else np.asarray(center, dtype=np.float64).reshape(3))
+    if not np.isfinite(c).all():
+        raise ValueError(f"the rotation centre is not finite ({c.tolist()}): "
+                         f"{'vertices hold NaN or inf' if center is None else 'center'}")
     k = np.asarray(axis, dtype=np.float64).reshape(3)
     n = np.linalg.norm(k)
     if not n > 0:
@@ -746,7 +787,7 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False,
     # every region lies in the mask: its bounding box, with room for the SSIM window, suffices
     # (a box edge that is not the image's stays more than the window from every scored pixel)
     mask, (reference, test, region) = _crop(mask, [reference, test, region], 2 * _SSIM_PAD + 2)
-    ref, tst = _pair(reference, test)
+    ref, tst = _pair(reference, test, data_range)
     m = _mask(mask, ref.shape[:2])
     reg = _mask(region, ref.shape[:2], name="region")
     out = {}

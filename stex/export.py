@@ -202,6 +202,8 @@ def _even(img: np.ndarray) -> np.ndarray:
 
 def _rate(fps) -> Fraction:
     try:
+        if not isinstance(fps, (int, float, Fraction, np.integer, np.floating)):
+            raise TypeError  # Fraction("30") parses text, which the range check cannot compare
         rate = Fraction(fps).limit_denominator(1001) if not isinstance(fps, Fraction) else fps
     except (TypeError, ValueError, OverflowError):
         raise ValueError(f"fps must be a positive finite number, got {fps!r}") from None
@@ -341,6 +343,11 @@ def _per_frame(vertices_seq, textures, frame_ids, out_dir: Path, pattern: str, w
     frame (without vertices when ``vertices_seq`` is None), all in one :func:`_written_as_a_set`
     folder; returns the paths under ``out_dir``."""
     ids = [int(i) for i in frame_ids]
+    names = [pattern.format(frame=i) for i in ids]
+    if len(set(names)) != len(names):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"frames would share the file names {twice[:3]} (frame ids repeated, or a "
+                         f"pattern {pattern!r} without {{frame}})")
     paths = []
     with _written_as_a_set(out_dir) as stage:
         frames = zip(textures) if vertices_seq is None else zip(vertices_seq, textures, strict=True)

@@ -504,6 +504,9 @@ def _check_depth(depth):
     d = np.asarray(depth)
     if d.ndim != 2:
         raise ValueError(f"depth must be an (H, W) map, got shape {d.shape}")
+    if not np.issubdtype(d.dtype, np.floating):
+        # the stores hold uint16 millimetres: read as metres every depth test would pass
+        raise ValueError(f"depth must be float metres, got {d.dtype} (uint16 millimetres? divide by 1000)")
     return np.ascontiguousarray(d, dtype=np.float32)
 
 
@@ -686,6 +689,11 @@ def sample_bilinear(image, uv) -> np.ndarray:
         raise ValueError(f"image must not be empty, got shape {img.shape}")
     if img.dtype == np.bool_:
         img = img.astype(np.uint8)
+    elif not np.issubdtype(img.dtype, np.number) or np.issubdtype(img.dtype, np.complexfloating):
+        raise ValueError(f"image must be numeric, got dtype {img.dtype}")
+    elif img.dtype == np.float16 or not img.dtype.isnative:
+        # the kernel is compiled for native-endian dtypes; float16 has no numba type
+        img = img.astype(np.float32 if img.dtype.kind == "f" else img.dtype.newbyteorder("="))
     gray = img.ndim == 2
     img3 = np.ascontiguousarray(img[:, :, None] if gray else img)
     uv = np.asarray(uv, dtype=np.float64)

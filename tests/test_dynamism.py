@@ -302,3 +302,26 @@ def test_dynamism_on_the_tiny_pipeline(tiny_config, tmp_path):
     assert scored.sum() >= 0.4 * both.sum()
     assert np.nanmedian(S) >= 0.95
     assert np.nanmax(S) <= 1.0 + 1e-6
+
+
+def test_non_finite_texels_and_float_indices_are_refused():
+    """One NaN texel made its face's S NaN, which the gate reads as static; float indices were
+    a bincount TypeError or an IndexError."""
+    W = 16
+    rng = np.random.default_rng(1)
+    a = rng.random((W, W, 3))
+    cov = np.ones((W, W), bool)
+    tf = np.zeros((W, W), np.int32)
+    assert np.isfinite(face_ssim(a, cov, a, cov, tf, 1, data_range=1.0, erode_px=0)).all()
+    b = a.copy()
+    b[3, 3] = np.nan
+    cov_b = cov.copy()
+    cov_b[3, 3] = False            # outside the coverage too: the SSIM windows read it
+    for c in (cov, cov_b):
+        with pytest.raises(ValueError, match="tex_b holds 3 non-finite"):
+            face_ssim(a, cov, b, c, tf, 1, data_range=1.0, erode_px=0)
+    with pytest.raises(ValueError, match="texel_face must be integer"):
+        face_ssim(a, cov, a, cov, tf.astype(float), 1, data_range=1.0)
+    g = temporal_gate(np.ones((3, 2), np.float32), 0.95)
+    with pytest.raises(ValueError, match="label_a must be integer"):
+        temporal_pair_weight(g, [0, 1], [0.0, 1.0], [1, 2])

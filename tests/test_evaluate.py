@@ -379,3 +379,39 @@ def test_seen_unseen_split(sphere_scene):
         assert res[f"ssim_{name}"] == ev.masked_ssim(truth20, recon20, sel)["ssim"]
     res180 = ev.region_psnr(truth, recon, mask, seen)
     assert res180["n_unseen"] > 0.98 * mask.sum()
+
+
+def test_inputs_of_another_convention_are_refused_not_scored():
+    """Conventions a caller easily gets wrong gave plausible numbers: a float image in [0, 1]
+    scored against 0..255 (70.6 dB instead of 22.5), RGBA (alpha counted as a perfect channel),
+    0/1 integer flags read as frame labels (100 % coverage), a NaN centroid (a NaN view)."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (40, 40, 3)).astype(np.uint8)
+    noisy = np.clip(rgb + rng.normal(0, 20, rgb.shape), 0, 255)
+    m = np.ones((40, 40), bool)
+    want = ev.masked_psnr(rgb, noisy, m)["psnr"]
+    assert ev.masked_psnr(rgb / 255, noisy / 255, m, data_range=1.0)["psnr"] == pytest.approx(want)
+    for f in (lambda: ev.masked_psnr(rgb / 255, noisy / 255, m), lambda: ev.masked_psnr(rgb, noisy / 255, m),
+              lambda: ev.masked_ssim(rgb / 255, noisy / 255, m),
+              lambda: ev.patch_shift_psnr(rgb / 255, noisy / 255, m, patch=8, radius=1),
+              lambda: ev.noise_sigma(rgb / 255, m)):
+        with pytest.raises(ValueError, match=r"float image in \[0, 1\]"):
+            f()
+    assert ev.masked_psnr(np.zeros((40, 40, 3)), noisy, m)["psnr"] < 10   # black stays scoreable
+    rgba = np.dstack([rgb, np.full((40, 40), 255, np.uint8)])
+    for f in (lambda: ev.masked_psnr(rgba, rgba, m), lambda: ev.blur(rgba, m), lambda: ev.noise_sigma(rgba, m),
+              lambda: ev.patch_shift_psnr(rgba, rgba, m, patch=8, radius=1)):
+        with pytest.raises(ValueError, match="1 or 3 channels.*alpha"):
+            f()
+    with pytest.raises(ValueError, match="bool flags"):
+        ev.face_coverage(np.array([[1, 0, 0, 0]], np.uint8))
+    assert ev.face_coverage(np.array([[1, 0, 0, 0]], bool)) == pytest.approx(0.25)
+    assert ev.face_coverage(np.array([[3, -1, 0, -1]])) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="not finite"):
+        ev.novel_view(np.array([[0, 0, 1], [np.nan, 0, 1.0]]), 30)
+    with pytest.raises(ValueError, match="outside 0..2"):
+        ev.face_areas(np.eye(3), [[0, 1, -1]])
+    tri = np.array([[0, 1, 2]])
+    with pytest.raises(ValueError, match="texture times 255"):
+        ev.render_texture(np.array([[0, 0, 1.0], [0.1, 0, 1], [0, 0.1, 1]]), tri, np.eye(3)[:, :2], tri,
+                          rng.random((8, 8, 3)), np.array([[100, 0, 20], [0, 100, 20], [0, 0, 1.0]]), 40, 40)

@@ -346,3 +346,19 @@ def test_export_results_reads_stores(tmp_path):
     zarr.open_group(str(res / "volume" / "block_0001.zarr"), mode="r+").attrs["complete"] = False
     with pytest.raises(StoreError, match="block_0001.zarr: store is incomplete"):
         export_results(res, "png", tmp_path / "x", source="volume")
+
+
+def test_sequence_writers_refuse_names_that_collide(tmp_path):
+    """Repeated frame ids (or a pattern without {frame}) wrote one file and returned two paths."""
+    import numpy as np
+
+    from stex import export
+
+    tex = np.zeros((8, 8, 3), np.uint8)
+    with pytest.raises(ValueError, match="share the file names"):
+        export.write_png_slices([tex, tex], [5, 5], tmp_path / "a")
+    with pytest.raises(ValueError, match="share the file names"):
+        export.write_png_slices([tex, tex], [5, 6], tmp_path / "b", pattern="slice.png")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(ValueError, match="positive finite number"):
+        export.write_video([tex], tmp_path / "v.mp4", fps="30")

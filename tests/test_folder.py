@@ -839,3 +839,20 @@ def test_intrinsics_refuse_non_finite_distortion_and_fractional_sizes():
     with pytest.raises(ValueError, match=r"image width must be a whole number of pixels, got 160\.9"):
         Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160.9, 120)
     assert Intrinsics.from_focal(100.0, 100.0, 79.5, 59.5, 160.0, 120).width == 160
+
+
+def test_intrinsics_refuse_skew_and_another_last_row_and_look_at_degenerate_views():
+    """Projection and back-projection use fx, fy, cx, cy only: a K with skew or a last row other
+    than (0, 0, 1) was accepted and half ignored. look_at along its up vector gave NaN rows."""
+    import numpy as np
+
+    from stex.camera import Intrinsics, look_at
+
+    for K in ([[500, 1, 320], [0, 500, 240], [0, 0, 1]], [[500, 0, 320], [0, 500, 240], [0, 0, 2]]):
+        with pytest.raises(ValueError, match="no skew"):
+            Intrinsics(np.array(K, float), 640, 480)
+    with pytest.raises(ValueError, match="parallel to up"):
+        look_at((0, 1, 0), (0, 0, 0))
+    with pytest.raises(ValueError, match="apart from the eye"):
+        look_at((0, 0, 0), (0, 0, 0))
+    assert np.isfinite(look_at((0, 0, -1), (0, 0, 0))).all()

@@ -435,3 +435,17 @@ def test_bad_input_raises():
         render.rasterize(V[:, :2], F, K, 40, 30)
     with pytest.raises(ValueError):
         render.rasterize(V, F, np.eye(4), 40, 30)
+
+
+def test_depth_in_millimetres_and_unusual_texture_dtypes():
+    """uint16 millimetres (the stores' depth) read as metres made hidden faces visible; float16 and
+    big-endian textures raised numba errors; they sample as native float32 now."""
+    V = np.array([[-0.1, -0.1, 1.0], [0.1, -0.1, 1.0], [0.0, 0.1, 1.0]])
+    K = np.array([[100.0, 0, 20], [0, 100, 20], [0, 0, 1]])
+    depth = render.rasterize(V, np.array([[0, 1, 2]]), K, 40, 40).depth
+    with pytest.raises(ValueError, match="float metres.*millimetres"):
+        render.face_visibility(V, np.array([[0, 1, 2]]), K, (depth * 1000).astype(np.uint16))
+    img = np.arange(48, dtype=np.float64).reshape(4, 4, 3)
+    want = render.sample_bilinear(img, np.array([[1.5, 2.5]]))
+    for dt in (np.float16, ">f8", ">u2"):
+        assert np.allclose(render.sample_bilinear(img.astype(dt), np.array([[1.5, 2.5]])), want)

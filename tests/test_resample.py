@@ -100,3 +100,18 @@ def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob, capl
     with caplog.at_level(logging.WARNING, logger="stex.resample"):
         atlas_transfer(face_b, bary_b, V, F, V, F[::2], uv_a, tf_a[::2], where="half.obj")
     assert "half.obj" in caplog.text and "boundary edges" in caplog.text
+
+
+def test_closest_surface_points_checks_its_arguments():
+    """(3, 2) points were reshaped to (2, 3), face -1 wrapped to the last vertex."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]])
+    F = np.array([[0, 1, 2], [1, 3, 2]])
+    for points, faces, msg in ((np.zeros((3, 2)), F, r"points must be \(n, 3\)"),
+                               (np.array([[0, 0, np.nan]]), F, "non-finite"),
+                               (np.zeros((1, 3)), [[0, 1, -1]], "outside 0..3"),
+                               (np.zeros((1, 3)), [[0, 1, 7]], "outside 0..3"),
+                               (np.zeros((1, 3)), [[0, 1, 2, 3]], r"\(F, 3\) integer")):
+        with pytest.raises(ValueError, match=msg):
+            closest_surface_points(points, V, faces)
+    face, bary, dist = closest_surface_points(np.array([[0.2, 0.2, 0.1]]), V, F)
+    assert face.tolist() == [0] and dist[0] == pytest.approx(0.1)
