@@ -148,8 +148,15 @@ def read_settings(path: str | Path, where: str = "", what: str = "config file") 
     ValueError naming it (``where: what path ...``) when it is missing or not a mapping."""
     prefix = f"{where}: " if where else ""
     if not Path(path).is_file():
-        raise FileNotFoundError(f"{prefix}{what} {path} not found")
-    settings = yaml.safe_load(Path(path).read_text()) or {}
+        rel = "" if Path(path).is_absolute() else f" (relative paths are read from the working directory {Path.cwd()})"
+        raise FileNotFoundError(f"{prefix}{what} {path} not found{rel}")
+    try:
+        settings = yaml.safe_load(Path(path).read_text()) or {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ValueError(f"{prefix}{what} {path} is not valid YAML{at}: "
+                         f"{getattr(e, 'problem', None) or e}") from None
     if not isinstance(settings, dict):
         raise ValueError(f"{prefix}{what} {path} is not a mapping of settings")
     return settings
@@ -224,16 +231,24 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     if not isinstance(common, dict):
         raise ValueError(f"{where}: common must be a mapping of settings, got {common!r}")
     base_cfg = read_settings(base) if base is not None and Path(base).is_file() else {}
+    if common:  # its own errors name it, not the first scene file
+        try:
+            validate_config(deep_update(base_cfg, common))
+        except ValueError as e:
+            raise ValueError(f"{where}: common: {e}") from None
     configs: dict[str, dict] = {}
     named_by: dict[str, str] = {}
     for entry in files:
-        merged = common
+        merged, own = common, {}
         for part in [entry] if isinstance(entry, str) else entry:
             settings = read_settings(part, where, "scene file")
             if not settings:  # it would run the default scene under the scene file's name
                 raise ValueError(f"{where}: scene file {part} is empty")
-            merged = deep_update(merged, settings)
+            merged, own = deep_update(merged, settings), deep_update(own, settings)
         f = entry if isinstance(entry, str) else " + ".join(entry)
+        if "scene" not in own:  # it would run as the default scene, into its results folder
+            raise ValueError(f"{where}: scene file {f} sets no `scene:` (the name of its results "
+                             f"folder); without one it would run as {base_cfg.get('scene', 'demo')!r}")
         try:
             # Snakemake's order: the command-line files, the Snakefile's configfile: under them,
             # the command-line files again (the keys of the schema's sections end up in schema

@@ -10,10 +10,11 @@ from pathlib import Path
 __all__ = ["stage_timings", "write_tables_html", "tables_html", "runs_tables"]
 
 
-def stage_timings(benchmark_dir) -> dict:
+def stage_timings(benchmark_dir, n_blocks: int | None = None) -> dict:
     """Wall time per stage (s): the sum over a stage's jobs of Snakemake's ``benchmark:`` files
     ``<dir>/<rule>[_<block>].tsv`` (column ``s``; block suffixes are summed into one stage).
-    Missing directory: {}."""
+    With ``n_blocks``, files of blocks ``>= n_blocks`` are left out: they are left over from a
+    run of the scene with more frames. Missing directory: {}."""
     out: dict[str, float] = {}
     d = Path(benchmark_dir)
     if not d.is_dir():
@@ -22,6 +23,8 @@ def stage_timings(benchmark_dir) -> dict:
         stem = path.stem
         head, _, tail = stem.rpartition("_")
         stage = head if tail.isdigit() and head else stem
+        if stage == head and n_blocks is not None and int(tail) >= n_blocks:
+            continue
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh, delimiter="\t"))
         if rows:
@@ -30,6 +33,15 @@ def stage_timings(benchmark_dir) -> dict:
             except (KeyError, TypeError, ValueError):
                 raise ValueError(f"{path}: not a Snakemake benchmark file (no seconds in column 's')") from None
     return out
+
+
+def _block_count(scene_store) -> int | None:
+    """The number of frame blocks a run's scene store lists (attr ``frame_blocks``); None when
+    it cannot be read (a folder ``stex evaluate`` wrote has no scene)."""
+    try:
+        return len(json.loads((Path(scene_store) / "zarr.json").read_text())["attributes"]["frame_blocks"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def tables_html(rst: str) -> bytes:
@@ -77,7 +89,7 @@ def runs_tables(run_dirs) -> str:
         if name in summaries:
             raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")
         summaries[name] = nan_for_none(summary)
-        timing[name] = stage_timings(d / "benchmarks")
+        timing[name] = stage_timings(d / "benchmarks", _block_count(d / "scene.zarr"))
         if doc.get("sampling"):
             sampling[name] = nan_for_none(doc["sampling"])
     if not summaries:

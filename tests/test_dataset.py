@@ -68,6 +68,21 @@ def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
     empty.write_text("")
     with pytest.raises(ValueError, match=r"scene file .*empty\.yaml is empty"):   # it ran the demo scene
         dataset_scene_configs({"scene_files": [a, str(empty)]}, None)
+    # a scene file without a name ran as the base's scene, into its results folder
+    nameless = _write(tmp_path / "monday.yaml", {"frame_block": 4})
+    base = _write(tmp_path / "base.yaml", {"scene": "demo"})
+    with pytest.raises(ValueError, match=r"monday\.yaml sets no `scene:`.*run as 'demo'"):
+        dataset_scene_configs({"scene_files": [a, nameless]}, base)
+    # a typo in common is common's, not the first scene file's
+    with pytest.raises(ValueError, match=r"^dataset: common: config error at masks"):
+        dataset_scene_configs({"scene_files": [a], "common": {"masks": {"depth_far": 1.5}}}, base)
+    # YAML syntax errors name the file and the line, in one line
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("scene: broken\nmasks: {depth_far_m: 1.5\n")
+    with pytest.raises(ValueError, match=r"scene file .*broken\.yaml is not valid YAML at line 3"):
+        dataset_scene_configs({"scene_files": [a, str(broken)]}, None)
+    with pytest.raises(FileNotFoundError, match="relative paths are read from the working directory"):
+        dataset_scene_configs({"scene_files": ["captures/nowhere.yaml"]}, None)
 
 
 def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path):

@@ -14,6 +14,8 @@ def test_stage_timings_sums_blocks(tmp_path):
     t = stage_timings(tmp_path)
     assert t == {"tables": 4.0, "labeling": 7.0, "ingest_block": 1.0}
     assert stage_timings(tmp_path / "missing") == {}
+    # a block left over from a run of the scene with more frames is not this run's
+    assert stage_timings(tmp_path, n_blocks=2) == {"tables": 4.0, "labeling": 7.0}
 
 
 def test_tables_html(tmp_path):

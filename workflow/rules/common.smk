@@ -57,7 +57,10 @@ def all_outputs():
     out += [COORDS, f"{RESULTS}/observations.zarr", f"{RESULTS}/labels.zarr"]
     if OPTIMISED:
         out += [f"{RESULTS}/previews/texcoords.png"]
-    out += expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS)
+    # every block store is a target: a deleted one (which `stex evaluate` and `stex export
+    # --source volume` read) is rebuilt even when nothing after it changed
+    out += expand(f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["tables", "volume", "corrected"],
+                  block=BLOCK_IDS)
     out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
     out += [f"{RESULTS}/global_texture.zarr", f"{RESULTS}/evaluation"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
