@@ -111,7 +111,8 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
         return run.stdout + run.stderr
 
     plan = snakemake(REPO / "workflow" / "dataset.smk", [dataset], "-n")
-    tracking_jobs = [j for j in plan.split("\n\n") if "rule tiny_a_tracking:" in j or "rule tiny_b_tracking:" in j]
+    jobs = re.split(r"\n(?=\[[A-Z][a-z]{2} |rule \w+:)", plan)  # one block per job (a time stamp, or its rule line)
+    tracking_jobs = [j for j in jobs if "rule tiny_a_tracking:" in j or "rule tiny_b_tracking:" in j]
     assert len(tracking_jobs) == 2 and all("runtime=240" in j for j in tracking_jobs), tracking_jobs
 
     snakemake(REPO / "workflow" / "dataset.smk", [dataset])
