@@ -95,3 +95,14 @@ def test_scoring_settings_leave_out_only_the_figures():
     ev = section_params("evaluation")
     assert set(FIGURE_SETTINGS) <= set(ev)
     assert set(scoring_settings(ev)) == set(ev) - set(FIGURE_SETTINGS)
+
+
+def test_a_missing_source_names_its_scene(tmp_path):
+    # in a dataset run, the message alone did not say which capture's folder is missing
+    (tmp_path / "monday.yaml").write_text(yaml.safe_dump({
+        "scene": "monday", "source": {"kind": "folder", "folder": {"path": "data/monday"}}}))
+    run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "-n",
+                          "--directory", str(tmp_path), "--configfile", str(tmp_path / "monday.yaml")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode != 0
+    assert "scene 'monday': dataset folder not found: data/monday" in run.stdout + run.stderr

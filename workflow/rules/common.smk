@@ -9,7 +9,10 @@ RESULTS = f"{config['results']}/{config['scene']}"
 _KIND = config["source"]["kind"]
 SOURCE = {"kind": _KIND, _KIND: config["source"][_KIND]}
 SYNTHETIC = _KIND == "synthetic"
-_SOURCE = open_source(SOURCE)
+try:
+    _SOURCE = open_source(SOURCE)
+except (OSError, ValueError) as e:  # in a dataset run, say which scene's source it is
+    raise type(e)(f"scene {config['scene']!r}: {e}") from None
 BLOCKS = frame_blocks(len(_SOURCE.frame_ids), config["frame_block"])
 BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
 ENV = "../../envs/stex.yaml"
