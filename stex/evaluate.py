@@ -47,7 +47,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
 
-from stex.render import face_visibility, rasterize, sample_texture, textured_raster
+from stex.render import _check_faces, _check_vertices, face_visibility, rasterize, sample_texture, textured_raster
 
 __all__ = [
     "PSNR_CAP",
@@ -574,15 +574,8 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
 
 def face_areas(vertices, faces) -> np.ndarray:
     """(F,) float64 triangle areas (m^2 for metre vertices) of (V, 3) vertices and (F, 3) faces."""
-    V = np.asarray(vertices, dtype=np.float64)
-    F = np.asarray(faces)
-    if V.ndim != 2 or V.shape[1] != 3:
-        raise ValueError(f"vertices must be (V, 3), got shape {V.shape}")
-    if F.ndim != 2 or F.shape[1] != 3 or not (np.issubdtype(F.dtype, np.integer) or F.size == 0):
-        raise ValueError(f"faces must be (F, 3) integer vertex indices, got shape {F.shape} dtype {F.dtype}")
-    F = F.astype(np.int64, copy=False)
-    if F.size and (F.min() < 0 or F.max() >= len(V)):
-        raise ValueError(f"faces index vertices {int(F.min())}..{int(F.max())}, outside 0..{len(V) - 1}")
+    V = _check_vertices(vertices)
+    F = _check_faces(faces, len(V))
     return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 

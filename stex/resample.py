@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from stex.render import sample_bilinear, texcoords_to_pixels
+from stex.render import _check_faces, _check_vertices, sample_bilinear, texcoords_to_pixels
 
 log = logging.getLogger("stex.resample")
 
@@ -152,19 +152,12 @@ def closest_surface_points(points, vertices, faces):
     from scipy.spatial import cKDTree
 
     P = np.ascontiguousarray(points, np.float64)
-    V = np.asarray(vertices, np.float64)
-    F = np.asarray(faces)
     if P.ndim != 2 or P.shape[1] != 3:
         raise ValueError(f"points must be (n, 3), got shape {P.shape}")
     if not np.isfinite(P).all():
         raise ValueError(f"points hold {int((~np.isfinite(P).all(1)).sum())} non-finite points")
-    if V.ndim != 2 or V.shape[1] != 3 or not np.isfinite(V).all():
-        raise ValueError(f"vertices must be finite (V, 3), got shape {V.shape}")
-    if F.ndim != 2 or F.shape[1] != 3 or not np.issubdtype(F.dtype, np.integer):
-        raise ValueError(f"faces must be (F, 3) integer vertex indices, got shape {F.shape} dtype {F.dtype}")
-    F = F.astype(np.int64, copy=False)
-    if F.size and (F.min() < 0 or F.max() >= len(V)):
-        raise ValueError(f"faces index vertices {int(F.min())}..{int(F.max())}, outside 0..{len(V) - 1}")
+    V = _check_vertices(vertices)
+    F = _check_faces(faces, len(V))  # the rasteriser's checks: shape, integer, index range
     tri_all = V[F]
     area = np.linalg.norm(np.cross(tri_all[:, 1] - tri_all[:, 0], tri_all[:, 2] - tri_all[:, 0]), axis=1)
     keep = np.flatnonzero(area > 0)

@@ -108,9 +108,9 @@ def test_closest_surface_points_checks_its_arguments():
     F = np.array([[0, 1, 2], [1, 3, 2]])
     for points, faces, msg in ((np.zeros((3, 2)), F, r"points must be \(n, 3\)"),
                                (np.array([[0, 0, np.nan]]), F, "non-finite"),
-                               (np.zeros((1, 3)), [[0, 1, -1]], "outside 0..3"),
-                               (np.zeros((1, 3)), [[0, 1, 7]], "outside 0..3"),
-                               (np.zeros((1, 3)), [[0, 1, 2, 3]], r"\(F, 3\) integer")):
+                               (np.zeros((1, 3)), [[0, 1, -1]], "index out of range"),
+                               (np.zeros((1, 3)), [[0, 1, 7]], "index out of range"),
+                               (np.zeros((1, 3)), [[0, 1, 2, 3]], r"must have shape \(F, 3\)")):
         with pytest.raises(ValueError, match=msg):
             closest_surface_points(points, V, faces)
     face, bary, dist = closest_surface_points(np.array([[0.2, 0.2, 0.1]]), V, F)
