@@ -187,11 +187,14 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     one used observation) and attrs ``source_frames`` (global frame ids of the source frames),
     ``sequence_frame_ids`` (every frame id of the scene), ``seconds`` (wall time of the blend, s).
 
+    Attr ``atlas_digest``: the template's atlas (:func:`stex.template.atlas_digest`).
+
     Raises:
         ValueError naming the store when frame counts, frame ids, face or vertex counts disagree.
     """
     from stex.io import FrameSequence, create_store, open_store
     from stex.observations import open_coordinates
+    from stex.template import template_atlas_digest
     from stex.volume import TexelSampler
 
     p = global_texture_params(params)
@@ -247,7 +250,7 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     log.info("global texture: %d source frames (stride %d) in %.1f s; %d/%d faces textured",
              len(src), p["source_stride"], seconds, int(face_textured.sum()), F)
     attrs = {"source_frames": [ids[int(t)] for t in src], "sequence_frame_ids": ids,
-             "seconds": float(seconds)}
+             "seconds": float(seconds), "atlas_digest": template_atlas_digest(template)}
     with create_store(out, "global_texture", attrs=attrs, params=p) as store:
         store.write("texture", texture)
         store.write("weight_sum", weight_sum)

@@ -734,10 +734,12 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
     """
     from stex.config import section_params
     from stex.io import create_store, open_store
+    from stex.template import check_atlas, template_atlas_digest
 
     p = section_params("correction", params)
     template = open_store(template_path, "template")
     volume = open_store(volume_path, "volume")
+    check_atlas(volume, volume_path, template, template_path)
     ids = list(volume.attrs["frame_ids"])
     temporal = p["temporal_length"] if p["temporal"] else None
     W = int(template.attrs["atlas_size"])
@@ -758,9 +760,12 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
              time.perf_counter() - t0)
     prev = None
     if temporal is not None and previous_path is not None:
-        prev = open_store(previous_path, "corrected")["texture"][-1]
+        previous = open_store(previous_path, "corrected")
+        check_atlas(previous, previous_path, template, template_path)
+        prev = previous["texture"][-1]
     W = system.W
-    attrs = {"frame_ids": ids, "gutter_px": int(volume.attrs["gutter_px"])}
+    attrs = {"frame_ids": ids, "gutter_px": int(volume.attrs["gutter_px"]),
+             "atlas_digest": template_atlas_digest(template)}
     first = int(volume.attrs["first_position"])
     chart = (system.texel_face, system.face_chart)
     steps = []

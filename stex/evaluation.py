@@ -193,13 +193,21 @@ class TextureSlices:
             self._files = found
             self.frame_ids = sorted(found)
 
-    def into_atlas(self, template) -> None:
+    def into_atlas(self, template, template_path="the run's template") -> None:
         """Carry the slices from ``uv_mesh``'s layout into the atlas of ``template`` (an open
-        ``template`` store) on every :meth:`read` (no-op without ``uv_mesh``)."""
+        ``template`` store, at ``template_path``) on every :meth:`read`. Without ``uv_mesh`` the
+        slices must be in that atlas: stex stores that record another one raise ValueError."""
         from stex.readers.meshes import load_mesh
         from stex.resample import atlas_transfer
+        from stex.template import check_atlas
 
         if self.uv_mesh is None:
+            for path, g in zip(self._seq.paths, self._seq.groups) if self._seq is not None else ():
+                try:
+                    check_atlas(g, path, template, template_path)
+                except ValueError as exc:
+                    raise ValueError(f"{exc}; slices in another UV layout need that layout's mesh "
+                                     f"(--uv-mesh NAME=MESH, or other_methods' uv_mesh)") from None
             return
         mesh = load_mesh(self.uv_mesh)
         self.transfer = atlas_transfer(
@@ -939,6 +947,7 @@ class _Inputs:
                  global_texture_path, truth_paths, coords_path, tables_paths, frames, block):
         from stex.io import FrameSequence, StoreError, open_store
         from stex.observations import open_coordinates
+        from stex.template import check_atlas
         from stex.volume import TexelSampler
 
         self.p = p = evaluation_params(params)
@@ -968,6 +977,7 @@ class _Inputs:
 
         # the global baseline (Kim 2019), built from the source frames by the global_texture stage
         global_store = open_store(global_texture_path, "global_texture")
+        check_atlas(global_store, global_texture_path, template, template_path)
         self.global_tex = np.asarray(global_store["texture"][...], np.uint8)
         self.global_faces = np.asarray(global_store["face_textured"][...], bool)
         if self.global_tex.shape[0] != W:
@@ -1036,6 +1046,9 @@ class _Inputs:
         self.masks = FrameSequence(list(masks_paths), "masks")
         self.volume = FrameSequence(list(volume_paths), "volume")
         self.corrected = FrameSequence(list(corrected_paths), "corrected")
+        for seq in (self.volume, self.corrected):
+            for path, g in zip(seq.paths, seq.groups):
+                check_atlas(g, path, template, template_path)
         for name, paths, seq in (("frames", frames_paths, self.photos), ("masks", masks_paths, self.masks),
                                  ("volume", volume_paths, self.volume),
                                  ("corrected", corrected_paths, self.corrected)):
@@ -1080,7 +1093,7 @@ class _Inputs:
         if truth_paths:  # the flicker of a frame compares it with its predecessor
             want |= {ids[self.pos_of[f] - 1] for f in score_ids if self.pos_of[f] > 0}
         for name, src in self.others.items():
-            src.into_atlas(template)
+            src.into_atlas(template, template_path)
             missing = sorted(want - set(src.frame_ids))
             if missing:
                 why = ("; the frame before each scored frame is read too, for the flicker: give the slices "

@@ -47,6 +47,7 @@ from stex.camera import Calibration, transform_points
 from stex.evaluate import novel_view, render_texture
 from stex.io import FrameSequence, StoreError, open_store, partial_path, run_block_paths
 from stex.render import vertex_normals
+from stex.template import check_atlas
 
 __all__ = [
     "opencv_to_viewer",
@@ -601,6 +602,8 @@ class _Results:
         self.scene = open_store(self.dir / "scene.zarr", "scene")
         self.textures = FrameSequence(self._blocks(source), source)
         template = open_store(self.dir / "template.zarr", "template")
+        for path, g in zip(self.textures.paths, self.textures.groups):
+            check_atlas(g, path, template, self.dir / "template.zarr")
         self.n_vertices = template["vertices"].shape[0]
         self.faces = template["faces"][...]
         self.texcoords = template["texcoords"][...]

@@ -1059,8 +1059,8 @@ def alpha_expansion(cand_ptr, cand_label, cand_cost, edges, edge_weight, feat_pt
     cand_ptr, cand_label, cand_cost, edges, edge_weight, feat_ptr, feat_label, feat = prob
     if int(max_cycles) < 0:
         raise ValueError(f"max_cycles must be >= 0, got {max_cycles}")
-    if not (np.isfinite(tol) and tol >= 0):
-        raise ValueError(f"tol must be finite and >= 0, got {tol}")
+    if isinstance(tol, (str, bytes)) or not (np.isscalar(tol) and np.isreal(tol)) or not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0 (0 runs until a cycle changes nothing), got {tol!r}")
     n = cand_ptr.shape[0] - 1
     pos = _unary_argmin(cand_ptr, cand_cost) if labels0 is None else _positions(labels0, cand_ptr, cand_label, "labels0")
     g = _graph(cand_ptr, cand_label, edges, edge_weight, feat_ptr, feat_label)

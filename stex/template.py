@@ -834,6 +834,40 @@ def texel_map(texcoords, texcoord_faces, size: int):
     return r.face_id, r.bary
 
 
+def atlas_digest(texcoords, texcoord_faces, size: int) -> str:
+    """A short fingerprint (16 hex digits) of a UV atlas: its texcoords (Vt, 2), texcoord_faces
+    (F, 3) and side ``size``. Texture stores record the one of the template they were made in
+    (attr ``atlas_digest``), so that a texture of another atlas of the same side, which would
+    read as noise on this one, is refused instead of scored (:func:`check_atlas`)."""
+    import hashlib
+
+    h = hashlib.sha256(str(int(size)).encode())
+    # float32: the fingerprint of one layout does not depend on how its floats were stored
+    h.update(np.ascontiguousarray(texcoords, np.float32).tobytes())
+    h.update(np.ascontiguousarray(texcoord_faces, np.int32).tobytes())
+    return h.hexdigest()[:16]
+
+
+def template_atlas_digest(template) -> str:
+    """:func:`atlas_digest` of an open ``template`` store."""
+    return atlas_digest(template["texcoords"][...], template["texcoord_faces"][...],
+                        int(template.attrs["atlas_size"]))
+
+
+def check_atlas(store, where, template, template_where) -> None:
+    """Raise ValueError when ``store`` (an open texture store, at ``where``) records another atlas
+    than the open ``template`` store's (at ``template_where``). Stores without the attr (written
+    before it existed) pass."""
+    made_in = store.attrs.get("atlas_digest")
+    if made_in is None:
+        return
+    have = template_atlas_digest(template)
+    if made_in != have:
+        raise ValueError(f"{where} holds textures of another UV atlas than the template {template_where} "
+                         f"(atlas {made_in}, the template's is {have}): a run's stores must come from "
+                         f"one template (another run's or scene's?)")
+
+
 def border_gap(face_id) -> int:
     """Empty texels between the atlas border and the nearest covered texel (face_id (W, W) int,
     -1 = empty, as :func:`texel_map` returns it); W when nothing is covered."""

@@ -547,6 +547,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     from stex.config import section_params
     from stex.io import FrameSequence, create_store, open_store, position_range
     from stex.observations import open_coordinates
+    from stex.template import template_atlas_digest
 
     log = logging.getLogger("stex.volume")
     p = section_params("volume", params)
@@ -577,7 +578,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     per_pass = int(p["slices_per_pass"])
     t0 = time.perf_counter()
     attrs = {"frame_ids": ids[start:stop], "first_position": start, "gutter_px": gutter,
-             "never_seen_texels": int(dst.size)}
+             "never_seen_texels": int(dst.size), "atlas_digest": template_atlas_digest(template)}
     with create_store(out, "volume", attrs=attrs, params=p) as store:
         a_tex = store.create("texture", (stop - start, W, W, 3))
         a_lab = store.create("label_map", (stop - start, W, W))

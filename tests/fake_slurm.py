@@ -104,3 +104,21 @@ def submissions(state_dir: Path) -> list[list[str]]:
     """The argument lists sbatch was called with, in order."""
     log = state_dir / "sbatch.log"
     return [json.loads(line) for line in log.read_text().splitlines()] if log.exists() else []
+
+
+def run_snakemake_polling_every(seconds: float) -> None:
+    """Run snakemake's command line (``sys.argv``) with the remote executors' status checks at
+    most ``seconds`` apart. The slurm plugin adds 10 s to its interval at every check that finds
+    no job finished (a real cluster's accounting is slow to ask); the stand-in's ``sacct`` is
+    instant, and jobs of a few seconds would otherwise wait tens of seconds each to be seen."""
+    from snakemake.cli import main
+    from snakemake_interface_executor_plugins.executors import remote
+
+    interval = remote.RemoteExecutor.next_seconds_between_status_checks
+    remote.RemoteExecutor.next_seconds_between_status_checks = interval.setter(
+        lambda self, value: interval.fset(self, min(value, seconds)))
+    main()
+
+
+if __name__ == "__main__":  # python fake_slurm.py SNAKEMAKE-ARGS...
+    run_snakemake_polling_every(2.0)

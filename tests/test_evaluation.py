@@ -571,6 +571,56 @@ def test_bad_input_names_the_store(pipe, tmp_path):
     assert not (tmp_path / "a").exists()
 
 
+def test_textures_of_another_atlas_of_the_same_side_are_refused(pipe, tmp_path):
+    """The texture stores record their template's atlas; a store of another atlas of the same
+    side (which would score as noise in this one) is refused, naming it, wherever it is read:
+    as another method, as the run's own slices, by the correction and by the export."""
+    import shutil
+
+    import zarr
+
+    from stex.correction import write_corrected
+    from stex.evaluation import evaluate_results
+    from stex.export import _Results
+    from stex.template import atlas_digest, template_atlas_digest
+
+    template = open_store(pipe["template"], "template")
+    mine = template_atlas_digest(template)
+    for kind in ("volume", "corrected"):
+        assert {open_store(b, kind).attrs["atlas_digest"] for b in pipe[kind]} == {mine}
+    assert open_store(pipe["global_texture"], "global_texture").attrs["atlas_digest"] == mine
+    # another layout of the same side: the scene's own mesh and atlas
+    scene = open_store(pipe["scene"], "scene")
+    W = int(template.attrs["atlas_size"])
+    other = atlas_digest(scene["template/texcoords"][...], scene["template/texcoord_faces"][...], W)
+    assert other != mine
+    assert atlas_digest(template["texcoords"][...].astype(np.float64), template["texcoord_faces"][...], W) == mine
+    assert atlas_digest(template["texcoords"][...], template["texcoord_faces"][...], W * 2) != mine
+
+    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for b, path in enumerate(pipe["corrected"]):
+        shutil.copytree(path, moved / f"block_{b:04d}.zarr")
+        zarr.open_group(str(moved / f"block_{b:04d}.zarr"), mode="r+").attrs["atlas_digest"] = other
+    with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas .*--uv-mesh"):
+        evaluate_results(R, tmp_path / "e1", {"mine": moved})
+    with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas than the template"):
+        _evaluate({**pipe, "corrected": sorted(moved.glob("block_*.zarr"))}, tmp_path / "e2")
+    with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas"):
+        write_corrected(pipe["template"], pipe["volume"][1], {"temporal": True}, tmp_path / "c.zarr",
+                        previous_path=moved / "block_0000.zarr")
+    (R / "corrected").rename(R / "corrected_ours")
+    (R / "corrected").symlink_to(moved)
+    with pytest.raises(ValueError, match="another UV atlas"):
+        _Results(R)
+    assert not any((tmp_path / x).exists() for x in ("e1", "e2", "c.zarr"))
+    # stores written before the attr existed are read as before
+    for b in range(len(pipe["corrected"])):
+        del zarr.open_group(str(moved / f"block_{b:04d}.zarr"), mode="r+").attrs["atlas_digest"]
+    assert _Results(R).frame_ids == FrameSequence(pipe["corrected"], "corrected").frame_ids
+
+
 def test_vertex_motion_and_dynamism_regions():
     V = np.zeros((3, 3))
     assert vertex_motion(V, V + [0.003, 0.004, 0]) == pytest.approx(5.0)   # mm

@@ -385,5 +385,12 @@ def test_bad_labels_raise(small):
         mrf.alpha_expansion(*small, labels0=missing)
     with pytest.raises(ValueError, match="labels0 must have shape"):
         mrf.alpha_expansion(*small, labels0=labels[:-1])
-    with pytest.raises(ValueError, match="tol"):
-        mrf.alpha_expansion(*small, tol=-1.0)
+    for tol in (-1.0, None, "0.1", float("nan")):
+        with pytest.raises(ValueError, match="tol must be a finite number >= 0"):
+            mrf.alpha_expansion(*small, tol=tol)
+    # edges and pointers in any integer type or byte order give the same labels
+    want = mrf.alpha_expansion(*small)[0]
+    for i, dtype in ((3, ">i8"), (3, np.uint8), (0, ">i4"), (5, np.uint16)):
+        p = list(small)
+        p[i] = np.asarray(p[i]).astype(dtype)
+        np.testing.assert_array_equal(mrf.alpha_expansion(*p)[0], want)

@@ -50,7 +50,8 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     # prefixed rule names, which a profile's set-resources would not reach
     assert "set-resources" not in settings
     assert "cpus_per_task" not in defaults  # it would replace every rule's threads
-    cmd = [sys.executable, "-m", "snakemake", str(res / "poses.zarr"), str(res / "texcoords.zarr"),
+    # snakemake's command line, its slurm status checks at most 2 s apart (fake_slurm's __main__)
+    cmd = [sys.executable, fake_slurm.__file__, str(res / "poses.zarr"), str(res / "texcoords.zarr"),
            "--snakefile", str(REPO / "Snakefile"),
            "--workflow-profile", str(profile),
            "--directory", str(work), "--configfile", str(work / "tiny.yaml"),

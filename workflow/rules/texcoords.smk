@@ -39,6 +39,8 @@ rule texcoords_preview:
         ),
     log:
         f"{RESULTS}/logs/texcoords_preview.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/texcoords_preview.tsv",
     conda:
         ENV
     script:
