@@ -35,7 +35,8 @@ a screened Poisson solve over the covered texels, per colour channel:
   λ = 1 / (screen_length · W)²; default 1/64, i.e. 64 texels at 4096², 4 at 256²).
 - The matrix A = Gᵀ W G + λ I (+ seam rows) depends only on the atlas, never on the labels or
   colours, so it is built and its pyamg classical (Ruge-Stüben) AMG hierarchy set up **once per
-  atlas** and reused for every channel and slice. Classical rather than smoothed aggregation:
+  atlas** and reused for every channel and slice (set up on first use: with ``keep_own_frame``
+  a slice with texels of its own frame solves a smaller system of its own, below). Classical rather than smoothed aggregation:
   its setup is deterministic (smoothed aggregation estimates a spectral radius from a random
   vector, so two runs of 4 slices differed by 1 grey level in 25 / 107 of their 50 / 201
   million values on the demo / paper scene), 2x faster to set up and about 25 % faster per
@@ -152,8 +153,6 @@ class _Graph:
 
     def __init__(self, texel_face, face_chart, texcoords, texcoord_faces, faces, pairs, edges,
                  lam, seam_weight, amg_kwargs):
-        import pyamg
-
         t0 = time.perf_counter()
         tfc = np.asarray(texel_face)
         W = tfc.shape[0]
@@ -205,12 +204,25 @@ class _Graph:
         self.A.sum_duplicates()
         t1 = time.perf_counter()
         self.amg_kwargs = dict(amg_kwargs or {})
-        self.ml = pyamg.ruge_stuben_solver(self.A, **self.amg_kwargs)
-        t2 = time.perf_counter()
-        self.timings = {"graph_s": t1 - t0, "amg_setup_s": t2 - t1}
-        log.info("correction: %d^2 atlas, %d unknowns, %d pairs, %d seam rows; graph %.1f s, "
-                 "AMG setup %.1f s (%d levels)", W, n, m, self.S.shape[0], t1 - t0, t2 - t1,
-                 len(self.ml.levels))
+        self._ml = None
+        self.timings = {"graph_s": t1 - t0}
+        log.info("correction: %d^2 atlas, %d unknowns, %d pairs, %d seam rows; graph %.1f s",
+                 W, n, m, self.S.shape[0], t1 - t0)
+
+    @property
+    def ml(self):
+        """A's AMG hierarchy, set up on first use: slices with texels kept at their own frame
+        solve a system of their own, so a block of such slices never needs it (about 2 s for
+        the demo's 558k unknowns)."""
+        if self._ml is None:
+            import pyamg
+
+            t0 = time.perf_counter()
+            self._ml = pyamg.ruge_stuben_solver(self.A, **self.amg_kwargs)
+            self.timings["amg_setup_s"] = time.perf_counter() - t0
+            log.info("correction: AMG setup of the whole system %.1f s (%d levels)",
+                     self.timings["amg_setup_s"], len(self._ml.levels))
+        return self._ml
 
     def _seam_rows(self, texcoords, tfaces, faces, pairs, edges, face_chart, chart_tex, idx):
         W = self.W
@@ -543,7 +555,7 @@ class CorrectionSystem:
         grid_face = tf if factor == 1 else texel_map(texcoords, tfaces, Wg)[0]
         self.graph = _Graph(grid_face, self.face_chart, texcoords, tfaces, faces, adjacency_pairs,
                             adjacency_edges, self.lam, seam_weight, amg_kwargs)
-        self.timings = dict(self.graph.timings)
+        self.timings = self.graph.timings   # the same dict: the AMG setup is added on first use
         if factor > 1:
             g = self.graph
             self._c_rows, self._c_cols = np.divmod(g.index, Wg)

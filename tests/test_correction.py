@@ -145,6 +145,16 @@ def test_amg_setup_is_reused_across_channels_and_slices(quad, monkeypatch):
     cs.correct(img2, np.where(lm2 >= 0, 1 - lm2, -1).astype(np.int32))
     assert len(calls) == 1
     assert cs.last_stats["iterations"] and max(cs.last_stats["iterations"]) <= 20
+    # slices with texels of their own frame kept solve their own smaller system, one setup each:
+    # the whole system's hierarchy is never set up for a block of them
+    calls.clear()
+    kept = CorrectionSystem(face, tc, tf, F, screen_length=1 / 16)
+    kept.correct(img, lm, frame=0)
+    kept.correct(img2, lm2, frame=1)
+    assert len(calls) == 2 and "amg_setup_s" not in kept.timings
+    kept.correct(img, lm, frame=7)       # a frame with no texels of its own (held out): A's
+    kept.correct(img2, lm2, frame=7)
+    assert len(calls) == 3 and "amg_setup_s" in kept.timings
 
 
 def test_two_systems_solve_bit_for_bit_alike(quad):
