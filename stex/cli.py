@@ -152,6 +152,8 @@ def _run_evaluate(args) -> int:
             raise ValueError(f"--uv-mesh {item!r}: expected NAME=MESH")
         if name not in others:
             raise ValueError(f"--uv-mesh {item!r}: no --texture {name}=PATH")
+        if isinstance(others[name], dict):
+            raise ValueError(f"--uv-mesh: method name {name!r} given twice")
         others[name] = {"slices": others[name], "uv_mesh": mesh}
     from stex.export import output_folder
 

@@ -44,8 +44,35 @@ def validate_config(config: dict, schema: dict | None = None) -> dict:
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
     if errors:
         raise ValueError(_error_message(errors[0]))
+    cfg = _numbers(cfg, schema)
     check_relations(cfg)
     return schema_order(cfg, schema)
+
+
+def _numbers(instance, schema: dict, where: str = ""):
+    """``instance`` (valid against ``schema``) with whole floats of integer settings made ints
+    and non-finite numbers refused (ValueError naming the key). JSON Schema counts 8.0 as an
+    integer, but numpy and range() do not: ``frame_block: 8.0`` passed and failed later in a
+    raw TypeError; ``.nan`` passes every minimum (a comparison with NaN is false)."""
+    import math
+
+    if isinstance(instance, dict):
+        props = schema.get("properties") or {}
+        extra = schema.get("additionalProperties")
+        extra = extra if isinstance(extra, dict) else {}
+        return {k: _numbers(v, props.get(k, extra), f"{where}/{k}" if where else str(k))
+                for k, v in instance.items()}
+    if isinstance(instance, list):
+        items = schema.get("items") if isinstance(schema.get("items"), dict) else {}
+        return [_numbers(v, items, f"{where}/{i}") for i, v in enumerate(instance)]
+    if isinstance(instance, float) and not isinstance(instance, bool):
+        if not math.isfinite(instance):
+            raise ValueError(f"config error at {where or '<top level>'}: {instance} is not a finite number")
+        types = schema.get("type")
+        types = types if isinstance(types, list) else [types]
+        if "integer" in types and "number" not in types and instance.is_integer():
+            return int(instance)
+    return instance
 
 
 def schema_order(instance, schema: dict):
@@ -69,8 +96,16 @@ def schema_order(instance, schema: dict):
 
 def _error_message(e: jsonschema.ValidationError) -> str:
     """One line: where, what is wrong, and what is allowed (or why YAML read it so)."""
-    where = "/".join(str(p) for p in e.path) or "<top level>"
+    where = "/".join(str(p) for p in e.absolute_path) or "<top level>"
     msg = f"config error at {where}: {e.message}"
+    if e.validator in ("oneOf", "anyOf") and e.context:
+        # "is not valid under any of the given schemas" says nothing of why: the error of the
+        # alternative of the value's own type does (e.g. the misspelt key of a {slices, uv_mesh})
+        deeper = [c for c in e.context if c.validator != "type"]
+        if deeper:
+            return _error_message(min(deeper, key=lambda c: len(c.absolute_path)))
+        wanted = [c.validator_value for c in e.context]
+        return f"config error at {where}: {e.instance!r} is none of the allowed kinds ({wanted})"
     if e.validator == "additionalProperties" and isinstance(e.schema.get("properties"), dict):
         msg += f"; allowed: {', '.join(sorted(e.schema['properties']))}"
     elif e.validator == "enum" and isinstance(e.instance, bool):
@@ -78,9 +113,14 @@ def _error_message(e: jsonschema.ValidationError) -> str:
     elif e.validator == "type" and isinstance(e.instance, str):
         try:
             float(e.instance)
-            msg += f" (YAML reads {e.instance} as text: write it with a decimal point, e.g. 1.0e-4)"
         except ValueError:
             pass
+        else:
+            wanted = e.validator_value if isinstance(e.validator_value, list) else [e.validator_value]
+            if "number" in wanted:  # PyYAML reads 1e-4 (no decimal point) as text
+                msg += f" (YAML reads {e.instance} as text: write it with a decimal point, e.g. 1.0e-4)"
+            else:
+                msg += f" (written as text: give the number without quotes, e.g. {e.instance.strip(chr(34) + chr(39))})"
     return msg
 
 
@@ -115,6 +155,11 @@ def check_relations(config: dict) -> None:
         raise ValueError(f"config error at correction/solve_size: the atlas side template.atlas_size {W} is "
                          f"not divisible by the factor {W // solve} = {W} // {solve}; give a solve_size whose "
                          f"factor divides it, or {W} (full resolution)")
+    gutter = template.get("gutter_px")
+    if W is not None and gutter is not None and W - 2 * gutter < 8:
+        raise ValueError(f"config error at template/gutter_px: {gutter} texels on either side leave "
+                         f"{W - 2 * gutter} of the atlas side template.atlas_size {W} for the charts; "
+                         f"give at most {(W - 8) // 2} (default 4)")
     steps = (config.get("sampling_table") or {}).get("steps")
     if steps and 1 not in steps:
         raise ValueError(f"config error at sampling_table/steps: {steps} needs 1 (every frame a key frame: "
@@ -192,6 +237,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
     errors = sorted(validator.iter_errors(cfg), key=lambda e: list(e.path))
     if errors:
         raise ValueError(_error_message(errors[0]))
+    cfg = _numbers(cfg, schema)
     check_relations(cfg)
     return schema_order(cfg[section], sub)
 

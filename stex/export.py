@@ -338,6 +338,26 @@ def write_obj_frame(path_obj, vertices, faces, texcoords, texcoord_faces, textur
     return path_obj, path_mtl
 
 
+def _refuse_other_frames(out_dir: Path, pattern: str, ids: list[int]) -> None:
+    """Refuse (ValueError) an ``out_dir`` that holds files of ``pattern`` (any extension) for
+    frames other than ``ids``: an export of frames 2-3 into a folder of an earlier export of
+    0-5 would leave a mixed set that reads as one (``stex evaluate --texture`` scores whatever
+    file a frame has). Files of the same frames are replaced, as a re-export should."""
+    import re
+
+    if "{frame" not in pattern or not Path(out_dir).is_dir():
+        return
+    head, tail = pattern.split("{frame", 1)[0], pattern.split("}", 1)[1]
+    form = re.compile(re.escape(head) + r"(\d+)" + re.escape(tail) + r"(\.\w+)*")
+    want = set(ids)
+    other = sorted(f.name for f in Path(out_dir).iterdir()
+                   if (m := form.fullmatch(f.name)) and int(m.group(1)) not in want)
+    if other:
+        raise ValueError(f"{out_dir} already holds {len(other)} file(s) of other frames ({', '.join(other[:3])}"
+                         f"{', ...' if len(other) > 3 else ''}), which this export would leave beside its "
+                         f"own as if one set: give a new or empty folder, or remove them")
+
+
 def _per_frame(vertices_seq, textures, frame_ids, out_dir: Path, pattern: str, write_one,
                progress) -> list[Path]:
     """Call ``write_one(folder, pattern.format(frame=id), [vertices,] rgb) -> path`` for every
@@ -349,6 +369,7 @@ def _per_frame(vertices_seq, textures, frame_ids, out_dir: Path, pattern: str, w
         twice = sorted({n for n in names if names.count(n) > 1})
         raise ValueError(f"frames would share the file names {twice[:3]} (frame ids repeated, or a "
                          f"pattern {pattern!r} without {{frame}})")
+    _refuse_other_frames(out_dir, pattern, ids)
     paths = []
     with _written_as_a_set(out_dir) as stage:
         frames = zip(textures) if vertices_seq is None else zip(vertices_seq, textures, strict=True)

@@ -614,6 +614,18 @@ def position_range(positions, n_frames: int, what: str) -> tuple[int, int]:
     return start, stop
 
 
+def id_ranges(ids) -> list[list[int]]:
+    """Increasing frame ids as runs of consecutive ones, ``[[first, last + 1], ...]``:
+    ``[0, 1, 2, 5, 6]`` -> ``[[0, 3], [5, 7]]`` (a job parameter that stays short)."""
+    out: list[list[int]] = []
+    for i in (int(x) for x in ids):
+        if out and i == out[-1][1]:
+            out[-1][1] = i + 1
+        else:
+            out.append([i, i + 1])
+    return out
+
+
 def short_ids(ids) -> str:
     """A frame-id list for an error message: whole up to 4, else its count and range."""
     ids = list(ids)

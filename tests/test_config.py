@@ -50,10 +50,27 @@ def test_settings_that_only_a_late_stage_needed_are_checked_with_the_config():
             # YAML 1.1: an unquoted off is false, 1e-4 is text; the message says so
             ({"labeling": {"temporal": False}}, r"quote it, e.g. 'off'"),
             ({"labeling": {"rel_tol": "1e-4"}}, r"write it with a decimal point"),
-            ({"trackng": {}}, r"'trackng' was unexpected\); allowed: correction, .*tracking, volume$")]:
+            ({"trackng": {}}, r"'trackng' was unexpected\); allowed: correction, .*tracking, volume$"),
+            # an integer in quotes: not the decimal-point advice of a number
+            ({"frame_block": "8"}, r"frame_block: '8' .* give the number without quotes, e\.g\. 8\)$"),
+            # NaN passes every minimum; numpy then failed with a ZeroDivisionError
+            ({"poses": {"icp_threshold_m": float("nan")}}, r"poses/icp_threshold_m: nan is not a finite number"),
+            ({"masks": {"depth_far_m": float("inf")}}, r"masks/depth_far_m: inf is not a finite number"),
+            ({"poses": {"seed": -1}}, r"poses/seed: -1 is less than the minimum of 0"),
+            ({"template": {"gutter_px": 1021}}, r"template/gutter_px: 1021 .* give at most 1020"),
+            ({"template": {"atlas_size": 40960}}, r"template/atlas_size: 40960 is greater than the maximum"),
+            # an entry of two forms: the error of the form it was meant as, not "none of the schemas"
+            ({"evaluation": {"other_methods": {"foo": {"slices": "a", "uvmesh": "b"}}}},
+             r"evaluation/other_methods/foo: .*'uvmesh' was unexpected\); allowed: slices, uv_mesh"),
+            ({"evaluation": {"other_methods": {"foo": 3}}}, r"foo: 3 is none of the allowed kinds")]:
         with pytest.raises(ValueError, match=message):
             validate_config(overrides)
     validate_config({"correction": {"solve_size": 1024}, "template": {"atlas_size": 4096}})
+    # JSON Schema counts 8.0 as an integer, numpy and range() do not: made an int
+    cfg = validate_config({"frame_block": 8.0, "poses": {"ransac_iterations": 500.0, "icp_threshold_m": 0.01}})
+    assert type(cfg["frame_block"]) is int and type(cfg["poses"]["ransac_iterations"]) is int
+    assert cfg["poses"]["icp_threshold_m"] == 0.01
+    assert type(section_params("poses", {"ransac_iterations": 50.0})["ransac_iterations"]) is int
     from stex.config import RESERVED_METHOD_NAMES
     from stex.evaluation import METHODS
 

@@ -401,7 +401,7 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     assert not (tmp_path / "cli2").exists()
 
 
-def test_other_methods_in_another_uv_layout(pipe, tmp_path):
+def test_other_methods_in_another_uv_layout(pipe, tmp_path, capsys):
     """Slices in another UV layout (here the scene's own mesh and atlas) are carried into the
     run's atlas through that mesh: ours carried out into it and scored from there score like
     ours. A mesh elsewhere is refused naming it, and so are such slices read as the run's atlas."""
@@ -476,6 +476,10 @@ def test_other_methods_in_another_uv_layout(pipe, tmp_path):
     assert doc["methods"][-1] == "theirs" and doc["scored_frames"] == [2, 3]
     assert main(["evaluate", str(R), "--texture", f"theirs={theirs}", "--uv-mesh",
                  f"nobody={tmp_path / 'theirs.obj'}", "--out", str(tmp_path / "cli2")]) == 1
+    twice = ["--uv-mesh", f"theirs={tmp_path / 'theirs.obj'}"] * 2
+    capsys.readouterr()
+    assert main(["evaluate", str(R), "--texture", f"theirs={theirs}", *twice, "--out", str(tmp_path / "cli2")]) == 1
+    assert "error: --uv-mesh: method name 'theirs' given twice" in capsys.readouterr().err
     assert not (tmp_path / "cli2").exists()
 
 

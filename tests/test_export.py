@@ -362,3 +362,22 @@ def test_sequence_writers_refuse_names_that_collide(tmp_path):
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
     with pytest.raises(ValueError, match="positive finite number"):
         export.write_video([tex], tmp_path / "v.mp4", fps="30")
+
+
+def test_a_folder_of_another_export_is_not_mixed_into(tmp_path):
+    """An export of frames 2-3 into a folder holding an earlier export of 0-3 would leave a set
+    of four that reads as one: refused before anything is written; the same frames again, or a
+    folder with unrelated files, are fine."""
+    texs = [gradient_texture(t) for t in range(4)]
+    write_png_slices(iter(texs), [0, 1, 2, 3], tmp_path / "png")
+    (tmp_path / "png" / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"already holds 2 file\(s\) of other frames \(texture_00000.png, "
+                                         r"texture_00001.png\)"):
+        write_png_slices(iter(texs[2:]), [2, 3], tmp_path / "png")
+    assert np.array_equal(np.asarray(Image.open(tmp_path / "png" / "texture_00002.png")), texs[2])
+    again = write_png_slices(iter(texs[::-1]), [0, 1, 2, 3], tmp_path / "png")   # re-export: replaced
+    np.testing.assert_array_equal(np.asarray(Image.open(again[0])), texs[3])
+    V, F, tc, tf = cube()
+    write_obj_sequence([V, V], F, tc, tf, texs[:2], [4, 5], tmp_path / "obj")
+    with pytest.raises(ValueError, match=r"3 file\(s\) of other frames \(frame_00005.mtl, frame_00005.obj, "):
+        write_obj_sequence([V], F, tc, tf, texs[:1], [4], tmp_path / "obj")

@@ -1,6 +1,7 @@
 # Paths, frame blocks and parameter sections shared by the rules.
 from stex.config import check_relations, other_method_paths, scoring_settings
 from stex.ingest import frame_blocks, open_source
+from stex.io import id_ranges
 
 check_relations(config)  # what the schema cannot say (e.g. masks.depth_near_m < depth_far_m)
 RESULTS = f"{config['results']}/{config['scene']}"
