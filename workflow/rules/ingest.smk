@@ -2,47 +2,26 @@
 # The dataset files each job reads are its inputs: a file changed after a run re-runs that job.
 
 
-if SYNTHETIC:
-
-    rule ingest_scene:
-        input:
-            scene_source_files,
-        output:
-            directory(f"{RESULTS}/scene.zarr"),
-        params:
-            source=SOURCE,
-            frame_block=config["frame_block"],
-        log:
-            f"{RESULTS}/logs/ingest_scene.log",
-        benchmark:
-            f"{RESULTS}/benchmarks/ingest_scene.tsv",
-        conda:
-            ENV
-        script:
-            "../scripts/ingest_scene.py"
-
-else:
-
-    # a dataset's frames are found on disk, not set: their ids are a parameter, so frames added
-    # to (or removed from) the folder after a run re-write the scene store's frame list (a
-    # synthetic scene's frames follow from its settings)
-    rule ingest_scene:
-        input:
-            scene_source_files,
-        output:
-            directory(f"{RESULTS}/scene.zarr"),
-        params:
-            source=SOURCE,
-            frame_block=config["frame_block"],
-            frame_ids=id_ranges(_SOURCE.frame_ids),
-        log:
-            f"{RESULTS}/logs/ingest_scene.log",
-        benchmark:
-            f"{RESULTS}/benchmarks/ingest_scene.tsv",
-        conda:
-            ENV
-        script:
-            "../scripts/ingest_scene.py"
+rule ingest_scene:
+    input:
+        scene_source_files,
+    output:
+        directory(f"{RESULTS}/scene.zarr"),
+    params:
+        source=SOURCE,
+        frame_block=config["frame_block"],
+        # a dataset's frames are found on disk, not set: their ids are a parameter, so frames
+        # added to (or removed from) its folder after a run re-write the scene store's frame list
+        # (a synthetic scene's frames follow from its settings; no new parameter re-runs it)
+        **({} if SYNTHETIC else {"frame_ids": id_ranges(_SOURCE.frame_ids)}),
+    log:
+        f"{RESULTS}/logs/ingest_scene.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/ingest_scene.tsv",
+    conda:
+        ENV
+    script:
+        "../scripts/ingest_scene.py"
 
 
 if SYNTHETIC:
