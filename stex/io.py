@@ -160,9 +160,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "subdivided": "int: midpoint subdivisions applied to a low-poly mesh",
             "uv": "str: 'xatlas' (a new atlas) or 'mesh' (the template mesh's own texture coordinates, template.uv)",
             "flipped_fixed": "int: UV triangles xatlas left mirrored that were fixed (0 with uv 'mesh')",
-            "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization, timings); "
-                     "with uv 'mesh' keep_layout's (source 'mesh', charts, mirrored_faces, degenerate_uv_faces, "
-                     "overlap_texels, utilization)",
+            "atlas": "dict: build_atlas statistics (mirrored charts, folds, texels per metre, utilization: the "
+                     "fraction of texel centres covered, xatlas_utilization: xatlas' own figure, faces_without_texel, "
+                     "timings); with uv 'mesh' keep_layout's (source 'mesh', charts, mirrored_faces, "
+                     "degenerate_uv_faces, overlap_texels, utilization, faces_without_texel)",
             "gutter_conflicts": "int: texels closer than gutter_px to another chart (0 expected)",
             "border_gap_px": "int: empty texels between the atlas border and the nearest covered texel (>= gutter_px expected)",
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
@@ -341,6 +342,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "gutter_px": "int: rings of gutter texels filled around every chart",
             "first_position": "int: sequence position of the first slice (labels are sequence positions)",
             "never_seen_texels": "int: texels of never-seen faces, filled from the nearest seen surface point",
+            "atlas_digest": "str: the template atlas the slices are in (stex.template.atlas_digest: 16 hex digits "
+                            "of a hash of texcoords, texcoord_faces and atlas_size). Every reader of the store "
+                            "(correction, evaluation, `stex evaluate --texture`, export) refuses it when the "
+                            "template's differs: a texture of another atlas of the same side would read as noise. "
+                            "Stores written before this attr pass unchecked",
         },
     ),
     "corrected": ArtifactSpec(
@@ -357,6 +363,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "frame_ids": "list[int]: global frame index of each slice",
             "gutter_px": "int: as in volume",
             "label_boundary_step": "list[[before, after]]: mean colour step across label boundaries per slice (grey levels)",
+            "atlas_digest": "str: as in volume",
         },
     ),
     "global_texture": ArtifactSpec(
@@ -377,6 +384,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "source_frames": "list[int]: global frame ids of the source frames blended (as the tables' source_frames)",
             "sequence_frame_ids": "list[int]: every frame id of the scene, in order",
             "seconds": "float: wall time of the blend (s)",
+            "atlas_digest": "str: as in volume",
         },
     ),
 }

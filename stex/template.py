@@ -56,7 +56,10 @@ Measured: a subdivision-5 icosphere comes out with 10,240 of its 20,480 UV trian
 
 xatlas skips faces below an absolute area (about 1.2e-7 in the mesh's units), so a mesh of tiny
 faces is scaled up for it (:func:`working_scale`) and the texel density scaled back to texels per
-metre.
+metre. The scale comes from the median face area, so the faces of a small part (a 4 mm eye on a
+10 cm body) can still fall below the limit: their UVs collapse, and a warning says how many faces
+in which parts. (Scaling up until such parts' well-shaped faces clear the limit gave them UV area,
+but xatlas then packed their few-texel charts closer than the gutter, 68-568 texels at 1024-2048^2.)
 
 Cost for 20k faces at 4096^2: charting ~3-5 s, each repack ~0.6 s (up to ``pack_search_steps``).
 Which charts the packer transposes depends on the layout, so ``flipped_xatlas`` varies with the
@@ -88,6 +91,7 @@ __all__ = [
     "uv_charts",
     "face_adjacency",
     "texel_map",
+    "faces_without_texel",
     "gutter_conflicts",
     "border_gap",
     "embed_vertices",
@@ -546,8 +550,25 @@ def working_scale(vertices, faces) -> float:
     return 1.0 if med >= 1e-6 or med <= 0 else float(np.sqrt(1e-4 / med))
 
 
+#: xatlas gives faces of less area than this (in its float32 input units; FLT_EPSILON) no chart.
+XATLAS_MIN_AREA = 1.2e-7
+#: Faces of at least this quality (:func:`_face_areas_quality`) count as well-shaped, not
+#: needle-thin, in the warning about faces xatlas collapsed.
+WELL_SHAPED_QUALITY = 0.2
+
+
+def _face_areas_quality(vertices, faces):
+    """(area (F,) in the vertices' units², quality (F,) in [0, 1]: 4 sqrt(3) area / sum of squared
+    edge lengths, 1 for an equilateral triangle, 0 for a needle or a zero-area face)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64)]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    edges2 = sum(((tri[:, k] - tri[:, (k + 1) % 3]) ** 2).sum(1) for k in range(3))
+    quality = np.where(edges2 > 0, 4 * np.sqrt(3) * area / np.maximum(edges2, 1e-300), 0.0)
+    return area, quality
+
+
 def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, return_info: bool = False,
-                pack_search_steps: int = 7):
+                pack_search_steps: int = 7, return_texels: bool = False):
     """A UV atlas of the mesh: xatlas charts packed into one square texture, no mirrored charts.
 
     See the module docstring for the procedure and why pass 1's charts need fixing.
@@ -567,13 +588,23 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         return_info: also return a dict of statistics.
         pack_search_steps: repacks tried when searching the largest texel density that fits
             (bracket, then bisection to 1 %).
+        return_texels: also return the atlas' :func:`texel_map` (made anyway for the statistics).
 
     Returns:
         texcoords (Vt, 2) float32 in [0, 1]^2 (u right, v down), texcoord_faces (F, 3) int32
-        (face i of ``faces`` <-> row i), and with ``return_info`` a dict: ``flipped_xatlas``
+        (face i of ``faces`` <-> row i), with ``return_info`` a dict: ``flipped_xatlas``
         (mirrored triangles in xatlas' own output), ``flipped_charts`` (charts mirrored back),
         ``fold_faces`` (faces split into their own chart), ``charts``, ``texels_per_unit``
-        (texels per metre), ``utilization`` (fraction of the atlas covered), timings in s.
+        (texels per metre), ``utilization`` (fraction of the resolution^2 texels whose centre a
+        UV triangle holds, as :func:`texel_map` rasterises it), ``xatlas_utilization`` (xatlas'
+        own figure for the packed square, which counts its conservative chart rasters: higher),
+        ``faces_without_texel`` (faces holding no texel centre), ``degenerate_uv_faces``,
+        ``working_scale``, timings in s; and with ``return_texels`` the
+        tuple (face_id (W, W) int32, bary (W, W, 3) float32) of :func:`texel_map`.
+
+    Raises:
+        RuntimeError: the charts do not fit one atlas even at a tiny texel density (the message
+            names ``template.atlas_size`` and ``template.gutter_px``), or xatlas misbehaved.
     """
     import xatlas
 
@@ -643,7 +674,11 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         tpu = 0.92 * tpu if lo is None else 1.08 * tpu if hi is None else 0.5 * (lo + hi)
     best_tpu = lo
     if best is None:
-        raise RuntimeError(f"xatlas could not pack the charts into one {inner}^2 atlas")
+        # every chart takes at least a texel plus its padding, whatever the density
+        raise RuntimeError(f"xatlas could not pack the {n_charts + info['fold_faces']} charts into one {inner}^2 "
+                           f"atlas ({resolution}^2, template.atlas_size, less template.gutter_px {gutter_px} "
+                           f"on each side) even at {hi * scale:.3g} texels per metre; raise template.atlas_size "
+                           f"or lower template.gutter_px")
     vmap2, idx2, uv2, util = best
     if not np.array_equal(vmap[vmap2[idx2]], F):
         raise RuntimeError("xatlas repack changed the faces")
@@ -680,17 +715,49 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
                            f"only partly mirrored)")
     if texcoords.min() < 0 or texcoords.max() > 1:
         raise RuntimeError("texcoords outside [0, 1] after packing")
+    face_id, bary = texel_map(texcoords, tfaces, resolution)
+    collapsed = uv_signed_area(texcoords, tfaces) == 0
     info.update(charts=int(uv_charts(tfaces, len(texcoords)).max()) + 1, texels_per_unit=best_tpu * scale,
-                utilization=float(util), degenerate_uv_faces=int((uv_signed_area(texcoords, tfaces) == 0).sum()),
-                working_scale=scale)
-    if info["degenerate_uv_faces"]:
-        log.warning("template: %d faces have no area in the atlas (needle-thin faces: xatlas gives them "
-                    "collapsed UVs, so they take the colour of one texel); thicken or remove such parts of "
-                    "the mesh", info["degenerate_uv_faces"])
+                utilization=float((face_id >= 0).mean()), xatlas_utilization=float(util),
+                faces_without_texel=int(len(faces_without_texel(face_id, len(F)))),
+                degenerate_uv_faces=int(collapsed.sum()), working_scale=scale)
+    if collapsed.any():
+        log.warning("template: %s", _collapsed_message(vertices, F, collapsed, scale))
     log.info("template: atlas %d^2, %d charts (%d mirrored by xatlas, %d triangles), %.1f%% used, "
              "%.1f s charting + %.1f s packing", resolution, info["charts"], info["flipped_charts"],
              info["flipped_xatlas"], 100 * info["utilization"], info["time_chart_s"], info["time_pack_s"])
-    return (texcoords, tfaces, info) if return_info else (texcoords, tfaces)
+    out = (texcoords, tfaces) + ((info,) if return_info else ())
+    return out + ((face_id, bary),) if return_texels else out
+
+
+def _collapsed_message(vertices, faces, collapsed, scale) -> str:
+    """Why faces got no area in the atlas and where they are: ``collapsed`` (F,) bool, ``scale``
+    the working scale xatlas saw the mesh at."""
+    area, quality = _face_areas_quality(vertices, faces)
+    part = mesh_parts(faces)
+    hit = np.bincount(part[collapsed], minlength=int(part.max()) + 1)
+    sizes = np.bincount(part)
+    worst = np.argsort(-hit, kind="stable")[: min(3, int((hit > 0).sum()))]
+    where = ", ".join(f"{hit[k]} of the {sizes[k]} faces of part {k}" for k in worst)
+    limit = XATLAS_MIN_AREA / scale ** 2  # in m²
+    small = int((collapsed & (area * scale ** 2 < XATLAS_MIN_AREA)).sum())
+    thin = int((collapsed & (quality < WELL_SHAPED_QUALITY)).sum())
+    return (f"{int(collapsed.sum())} faces have no area in the atlas, so each takes the colour of one texel: "
+            f"{small} of them are below xatlas' area limit at the working scale x{scale:.3g} (faces under "
+            f"{limit:.2g} m²; the scale follows the median face area, so a small part's faces can be under it), "
+            f"{thin} are needle-thin; they lie in {int((hit > 0).sum())} of the mesh's {len(sizes)} connected parts "
+            f"(numbered in face order: {where}); enlarge, thicken or remove such parts (template.min_part_faces "
+            f"drops parts of few faces)")
+
+
+def faces_without_texel(face_id, n_faces: int) -> np.ndarray:
+    """(N,) int64 ids of the faces whose UV triangle holds no texel centre of the texel map
+    ``face_id`` (W, W) int (-1 = empty): they have no texture of their own (a lookup on them reads
+    neighbouring texels)."""
+    has = np.zeros(int(n_faces), bool)
+    fid = np.asarray(face_id)
+    has[fid[fid >= 0]] = True
+    return np.flatnonzero(~has)
 
 
 def layout_from_corners(corner_uv):
@@ -725,6 +792,22 @@ def outside_unit_square(uv) -> np.ndarray:
     return ~np.isfinite(t).all(-1) | (t < 0).any(-1) | (t > 1).any(-1)
 
 
+#: :func:`keep_layout` refuses a layout in which more than this fraction of the faces have zero UV
+#: area: most faces would then share single texels (a few collapsed faces are only warned about).
+MAX_COLLAPSED_UV_FRACTION = 0.5
+
+
+def _refuse_collapsed_layout(area, texcoords) -> None:
+    """Raise ValueError when more than :data:`MAX_COLLAPSED_UV_FRACTION` of the UV triangles
+    (signed areas ``area`` (F,)) have zero area; ``texcoords`` (Vt, 2) for the message."""
+    zero = int((area == 0).sum())
+    if zero > MAX_COLLAPSED_UV_FRACTION * len(area):
+        distinct = len(np.unique(np.asarray(texcoords), axis=0))
+        raise ValueError(f"template.uv: mesh: {zero} of the {len(area)} faces have zero area in the mesh's texture "
+                         f"coordinates (OBJ vt, glTF TEXCOORD_0; {distinct} distinct coordinate pairs): that is no "
+                         f"layout that gives faces texels of their own; use template.uv: xatlas")
+
+
 def keep_layout(corner_uv, resolution: int):
     """The mesh's own UV layout as the atlas (``template.uv: mesh``), checked for what one texture
     per face needs.
@@ -743,7 +826,9 @@ def keep_layout(corner_uv, resolution: int):
         ValueError: coordinates outside [0, 1] (a layout that tiles or wraps), not finite, or
             UV triangles that overlap (several faces sharing texels, e.g. mirrored halves of a
             game asset painted once): a time-varying texture needs texels of its own for every
-            face. The message says where.
+            face. Also a layout that holds no texel centre at all, or in which more than
+            :data:`MAX_COLLAPSED_UV_FRACTION` of the faces have zero UV area (e.g. every
+            coordinate (0, 0): an asset exported without a real layout). The message says where.
     """
     t = np.asarray(corner_uv, np.float64)
     bad = outside_unit_square(t).any(axis=1)
@@ -753,7 +838,13 @@ def keep_layout(corner_uv, resolution: int):
                          f"(e.g. {np.round(t[f], 4).tolist()}): a layout that tiles or wraps cannot give every "
                          f"face texels of its own; use template.uv: xatlas")
     texcoords, tfaces = layout_from_corners(t)
+    area = uv_signed_area(texcoords, tfaces)
+    _refuse_collapsed_layout(area, texcoords)
     face_id, _ = texel_map(texcoords, tfaces, resolution)
+    if not (face_id >= 0).any():
+        raise ValueError(f"template.uv: mesh: the mesh's texture coordinates (OBJ vt, glTF TEXCOORD_0) hold no texel "
+                         f"centre of the {resolution}^2 atlas (template.atlas_size): its UV triangles are too small "
+                         f"to carry a texture; use template.uv: xatlas")
     overlap, where = uv_overlaps(texcoords, tfaces, resolution, face_id)
     if overlap:
         r, c = where
@@ -761,7 +852,6 @@ def keep_layout(corner_uv, resolution: int):
                          f"(e.g. texel row {r}, column {c}: u {(c + .5) / resolution:.4f}, v {(r + .5) / resolution:.4f}, "
                          f"v down): faces sharing texels cannot each get their own texture (mirrored or "
                          f"stacked islands); lay them out apart, or use template.uv: xatlas")
-    area = uv_signed_area(texcoords, tfaces)
     info = {"source": "mesh", "charts": int(uv_charts(tfaces, len(texcoords)).max()) + 1,
             "mirrored_faces": int((area > 0).sum()), "degenerate_uv_faces": int((area == 0).sum()),
             "overlap_texels": 0, "utilization": float((face_id >= 0).mean())}
@@ -903,7 +993,11 @@ def gutter_conflicts(face_id, face_chart, gutter_px: int) -> int:
 def embed_vertices(points, orig_vertices, orig_faces):
     """Closest point of each point on the original surface, as face id + barycentrics.
 
-    Faces of zero area are skipped (their barycentrics are undefined).
+    Faces of zero area are skipped (their barycentrics are undefined). The search runs with the
+    mesh scaled by a power of two that makes its median face area about 1: trimesh's
+    closest-point test compares products of squared lengths with an absolute tolerance (1e-13),
+    so with ~1 mm faces in metres it snapped points to edges and corners that are not the closest
+    (0.18 mm off on a 10 cm sphere of 82k faces).
 
     Args:
         points: (V, 3) float, metres.
@@ -915,19 +1009,30 @@ def embed_vertices(points, orig_vertices, orig_faces):
     """
     import trimesh
 
-    V0 = np.asarray(orig_vertices, np.float64)
     F0 = np.asarray(orig_faces, np.int64)
+    scale = _unit_area_scale(orig_vertices, F0)  # a power of two: scaling and back are exact
+    V0 = np.asarray(orig_vertices, np.float64) * scale
     tri = V0[F0]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     ok = np.flatnonzero(area > 0)
     tm = trimesh.Trimesh(V0, F0[ok], process=False, validate=False)
-    pts = np.asarray(points, np.float64)
+    pts = np.asarray(points, np.float64) * scale
     closest, dist, tid = trimesh.proximity.closest_point(tm, pts)
     face = ok[tid]
     bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
     bary = np.clip(bary, 0.0, None)
     bary /= bary.sum(1, keepdims=True)
-    return face.astype(np.int32), bary.astype(np.float32), closest, np.asarray(dist)
+    return face.astype(np.int32), bary.astype(np.float32), closest / scale, np.asarray(dist) / scale
+
+
+def _unit_area_scale(vertices, faces) -> float:
+    """The power of two that brings the median non-zero face area of a mesh ((V, 3), (F, 3)) to
+    within a factor 4 of 1 (1.0 for a mesh without area)."""
+    area, _ = _face_areas_quality(vertices, faces)
+    area = area[area > 0]
+    if not len(area):
+        return 1.0
+    return float(2.0 ** -np.round(0.5 * np.log2(np.median(area))))
 
 
 def transfer_vertices(orig_frame_vertices, orig_faces, embedding_face, embedding_bary) -> np.ndarray:
@@ -953,6 +1058,30 @@ def transfer_vertices(orig_frame_vertices, orig_faces, embedding_face, embedding
 # the stage
 # --------------------------------------------------------------------------------------------
 
+#: Fraction of the faces that may hold no texel centre without a warning. Tiny faces legitimately
+#: miss every centre, but at the default 2048^2 none did on the fox (2304 faces after subdivision,
+#: 0.6 m and 1.5 m), the demo's procedural body (9024), a KillingFusion template from depth (20k
+#: after decimation) and a bumpy 82k-face sphere decimated to 20k; the 1.5 m fox at 256^2 has
+#: 3.2 %, at 128^2 55 %.
+MAX_FACES_WITHOUT_TEXEL = 0.01
+
+
+def _warn_faces_without_texel(face_id, uv_area, size: int, gutter: int, keep_uv: bool) -> int:
+    """Count the faces without a texel centre in ``face_id`` (W, W); warn, naming the settings,
+    when those with UV area (``uv_area`` (F,) signed; collapsed ones are warned about where they
+    collapse) exceed :data:`MAX_FACES_WITHOUT_TEXEL` of the faces."""
+    n_faces = len(uv_area)
+    missing = faces_without_texel(face_id, n_faces)
+    n = int((uv_area[missing] != 0).sum())
+    if n > MAX_FACES_WITHOUT_TEXEL * n_faces:
+        fix = ("raise template.atlas_size (the mesh's own layout is read at that size)" if keep_uv else
+               f"raise template.atlas_size (or lower template.gutter_px, now {gutter})")
+        log.warning("template: %d of the %d faces (%.1f %%) hold no texel centre of the %d^2 atlas, so they get no "
+                    "texture of their own (lookups on them read neighbouring texels): the atlas is too small for "
+                    "the mesh; %s", n, n_faces, 100.0 * n / n_faces, size, fix)
+    return int(len(missing))
+
+
 def prepare_template(mesh, params: dict) -> dict:
     """Run the template stage on a mesh.
 
@@ -961,14 +1090,21 @@ def prepare_template(mesh, params: dict) -> dict:
         params: the ``template`` config section: ``target_faces``, ``decimate``, ``atlas_size``,
             ``gutter_px``, ``uv`` (``xatlas``: a new atlas; ``mesh``: the mesh's own texture
             coordinates, carried through cleaning, decimation and subdivision, see
-            :func:`keep_layout`).
+            :func:`keep_layout`); completed with the schema's defaults and validated
+            (:func:`stex.config.section_params`: unknown keys and bad values raise ValueError).
 
     Returns:
         dict with the ``template`` store's arrays (keys as in :data:`stex.io.ARTIFACTS`) and
         ``"attrs"``: a JSON-able dict of the stage's report.
+
+    A warning names faces that hold no texel centre of the atlas when they are more than
+    :data:`MAX_FACES_WITHOUT_TEXEL` of the faces (an atlas too small for the mesh).
     """
+    from stex.config import section_params
+
+    params = section_params("template", params)
     t0 = time.perf_counter()
-    keep_uv = params.get("uv", "xatlas") == "mesh"
+    keep_uv = params["uv"] == "mesh"
     corner_uv = None
     if keep_uv:
         if mesh.texcoords is None or mesh.texcoord_faces is None:
@@ -976,7 +1112,7 @@ def prepare_template(mesh, params: dict) -> dict:
                              "glTF TEXCOORD_0); use template.uv: xatlas")
         corner_uv = np.asarray(mesh.texcoords, np.float64)[np.asarray(mesh.texcoord_faces, np.int64)]
     V, F, report, corners = clean_mesh(mesh.vertices, mesh.faces, return_corners=True)
-    V, F, parts, kept = drop_small_parts(V, F, int(params.get("min_part_faces", 0)), return_kept=True)
+    V, F, parts, kept = drop_small_parts(V, F, int(params["min_part_faces"]), return_kept=True)
     if keep_uv:  # the corners' coordinates follow the faces that stay, turned round or not
         corner_uv = corner_uv.reshape(-1, 2)[corners][kept]
     report.update(parts)
@@ -992,7 +1128,7 @@ def prepare_template(mesh, params: dict) -> dict:
                                      "unreferenced_vertices", "nonmanifold_edges", "nonmanifold_vertices",
                                      "boundary_edges")})
     t1 = time.perf_counter()
-    decimated = bool(params.get("decimate", True)) and len(F) > int(params["target_faces"])
+    decimated = bool(params["decimate"]) and len(F) > int(params["target_faces"])
     if decimated and keep_uv:
         V, F, corner_uv = decimate(V, F, int(params["target_faces"]), corner_uv=corner_uv)
         log.info("template: decimated to %d faces, %d vertices (UV layout kept)", len(F), len(V))
@@ -1002,7 +1138,7 @@ def prepare_template(mesh, params: dict) -> dict:
     # Low-poly assets (e.g. game models) are split until they have enough vertices to carry the
     # tracker's data term; midpoint splits leave the shape exactly as it was.
     subdivided = 0
-    while not decimated and len(F) * 4 <= int(params.get("min_faces", 0)):
+    while not decimated and len(F) * 4 <= int(params["min_faces"]):
         if keep_uv:
             V, F, corner_uv = subdivide_midpoint(V, F, corner_uv)
         else:
@@ -1018,11 +1154,12 @@ def prepare_template(mesh, params: dict) -> dict:
     size, gutter = int(params["atlas_size"]), int(params["gutter_px"])
     if keep_uv:
         tc, tf, info = keep_layout(corner_uv, size)
+        face_id, bary = texel_map(tc, tf, size)
     else:
-        tc, tf, info = build_atlas(V, F, size, gutter, return_info=True)
+        tc, tf, info, (face_id, bary) = build_atlas(V, F, size, gutter, return_info=True, return_texels=True)
     t4 = time.perf_counter()
     pairs, edges = face_adjacency(F)
-    face_id, bary = texel_map(tc, tf, size)
+    info["faces_without_texel"] = _warn_faces_without_texel(face_id, uv_signed_area(tc, tf), size, gutter, keep_uv)
     chart = uv_charts(tf, len(tc))
     conflicts = gutter_conflicts(face_id, chart, gutter)
     whose = " in the mesh's own UV layout (bilinear lookups there mix in the neighbour)" if keep_uv else ""
@@ -1141,17 +1278,17 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
     frame of ``frames_path`` (a ``frames`` store) inside its mask from ``masks_path``.
     """
     from stex.camera import Calibration
+    from stex.config import section_params
     from stex.io import create_store, open_store
     from stex.readers.meshes import Mesh
 
+    # defaults filled in, as the store records them; refuses uv: mesh with from_depth too
+    params = section_params("template", params)
     scene = open_store(scene_path, "scene")
     has_template = scene.attrs.get("has_template", False) and "template/vertices" in scene
-    if params.get("from_depth", False):
+    if params["from_depth"]:
         if frames_path is None or masks_path is None:
             raise ValueError("template.from_depth needs the first frame block and its masks")
-        if params.get("uv", "xatlas") == "mesh":
-            raise ValueError("template.uv: mesh keeps the source template's own UV layout, but template.from_depth "
-                             "builds a mesh without one; use template.uv: xatlas")
         frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
         fid = int(frames.attrs["frame_ids"][0])
         if has_template:

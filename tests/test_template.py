@@ -251,7 +251,7 @@ def test_template_from_the_first_frames_depth(tmp_path):
     params = dict(cfg["template"], atlas_size=256, from_depth=True, from_depth_stride_px=1)
     with pytest.raises(ValueError, match="needs the first frame block"):
         write_template(tmp_path / "scene.zarr", params, tmp_path / "x.zarr")
-    with pytest.raises(ValueError, match="template.uv: mesh keeps the source template's own UV layout"):
+    with pytest.raises(ValueError, match="uv: mesh keeps the source template's own UV layout"):
         write_template(tmp_path / "scene.zarr", dict(params, uv="mesh"), tmp_path / "x.zarr", tmp_path / "f.zarr",
                        tmp_path / "m.zarr")
     assert not (tmp_path / "x.zarr").exists()
@@ -505,3 +505,122 @@ def test_layouts_that_cannot_hold_a_texture_per_face_are_refused(case, match):
     # the default makes its own atlas for the same mesh
     out = prepare_template(mesh, dict(target_faces=100, decimate=True, min_faces=0, atlas_size=64, gutter_px=1))
     assert out["attrs"]["uv"] == "xatlas" and len(out["faces"]) == 3
+
+
+def test_an_atlas_too_small_for_the_mesh_is_warned_about_and_named(caplog):
+    """With atlas_size too small for the mesh most faces hold no texel centre: a warning names the
+    count and template.atlas_size / gutter_px (at a fitting size: none, and no warning); when the
+    charts cannot be packed at all the error names the settings and the chart count. The attr
+    utilization is the texel map's covered fraction, not xatlas' own (higher) figure."""
+    from stex.readers.meshes import Mesh
+    from stex.template import prepare_template
+    s = trimesh.creation.icosphere(3, 0.1)
+    mesh = Mesh(np.asarray(s.vertices) + [0, 0, 1], np.asarray(s.faces))
+    params = dict(decimate=False, min_faces=0, gutter_px=2)
+    with caplog.at_level("WARNING", logger="stex.template"):
+        small = prepare_template(mesh, dict(params, atlas_size=64))
+    a = small["attrs"]
+    missing = len(s.faces) - len(np.unique(small["texel/face_id"][small["texel/face_id"] >= 0]))
+    assert a["atlas"]["faces_without_texel"] == missing > 0.01 * len(s.faces)
+    assert f"{missing} of the {len(s.faces)} faces" in caplog.text
+    assert "raise template.atlas_size (or lower template.gutter_px, now 2)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="stex.template"):
+        big = prepare_template(mesh, dict(params, atlas_size=512))
+    assert big["attrs"]["atlas"]["faces_without_texel"] == 0 and "texel centre" not in caplog.text
+    for out in (small, big):
+        atlas = out["attrs"]["atlas"]
+        assert atlas["utilization"] == pytest.approx((out["texel/face_id"] >= 0).mean(), abs=1e-12)
+        assert atlas["xatlas_utilization"] > atlas["utilization"]
+    # 60 separate boxes: 60+ charts with a 4-texel gutter each cannot share 56^2 texels
+    boxes = trimesh.util.concatenate([trimesh.creation.box((0.01, 0.01, 0.01)).apply_translation([0.02 * i, 0, 1])
+                                      for i in range(60)])
+    with pytest.raises(RuntimeError, match=r"could not pack the \d+ charts into one 56\^2 atlas .*"
+                                           r"raise template.atlas_size or lower template.gutter_px"):
+        build_atlas(boxes.vertices, boxes.faces, 64, 4)
+
+
+def test_a_layout_that_covers_no_texels_is_refused():
+    """template.uv: mesh with every vt (0, 0) (an export without a real layout) covered no texel
+    and was accepted; so is a layout most of whose faces have zero UV area, and one of triangles
+    too small to hold a texel centre. A few collapsed faces are only warned about."""
+    from stex.readers.meshes import Mesh
+    from stex.template import MAX_COLLAPSED_UV_FRACTION, prepare_template
+    s = trimesh.creation.icosphere(2, 0.1)
+    V, F = np.asarray(s.vertices) + [0, 0, 1], np.asarray(s.faces)
+    params = dict(decimate=False, min_faces=0, atlas_size=64, gutter_px=1, uv="mesh")
+    with pytest.raises(ValueError, match=r"320 of the 320 faces have zero area in the mesh's texture coordinates"
+                                         r".*use template.uv: xatlas"):
+        prepare_template(Mesh(V, F, np.zeros((1, 2)), np.zeros_like(F)), params)
+    # each face its own tiny triangle inside one texel, between texel centres: no centre held
+    k = np.arange(len(F))
+    tc = np.stack([np.full(len(F), 0.1), 0.1 + 1e-6 * k], 1)
+    corners = np.stack([tc, tc + [1e-7, 0], tc + [0, 1e-7]], 1)[:, [0, 2, 1]]  # front-facing
+    with pytest.raises(ValueError, match=r"hold no texel centre of the 64\^2 atlas \(template.atlas_size\)"):
+        prepare_template(Mesh(V, F, corners.reshape(-1, 2), np.arange(3 * len(F)).reshape(-1, 3)), params)
+    # a good layout with more than half of its faces collapsed
+    tc, tf = build_atlas(V, F, 64, 1)
+    tc = np.asarray(tc, np.float64).copy()
+    tf = np.asarray(tf).copy()
+    n = int(MAX_COLLAPSED_UV_FRACTION * len(F)) + 1
+    tf[:n] = tf[:n, :1]
+    with pytest.raises(ValueError, match=rf"{n} of the 320 faces have zero area"):
+        prepare_template(Mesh(V, F, tc, tf), params)
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"uv": "UV-mesh"}, "uv"),
+    ({"atlas_sise": 1024}, "atlas_sise"),
+    ({"atlas_size": 32}, "atlas_size"),
+])
+def test_template_params_are_validated(tmp_path, params, match):
+    """A misspelled uv was silently xatlas, unknown keys were ignored; both entry points now check
+    the params against the schema (and fill in its defaults: a partial dict works)."""
+    from stex.readers.meshes import Mesh
+    from stex.template import prepare_template
+    s = trimesh.creation.icosphere(1, 0.1)
+    mesh = Mesh(np.asarray(s.vertices) + [0, 0, 1], np.asarray(s.faces))
+    with pytest.raises(ValueError, match=match):
+        prepare_template(mesh, params)
+    with pytest.raises(ValueError, match=match):  # before the (missing) scene is read
+        write_template(tmp_path / "no_scene.zarr", params, tmp_path / "template.zarr")
+    out = prepare_template(mesh, {"atlas_size": 128})
+    assert out["attrs"]["uv"] == "xatlas" and len(out["faces"]) >= 4000 // 4  # schema min_faces 4000
+
+
+def test_a_millimetre_mesh_embeds_like_the_same_mesh_scaled_up():
+    """trimesh's closest point compares with an absolute tolerance: with ~1 mm faces (in metres)
+    points snapped to edges that were not the closest (0.18 mm off). The same fine, bumpy mesh in
+    metres and x1000 must give the same closest points, faces and distances."""
+    m = trimesh.creation.icosphere(5, 0.02)  # 2 cm ball, 20k faces, ~0.8 mm edges
+    m.vertices *= 1 + 0.05 * np.sin(300 * m.vertices[:, :1])
+    V0, F0 = np.asarray(m.vertices) + [0, 0, 1], np.asarray(m.faces)
+    rng = np.random.default_rng(0)
+    pts = V0[rng.choice(len(V0), 1000, replace=False)] + rng.normal(0, 2e-4, (1000, 3))
+    face, bary, closest, dist = embed_vertices(pts, V0, F0)
+    face_k, bary_k, closest_k, dist_k = embed_vertices(pts * 1e3, V0 * 1e3, F0)
+    np.testing.assert_allclose(dist, dist_k / 1e3, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(closest, closest_k / 1e3, rtol=0, atol=1e-10)
+    # brute force over every face for a sample: no face is nearer than the one found
+    for i in range(0, 1000, 50):
+        c = trimesh.triangles.closest_point((V0[F0] - pts[i]) * 1e3, np.zeros((len(F0), 3)))
+        assert dist[i] <= np.linalg.norm(c, axis=1).min() / 1e3 + 1e-10
+
+
+def test_the_collapsed_uv_warning_names_small_parts_not_needles(caplog):
+    """A 2 mm part of well-shaped faces on a 10 cm body falls below xatlas' area limit at the
+    working scale (which follows the median face area): the warning says so, with the part, and
+    does not call them needle-thin; the atlas-size warning does not blame the atlas for them."""
+    from stex.readers.meshes import Mesh
+    from stex.template import prepare_template
+    body = trimesh.creation.icosphere(3, 0.1)
+    eye = trimesh.creation.icosphere(2, 0.001).apply_translation([0.1, 0, 0])
+    m = trimesh.util.concatenate([body, eye])
+    with caplog.at_level("WARNING", logger="stex.template"):
+        out = prepare_template(Mesh(np.asarray(m.vertices) + [0, 0, 1], np.asarray(m.faces)),
+                               dict(decimate=False, min_faces=0, atlas_size=512, gutter_px=2))
+    assert out["attrs"]["atlas"]["degenerate_uv_faces"] == len(eye.faces)
+    assert (f"{len(eye.faces)} faces have no area in the atlas" in caplog.text
+            and f"{len(eye.faces)} of them are below xatlas' area limit at the working scale x1" in caplog.text
+            and "0 are needle-thin" in caplog.text and f"{len(eye.faces)} of the {len(eye.faces)} faces of part 1" in caplog.text)
+    assert "hold no texel centre" not in caplog.text
