@@ -15,6 +15,7 @@ Conventions (stated once, here):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,6 +94,24 @@ class Intrinsics:
         """(width, height) in pixels."""
         return (self.width, self.height)
 
+    def resolution_mismatch(self) -> str | None:
+        """Why these intrinsics may belong to another image size, or None.
+
+        Suspect when the principal point is more than ``MAX_PRINCIPAL_OFFSET`` of the width (height)
+        from the image centre ((width - 1) / 2, (height - 1) / 2) in x (y). Valid either way: the
+        readers warn, they do not refuse.
+        """
+        ox = abs(self.cx - (self.width - 1) / 2) / self.width
+        oy = abs(self.cy - (self.height - 1) / 2) / self.height
+        if max(ox, oy) <= MAX_PRINCIPAL_OFFSET:
+            return None
+        size = f"{self.width}x{self.height}"
+        return (f"principal point ({self.cx:g}, {self.cy:g}) is {100 * ox:.0f} % of the width and "
+                f"{100 * oy:.0f} % of the height from the centre of the {size} image (more than "
+                f"{100 * MAX_PRINCIPAL_OFFSET:.0f} %; real cameras' are within about 10 %): the intrinsics may "
+                f"belong to another resolution, {2 * self.cx + 1:g}x{2 * self.cy + 1:g} (2*cx+1 by 2*cy+1); "
+                f"give the intrinsics of the {size} images (stex.camera.Intrinsics.scaled converts them)")
+
     def scaled(self, factor: float) -> "Intrinsics":
         """The same camera for an image resized by ``factor`` (pixel centres preserved)."""
         K = self.K.copy()
@@ -128,6 +147,12 @@ class Intrinsics:
 # RealSense); a larger translation is a unit mistake, not a rig.
 MAX_BASELINE_M = 0.5
 
+# Real RGB-D cameras have the principal point near the image centre: the shared samples (Kinect v1,
+# Structure sensor, Azure Kinect colour) within 1 %, the Azure Kinect's NFOV depth modes (a crop of
+# the sensor) 10.6 % of the height off. Intrinsics of half the resolution are 25 % off, those of
+# 720p given for 1080p 17 %. Fraction of the width (x) or height (y).
+MAX_PRINCIPAL_OFFSET = 0.15
+
 
 @dataclass(frozen=True)
 class Calibration:
@@ -143,19 +168,35 @@ class Calibration:
     depth_to_color: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     def __post_init__(self):
-        T = np.asarray(self.depth_to_color, dtype=np.float64)
+        T = np.array(self.depth_to_color, dtype=np.float64)  # a copy: the last row is set below
         if T.shape == (3, 4):
             T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError(f"depth_to_color must be a finite 4x4 (or 3x4) matrix, got shape {T.shape}")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
+            # transform_points uses the top 3x4 only: another last row would be stored, never applied
+            raise ValueError(f"depth_to_color's last row must be (0, 0, 0, 1) (a rigid transform), got "
+                             f"{T[3].tolist()}: give [[R, t], [0, 0, 0, 1]] or the 3x4 [R | t]")
+        T[3] = (0.0, 0.0, 0.0, 1.0)
         R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-            raise ValueError("depth_to_color rotation is not a proper rotation matrix")
+        err, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+        if err > 1e-4 or det < 0:
+            raise ValueError(f"depth_to_color rotation is not a proper rotation matrix (R Rt differs from the "
+                             f"identity by {err:.2g}, det {det:.4g}; it must be orthonormal to 1e-4 with det +1)")
         baseline = float(np.linalg.norm(T[:3, 3]))
         if baseline > MAX_BASELINE_M:
             raise ValueError(f"depth_to_color translation is {baseline:.3g} m, but the two cameras of one RGB-D "
                              f"sensor are centimetres apart: is it in millimetres? It must be in metres")
         object.__setattr__(self, "depth_to_color", T)
+
+    def warn_suspicious(self, source: str) -> None:
+        """Warn (``UserWarning``, naming ``source``, e.g. the calibration file) about valid but
+        probably wrong values: intrinsics that look like another resolution's. Readers call it
+        once; not in ``__post_init__``, as every stage rebuilds the calibration from scene.zarr."""
+        for name, cam in (("color", self.color), ("depth", self.depth)):
+            msg = cam.resolution_mismatch()
+            if msg:
+                warnings.warn(f"{source}: {name} camera: {msg}", stacklevel=2)
 
     def to_dict(self) -> dict:
         return {

@@ -8,6 +8,7 @@ was written. Bad inputs must fail with a message naming the file or frame.
 import json
 import re
 import shutil
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import data_samples
 from stex.config import load_config
 from stex.ingest import FolderSource, write_frames_block, write_scene
 from stex.io import open_store
@@ -755,12 +757,19 @@ def test_a_stray_frame_with_a_far_index_is_counted_not_listed(authors):
         FolderDataset(authors)
 
 
-def test_jpeg_masks_are_refused(stex_ds, synth):
-    m = stex_ds / "mask" / f"{IDS[0]:06d}.png"
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+@pytest.mark.parametrize("ext", [".jpg", ".JPEG"])
+def test_jpeg_masks_are_refused_in_both_layouts(tmp_path, datasets, synth, layout, ext):
+    """The authors' layout listed only ``.png`` masks: JPEG masks were skipped without a word and
+    the run went on without masks, while the stex layout refused them."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    m = _files(root, layout, "mask")[0]
     m.unlink()
     assert cv2.imwrite(str(m.with_suffix(".jpg")), synth.mask[0].astype(np.uint8) * 255)
-    with pytest.raises(ValueError, match=r"masks must be PNG.*000007\.jpg"):
-        FolderDataset(stex_ds, "stex")
+    m.with_suffix(".jpg").rename(m.with_suffix(ext))
+    with pytest.raises(ValueError, match=r"mask: masks must be PNG: JPEG's lossy compression smears the mask's "
+                                         rf"edges.*{re.escape(m.stem + ext)}.*Save the masks as PNG"):
+        FolderDataset(root, layout)
 
 
 @pytest.mark.parametrize("layout", ["authors", "stex"])
@@ -856,3 +865,279 @@ def test_intrinsics_refuse_skew_and_another_last_row_and_look_at_degenerate_view
     with pytest.raises(ValueError, match="apart from the eye"):
         look_at((0, 0, 0), (0, 0, 0))
     assert np.isfinite(look_at((0, 0, -1), (0, 0, 0))).all()
+
+
+# -- file names: the same rules in both layouts; files not read are named -----------------------
+
+def _dir(root: Path, layout: str, kind: str) -> Path:
+    """The folder of ``kind`` (color, depth, mask or mesh) in ``layout``."""
+    if kind == "mesh":
+        return root / ("mesh" if layout == "authors" else "meshes")
+    return root / "stream" / kind if layout == "authors" else root / kind
+
+
+def _files(root: Path, layout: str, kind: str) -> list[Path]:
+    return sorted(_dir(root, layout, kind).iterdir())
+
+
+def _silent(*args) -> FolderDataset:
+    """FolderDataset(*args), failing on any warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return FolderDataset(*args)
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_mesh_names_with_any_number_of_digits_and_any_extension_case(tmp_path, datasets, synth, layout):
+    """Only ``%06d``/``%03d`` names with lower-case extensions were looked up: ``meshes/7.obj``,
+    ``meshes/000008.OBJ``, ``mesh/Frame_000001.off`` were dropped without a word and the run had
+    no given meshes. Colour names took any number of digits; meshes now do too."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    prefix = "Frame_" if layout == "authors" else ""
+    for k, p in enumerate(_files(root, layout, "mesh")):
+        number = int(re.search(r"\d+", p.name).group())
+        ext = p.suffix.upper() if k % 2 else p.suffix
+        p.rename(p.with_name(f"{prefix}{number:{['', '06', '03', '02'][k]}d}{ext}"))
+    ds = _silent(root, layout)
+    for k, fid in enumerate(IDS):
+        np.testing.assert_allclose(ds.load_given_mesh(fid).vertices, synth.verts[k], atol=1e-6)
+    assert ds.mesh_path(IDS[1]).name == (f"Frame_000001.OFF" if layout == "authors" else f"{IDS[1]:06d}.OBJ")
+    write_scene(folder_cfg(root, layout), 2, tmp_path / "scene.zarr")
+    g = open_store(tmp_path / "scene.zarr", "scene")
+    np.testing.assert_allclose(g["given/vertices"][:], np.stack(synth.verts), atol=1e-6)
+    if layout == "authors":  # without conf.json's template, the default is mesh/Frame_000 in any spelling
+        (root / "tex_mesh.obj").unlink()
+        assert FolderDataset(root).template_path() == root / "mesh" / "Frame_0.off"
+
+
+def test_authors_meshes_numbered_by_absolute_index_are_named(authors):
+    """mesh/Frame_%03d counts from conf.json's start_idx (documented, kept). Meshes numbered by the
+    absolute frame index (Frame_007 for frame 7) matched no frame and were dropped without a word."""
+    for p in sorted(_files(authors, "authors", "mesh"), reverse=True):
+        p.rename(p.with_name(f"Frame_{int(p.stem[6:]) + FIRST:03d}.off"))
+    with pytest.warns(UserWarning, match=rf"mesh: 4 mesh file\(s\) give no frame its mesh and are not read: "
+                                         rf"\['Frame_007\.off', .*numbers them from frame {FIRST} \(conf\.json's "
+                                         rf"main\.start_idx\): Frame_000 is frame {FIRST}.*look like absolute frame "
+                                         r"indices: rename .*\(e\.g\. Frame_007 to Frame_000\)"):
+        ds = FolderDataset(authors)
+    assert all(ds.mesh_path(fid) is None for fid in IDS)
+
+
+def test_mesh_files_that_match_no_frame_are_named(stex_ds):
+    """A mesh file that is no frame's mesh is named; the meshes that match are still read. An
+    OBJ's .mtl is not a mesh."""
+    meshes = stex_ds / "meshes"
+    for name in (f"{IDS[-1] + 90:06d}.obj", "mesh_8.obj", "000007.glb"):
+        shutil.copy(meshes / f"{IDS[0]:06d}.obj", meshes / name)
+    (meshes / "000007.mtl").write_text("newmtl skin\n")
+    with pytest.warns(UserWarning) as rec:
+        ds = FolderDataset(stex_ds, "stex")
+    msg = "\n".join(str(w.message) for w in rec)
+    assert re.search(r"meshes: 3 mesh file\(s\) give no frame its mesh and are not read: \['000100\.obj', "
+                     r"'000007\.glb', 'mesh_8\.obj'\]; name them <frame index>\.obj .*on disk are 7\.\.10", msg)
+    assert ".mtl" not in msg
+    assert all(ds.mesh_path(fid).name == f"{fid:06d}.obj" for fid in IDS)
+
+
+def test_authors_template_in_the_mesh_folder_is_not_named(authors):
+    conf = json.loads((authors / "conf.json").read_text())
+    conf["case_test"]["main"]["tex_mesh_path"] = "mesh/template.obj"
+    (authors / "conf.json").write_text(json.dumps(conf))
+    (authors / "tex_mesh.obj").rename(authors / "mesh" / "template.obj")
+    assert _silent(authors).template_path() == authors / "mesh" / "template.obj"
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_two_mesh_files_for_one_frame_are_refused(tmp_path, datasets, layout):
+    """Two spellings of one frame's mesh are refused, as for images (the lookup took the first of
+    .off, .obj, .ply)."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    first = _files(root, layout, "mesh")[0]
+    other = "Frame_0.obj" if layout == "authors" else f"{IDS[0]}.ply"
+    shutil.copy(first, first.with_name(other))
+    with pytest.raises(ValueError, match=rf"{_dir(root, layout, 'mesh').name}: two files for frame {IDS[0]}: ") as exc:
+        FolderDataset(root, layout)
+    assert {first.name, other} == set(re.search(r": (\S+) and (\S+); keep one$", str(exc.value)).groups())
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_upper_case_image_extensions_are_read(tmp_path, datasets, synth, layout):
+    """``000007.PNG`` masks were ignored in both layouts (the run went on without masks)."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    for kind in ("color", "depth", "mask"):
+        for p in _files(root, layout, kind):
+            p.rename(p.with_suffix(".PNG"))
+    ds = _silent(root, layout)
+    assert ds.frame_ids == IDS and ds.has_masks
+    for k, fid in enumerate(IDS):
+        np.testing.assert_array_equal(ds.mask(fid), synth.mask[k])
+        np.testing.assert_array_equal(ds.color(fid), synth.color[k])
+        np.testing.assert_array_equal(ds.depth(fid), synth.depth[k])
+
+
+def test_authors_colour_jpegs_are_read_and_other_formats_named(authors, synth):
+    """Colour saved as .jpg failed with "no colour frames in [0, None)", not saying what was
+    found. JPEG colour is read as in the stex layout; files of another format are named."""
+    for p in _files(authors, "authors", "color"):
+        assert cv2.imwrite(str(p.with_suffix(".jpg")), cv2.imread(str(p)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        p.unlink()
+    ds = _silent(authors)
+    assert ds.frame_ids == IDS
+    assert np.abs(ds.color(IDS[0]).astype(int) - synth.color[0]).mean() < 3  # RGB, JPEG's error only
+    for p in _files(authors, "authors", "color"):
+        p.rename(p.with_suffix(".bmp"))
+    with pytest.raises(ValueError, match=r"color: no colour frames in \[0, None\); 4 file\(s\) not read, as they "
+                                         r"are not named Frame_<frame index>\.png or \.jpg: \['Frame_000007\.bmp'"):
+        FolderDataset(authors)
+
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_image_files_that_are_not_read_are_named(tmp_path, datasets, layout):
+    """Masks in another format were skipped without a word: the run went on without them."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    for p in _files(root, layout, "mask"):
+        p.rename(p.with_suffix(".bmp"))
+    (_dir(root, layout, "color") / "notes.txt").write_text("shot on Tuesday")
+    (_dir(root, layout, "color") / ".DS_Store").write_bytes(b"\0")  # hidden: an OS's, not the user's
+    with pytest.warns(UserWarning) as rec:
+        ds = FolderDataset(root, layout)
+    assert not ds.has_masks
+    msg = "\n".join(str(w.message) for w in rec)
+    prefix = "Frame_" if layout == "authors" else ""
+    assert re.search(rf"mask: 4 file\(s\) not read, as they are not named {prefix}<frame index>\.png: "
+                     rf"\['{prefix}0*7\.bmp', ", msg)
+    assert "rename them (or move them out of the folder)" in msg
+    assert re.search(r"color: 1 file\(s\) not read.*\['notes\.txt'\]", msg) and "DS_Store" not in msg
+    for p in _files(root, layout, "depth"):
+        p.rename(p.with_suffix(".tif"))
+    with pytest.raises(ValueError, match=rf"depth: depth missing for frame\(s\) \[7, 8, 9, 10\]; 4 file\(s\) not "
+                                         rf"read, as they are not named {prefix}<frame index>\.png: .*7\.tif"):
+        FolderDataset(root, layout)
+
+
+# -- calibrations that are valid but wrong ------------------------------------------------------
+
+@pytest.mark.parametrize("layout", ["authors", "stex"])
+def test_colour_intrinsics_of_a_lower_resolution_warn(tmp_path, datasets, synth, layout):
+    """A 160x120 colour camera given the intrinsics of 80x60 (fx 70, cx 39.5, cy 29.5) passed, as
+    its principal point is inside the image, and the run's texture came out 25.7 dB, not 37.3."""
+    root = Path(shutil.copytree(datasets[layout], tmp_path / "ds"))
+    _silent(root, layout)  # the synthetic cameras are centred
+    small = dict(_intr(synth.cal.color), fx=70.0, fy=70.0, cx=39.5, cy=29.5)
+    if layout == "authors":
+        _set_mapper(root, color_intrinsic=small)
+    else:
+        cal = synth.cal.to_dict()
+        cal["color"].update(small)
+        (root / "calibration.json").write_text(json.dumps(cal))
+    name = "conf.json" if layout == "authors" else "calibration.json"
+    with pytest.warns(UserWarning, match=rf"{re.escape(name)}: color camera: principal point \(39\.5, 29\.5\) is "
+                                         r"25 % of the width and 25 % of the height from the centre of the 160x120 "
+                                         r"image .*another resolution, 80x60 \(2\*cx\+1 by 2\*cy\+1\); give the "
+                                         r"intrinsics of the 160x120 images"):
+        FolderDataset(root, layout)
+
+
+def test_principal_point_threshold():
+    """Suspect beyond 15 % of the width or height from the centre: half-resolution intrinsics are
+    25 % off, 720p intrinsics given for 1080p 16.7 %; the Azure Kinect's NFOV depth is 10.6 %."""
+    from stex.camera import MAX_PRINCIPAL_OFFSET, Intrinsics
+
+    assert MAX_PRINCIPAL_OFFSET == 0.15
+    assert Intrinsics.from_focal(500, 500, 319.5, 287.5 + 0.149 * 576, 640, 576).resolution_mismatch() is None
+    assert "another resolution" in Intrinsics.from_focal(500, 500, 319.5, 287.5 + 0.151 * 576, 640, 576).resolution_mismatch()
+    assert "another resolution" in Intrinsics.from_focal(500, 500, 319.5 - 0.151 * 640, 287.5, 640, 576).resolution_mismatch()
+    assert "1280x720" in Intrinsics.from_focal(900, 900, 639.5, 359.5, 1920, 1080).resolution_mismatch()
+
+
+@pytest.mark.skipif(not data_samples().is_dir(), reason="shared data samples absent")
+def test_real_cameras_are_not_suspected_of_another_resolution():
+    """The shared samples' calibrations: Kinect v1 (Snoopy), Structure sensor (DeepDeform) and the
+    Azure Kinect in every colour resolution and depth mode."""
+    from stex.camera import Intrinsics
+    from stex.readers.kinect_mkv import COLOR_RESOLUTIONS, DEPTH_MODES, calibration_from_k4a_json
+
+    root = data_samples()
+    K = np.loadtxt(root / "killingfusion_snoopy" / "frames_000000_000001" / "intrinsics_kinect1.txt")
+    cams = [Intrinsics(K, 640, 480)]
+    K = np.loadtxt(root / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017" / "intrinsics.txt")[:3, :3]
+    assert cv2.imread(str(root / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017" / "color"
+                          / "000300.jpg")).shape[:2] == (480, 640)
+    cams.append(Intrinsics(K, 640, 480))
+    k4a = json.loads((root / "azure_kinect_pyk4a" / "calibration.json").read_text())
+    for res in COLOR_RESOLUTIONS:
+        for mode in DEPTH_MODES:
+            cal = calibration_from_k4a_json(k4a, res, mode)
+            cams += [cal.color, cal.depth]
+    assert len(cams) == 2 + 2 * len(COLOR_RESOLUTIONS) * len(DEPTH_MODES)
+    assert [c.resolution_mismatch() for c in cams] == [None] * len(cams)
+
+
+@pytest.mark.parametrize("row", [[0, 0, 0, 0], [0.1, 0, 0, 2]])
+def test_depth_to_color_with_another_last_row_is_refused(stex_ds, synth, row):
+    """It was accepted and stored (transform_points uses the top 3x4 only, so never applied)."""
+    cal = synth.cal.to_dict()
+    cal["depth_to_color"][3] = row
+    (stex_ds / "calibration.json").write_text(json.dumps(cal))
+    with pytest.raises(ValueError, match=r"calibration\.json: invalid calibration \(depth_to_color's last row must "
+                                         r"be \(0, 0, 0, 1\) \(a rigid transform\), got "
+                                         + re.escape(str([float(x) for x in row])) + r": give \[\[R, t\], \[0, 0, 0, 1\]\]"):
+        FolderDataset(stex_ds, "stex")
+
+
+def test_depth_to_color_last_row_rounding_is_stored_exact_and_rotation_checked(synth):
+    from stex.camera import Calibration
+
+    T = synth.cal.depth_to_color.copy()
+    T[3] = [1e-12, 0.0, 0.0, 1.0 - 1e-12]  # computed, not typed
+    given = T.copy()
+    cal = Calibration(synth.cal.color, synth.cal.depth, T)
+    assert cal.depth_to_color[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+    np.testing.assert_array_equal(T, given)  # the caller's matrix is not changed
+    with pytest.raises(ValueError, match=r"not a proper rotation matrix \(R Rt differs from the identity by 0, det -1;"):
+        Calibration(synth.cal.color, synth.cal.depth, np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"not a proper rotation matrix \(R Rt differs from the identity by 0\.21, det 1\.1"):
+        Calibration(synth.cal.color, synth.cal.depth, np.diag([1.1, 1.0, 1.0, 1.0]))
+
+
+def test_frames_added_to_a_dataset_after_a_run_rewrite_the_scene_store(tmp_path, authors):
+    """A folder dataset's frame list is found on disk: frames copied in after a run re-run the
+    scene's ingest (and the new block's), so scene.zarr lists them. Before, only the new block
+    was ingested, scene.zarr kept the old list and the projection failed blaming the tracking."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from conftest import REPO
+
+    res = tmp_path / "results" / "ds"
+    (tmp_path / "ds.yaml").write_text(yaml.safe_dump({
+        "scene": "ds", "results": str(tmp_path / "results"), "frame_block": 2,
+        "source": {"kind": "folder", "folder": {"path": str(authors), "layout": "authors"}}}))
+    shutil.rmtree(authors / "mesh")  # per-frame meshes are inputs of the scene's ingest: the frames alone
+    last = IDS[-1]
+    aside = tmp_path / "aside"
+    aside.mkdir()
+    held = [authors / "stream" / d / f"Frame_{last:06d}.png" for d in ("color", "depth", "mask")]
+    for k, f in enumerate(held):
+        f.rename(aside / f"{k}.png")
+
+    def snakemake(*args):
+        blocks = [str(res / "frames" / f"block_{b:04d}.zarr") for b in range(2)]  # 3 or 4 frames, 2 a block
+        run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"),
+                              "--directory", str(tmp_path), "--configfile", str(tmp_path / "ds.yaml"),
+                              "--cores", "1", *args, str(res / "scene.zarr"), *blocks],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+        return run.stdout + run.stderr
+
+    snakemake()
+    assert open_store(res / "scene.zarr", "scene").attrs["frame_ids"] == IDS[:-1]
+    assert "Nothing to be done" in snakemake("-n")
+    for k, f in enumerate(held):
+        (aside / f"{k}.png").rename(f)
+    plan = snakemake("-n")
+    assert "rule ingest_scene:" in plan, plan[-2000:]
+    snakemake()
+    assert open_store(res / "scene.zarr", "scene").attrs["frame_ids"] == IDS

@@ -5,7 +5,7 @@ Authors' layout (``layout: authors``), as their ``TextureMappingNonRigid`` reads
     <root>/conf.json                      {"<case>": {"main": {start_idx, end_idx, tex_mesh_path},
                                              "mapper4D": {color_intrinsic, depth_intrinsic,
                                                           d_c_extrinsic (3x4 row-major, m)}}}
-    <root>/stream/color/Frame_%06d.png    8-bit colour (BGR/BGRA on disk)
+    <root>/stream/color/Frame_%06d.png    8-bit colour (BGR/BGRA on disk; or .jpg, .jpeg)
     <root>/stream/depth/Frame_%06d.png    16-bit depth, millimetres
     <root>/stream/mask/Frame_%06d.png     optional, colour resolution, foreground >= 1
     <root>/mesh/Frame_%03d.{off,obj,ply}  optional per-frame meshes, RELATIVE index: Frame_000 is
@@ -20,7 +20,9 @@ stex layout (``layout: stex``), see docs/datasets.md::
     <root>/meshes/%06d.{obj,ply,off}      optional per-frame meshes (absolute frame index)
     <root>/template.{obj,ply,off,glb}     optional template (default: the first frame's given mesh)
 
-Frame indices in file names are absolute; the reader exposes them as ``frame_ids``.
+Frame indices in file names are absolute (but the authors' mesh numbers); the reader exposes them as
+``frame_ids``. Both layouts: any number of digits (%06d is the convention), extensions in any case;
+files in these folders that are not read are named in a warning (or in the error they cause).
 """
 
 from __future__ import annotations
@@ -38,6 +40,38 @@ from stex.readers.kinect_mkv import jpeg_ends
 from stex.readers.meshes import Mesh, load_mesh
 
 _MESH_EXT = (".off", ".obj", ".ply")
+_IMAGE_EXT = (".png", ".jpg", ".jpeg")  # listed in every image folder; masks and depth refuse JPEG later
+_OTHER_MESH_EXT = (".glb", ".gltf", ".stl")  # never a frame's mesh: named if left in the mesh folder
+_NAMED = 5  # file names quoted in a warning
+
+
+def _numbered(prefix: str, exts: tuple[str, ...]) -> re.Pattern:
+    """``<prefix><digits><ext>``: any number of digits, the extension in any case (group 1: the index)."""
+    return re.compile(rf"^{re.escape(prefix)}(\d+)(?i:{'|'.join(re.escape(e) for e in exts)})$")
+
+
+def _numbered_files(folder: Path, pattern: re.Pattern, shift: int = 0) -> tuple[dict[int, Path], list[str]]:
+    """The files of ``folder`` that ``pattern`` names, by index + ``shift``, and the names of the
+    other files (hidden ones, such as .DS_Store, left out). Two files for one index are refused."""
+    out, other = {}, []
+    if not folder.is_dir():
+        return out, other
+    for p in sorted(folder.iterdir()):
+        m = pattern.match(p.name)
+        if m:
+            i = int(m.group(1)) + shift
+            if i in out:  # e.g. 8.png and 000008.png, or 000008.png and 000008.jpg
+                raise ValueError(f"{folder}: two files for frame {i}: {out[i].name} and {p.name}; keep one")
+            out[i] = p
+        elif p.is_file() and not p.name.startswith("."):
+            other.append(p.name)
+    return out, other
+
+
+def _some(names: list[str]) -> str:
+    """The first few of ``names``, and how many more."""
+    more = len(names) - _NAMED
+    return f"{names[:_NAMED]}{f' (and {more} more)' if more > 0 else ''}"
 
 
 class FolderDataset:
@@ -50,9 +84,11 @@ class FolderDataset:
         mesh_base: authors' layout: the frame of ``mesh/Frame_000`` (conf.json's ``main.start_idx``,
             else the first colour frame on disk); None in stex's layout.
 
-    Colour JPEGs are read as stored (their EXIF orientation is ignored, as the depth and the
-    calibration know nothing of it) and refused when cut short; masks must be PNG; two files for
-    one frame (``8.png`` and ``000008.png``, or ``.png`` and ``.jpg``) are refused.
+    The same rules in both layouts: colour JPEGs are read as stored (their EXIF orientation is
+    ignored, as the depth and the calibration know nothing of it) and refused when cut short; masks
+    must be PNG; two files for one frame (``8.png`` and ``000008.png``, or ``.png`` and ``.jpg``;
+    ``7.obj`` and ``000007.ply``) are refused; files of the image and mesh folders that are not
+    read are named in a warning.
     """
 
     def __init__(self, root: str | Path, layout: str = "authors", start: int = 0, stop: int | None = None):
@@ -64,11 +100,12 @@ class FolderDataset:
         self.layout = layout
         self.template_hint: str | None = None
         self.mesh_base: int | None = None  # authors: frame id of mesh/Frame_000 (conf.json start_idx)
+        self._start_idx = False  # authors: mesh_base comes from conf.json (else the first frame on disk)
         if layout == "authors":
             self.calibration_path = self.root / "conf.json"
             self.calibration = self._authors_calibration()
             self._color_dir, self._depth_dir, self._mask_dir = (self.root / "stream" / d for d in ("color", "depth", "mask"))
-            self._pattern = re.compile(r"^Frame_(\d+)\.png$")
+            self._mesh_dir, self._prefix = self.root / "mesh", "Frame_"
         else:
             path = self.calibration_path = self.root / "calibration.json"
             if not path.is_file():
@@ -85,17 +122,21 @@ class FolderDataset:
                               "and stex projects with the pinhole model, so the images should be undistorted "
                               "and the coefficients zero", stacklevel=2)
             self._color_dir, self._depth_dir, self._mask_dir = (self.root / d for d in ("color", "depth", "mask"))
-            self._pattern = re.compile(r"^(\d+)\.(png|jpg|jpeg)$")
+            self._mesh_dir, self._prefix = self.root / "meshes", ""
+        self.calibration.warn_suspicious(str(self.calibration_path))
+        self._pattern = _numbered(self._prefix, _IMAGE_EXT)
         if not self._color_dir.is_dir():
             raise FileNotFoundError(f"{self._color_dir}: colour folder missing")
-        color_ids = self._ids(self._color_dir)
-        depth_ids = self._ids(self._depth_dir)
+        color_ids, color_other = _numbered_files(self._color_dir, self._pattern)
+        depth_ids, depth_other = _numbered_files(self._depth_dir, self._pattern)
         ids = sorted(i for i in color_ids if start <= i and (stop is None or i < stop))
         if not ids:
-            raise ValueError(f"{self._color_dir}: no colour frames in [{start}, {stop})")
+            raise ValueError(f"{self._color_dir}: no colour frames in [{start}, {stop})"
+                             + (f"; {self._not_read(color_other, 'png or .jpg')}" if color_other else ""))
         missing = [i for i in ids if i not in depth_ids]
         if missing:
-            raise ValueError(f"{self._depth_dir}: depth missing for frame(s) {missing[:10]}")
+            raise ValueError(f"{self._depth_dir}: depth missing for frame(s) {missing[:10]}"
+                             + (f"; {self._not_read(depth_other, 'png')}" if depth_other else ""))
         gaps = np.diff(np.asarray(ids, np.int64)) - 1
         if gaps.any():
             # counted, not listed: one stray file with a far index would make the list huge
@@ -107,11 +148,17 @@ class FolderDataset:
         self.frame_ids = ids
         self._color_files = color_ids
         self._depth_files = depth_ids
-        self._mask_files = self._ids(self._mask_dir) if self._mask_dir.is_dir() else {}
+        self._mask_files, mask_other = _numbered_files(self._mask_dir, self._pattern)
         lossy = [p.name for p in self._mask_files.values() if p.suffix.lower() != ".png"]
         if lossy:
-            raise ValueError(f"{self._mask_dir}: masks must be PNG (JPEG noise turns background pixels into "
-                             f"foreground), got {lossy[:3]}")
+            raise ValueError(f"{self._mask_dir}: masks must be PNG: JPEG's lossy compression smears the mask's "
+                             f"edges, turning background pixels next to them into foreground; got {_some(lossy)}. "
+                             "Save the masks as PNG from their source (a JPEG converted to PNG keeps its noise)")
+        for folder, other, exts in ((self._color_dir, color_other, "png or .jpg"), (self._depth_dir, depth_other, "png"),
+                                    (self._mask_dir, mask_other, "png")):
+            if other:
+                warnings.warn(f"{folder}: {self._not_read(other, exts)}; rename them (or move them out of the folder)",
+                              stacklevel=2)
         with_mask = [i for i in ids if i in self._mask_files]
         if with_mask and len(with_mask) != len(ids):
             raise ValueError(f"{self._mask_dir}: masks missing for frame(s) {[i for i in ids if i not in self._mask_files][:10]} "
@@ -119,18 +166,40 @@ class FolderDataset:
         self.has_masks = bool(with_mask)
         if layout == "authors" and self.mesh_base is None:
             self.mesh_base = min(color_ids)
+        self._mesh_files = self._meshes(color_ids)
 
-    def _ids(self, folder: Path) -> dict[int, Path]:
-        if not folder.is_dir():
-            return {}
-        out = {}
-        for p in sorted(folder.iterdir()):
-            m = self._pattern.match(p.name)
-            if m:
-                i = int(m.group(1))
-                if i in out:  # e.g. 8.png and 000008.png, or 000008.png and 000008.jpg
-                    raise ValueError(f"{folder}: two files for frame {i}: {out[i].name} and {p.name}; keep one")
-                out[i] = p
+    def _not_read(self, names: list[str], exts: str) -> str:
+        return (f"{len(names)} file(s) not read, as they are not named {self._prefix}<frame index>.{exts}: "
+                f"{_some(names)}")
+
+    def _meshes(self, on_disk: dict[int, Path]) -> dict[int, Path]:
+        """The per-frame mesh files by absolute frame id (frames not on disk included: the authors'
+        default template is mesh/Frame_000 whatever frames exist). Warns about mesh files that
+        give no mesh to any colour frame on disk (``on_disk``), naming a few."""
+        shift = self.mesh_base if self.layout == "authors" else 0
+        meshes, other = _numbered_files(self._mesh_dir, _numbered(self._prefix, _MESH_EXT), shift)
+        hint = (self.root / self.template_hint).resolve() if self.template_hint else None
+        stray = sorted(p.name for f, p in meshes.items() if f not in on_disk)
+        stray += [n for n in other if Path(n).suffix.lower() in _MESH_EXT + _OTHER_MESH_EXT
+                  and (self._mesh_dir / n).resolve() != hint]  # conf.json's template may live in mesh/
+        if stray:
+            warnings.warn(f"{self._mesh_dir}: {len(stray)} mesh file(s) give no frame its mesh and are not read: "
+                          f"{_some(stray)}; {self._mesh_naming(meshes, on_disk)}", stacklevel=3)
+        return meshes
+
+    def _mesh_naming(self, meshes: dict[int, Path], on_disk: dict[int, Path]) -> str:
+        """How per-frame meshes are named, for the warning about those that are not read."""
+        frames = f"the colour frames on disk are {min(on_disk)}..{max(on_disk)}"
+        if self.layout == "stex":
+            return f"name them <frame index>.obj (.ply, .off), the absolute frame index ({frames})"
+        source = "conf.json's main.start_idx" if self._start_idx else "the first colour frame on disk"
+        out = (f"the authors' layout numbers them from frame {self.mesh_base} ({source}): Frame_000 is frame "
+               f"{self.mesh_base}, Frame_<k> frame {self.mesh_base} + k ({frames})")
+        numbers = [f - self.mesh_base for f in meshes]
+        if self.mesh_base and numbers and all(k in on_disk for k in numbers):
+            # documented meaning kept; only pointed out when every number reads as an absolute index
+            out += (f"; these numbers look like absolute frame indices: rename Frame_<k> to Frame_<k - "
+                    f"{self.mesh_base}> (e.g. Frame_{numbers[0]:03d} to Frame_{numbers[0] - self.mesh_base:03d})")
         return out
 
     def _authors_calibration(self) -> Calibration:
@@ -166,6 +235,7 @@ class FolderDataset:
                 if int(main["start_idx"]) != main["start_idx"] or main["start_idx"] < 0:
                     raise ValueError(f"main.start_idx must be a non-negative integer, got {main['start_idx']!r}")
                 self.mesh_base = int(main["start_idx"])
+                self._start_idx = True
             return Calibration(color, depth, T)
         except StopIteration:
             raise ValueError(f"{path}: no case with a 'mapper4D' section") from None
@@ -227,21 +297,11 @@ class FolderDataset:
         return img >= 1
 
     def mesh_path(self, frame_id: int) -> Path | None:
-        """The given mesh file of ``frame_id``, or None."""
-        if self.layout == "authors":
-            # Relative index: mesh/Frame_000 belongs to conf.json's start_idx (else the first
-            # colour frame on disk), whatever source.folder.start selects.
-            rel = frame_id - self.mesh_base
-            if rel < 0:
-                return None
-            stem, base = f"Frame_{rel:03d}", self.root / "mesh"
-        else:
-            stem, base = f"{frame_id:06d}", self.root / "meshes"
-        for ext in _MESH_EXT:
-            p = base / (stem + ext)
-            if p.is_file():
-                return p
-        return None
+        """The given mesh file of ``frame_id``, or None.
+
+        Authors' layout: relative index, mesh/Frame_000 belongs to conf.json's start_idx (else the
+        first colour frame on disk), whatever source.folder.start selects."""
+        return self._mesh_files.get(frame_id)
 
     def template_path(self, override: str | None = None) -> Path | None:
         """The template mesh: ``override`` (relative to the root), else the layout's default."""
@@ -254,7 +314,8 @@ class FolderDataset:
         if self.layout == "authors":
             if self.template_hint:
                 candidates.append(self.root / self.template_hint)
-            candidates += [self.root / "mesh" / f"Frame_000{e}" for e in _MESH_EXT]
+            if self.mesh_base in self._mesh_files:  # mesh/Frame_000 (any digits, any case)
+                candidates.append(self._mesh_files[self.mesh_base])
         else:
             candidates += [self.root / f"template{e}" for e in (".obj", ".ply", ".off", ".glb", ".gltf")]
             first = self.mesh_path(self.frame_ids[0])  # as in the authors' layout: the first given mesh
