@@ -626,6 +626,8 @@ def _check_vertices(vertices) -> np.ndarray:
     X = np.ascontiguousarray(vertices, dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3:
         raise ValueError(f"vertices must be (T, V, 3), got shape {X.shape}")
+    if X.shape[0] < 1:
+        raise ValueError("vertices: no frames (shape (0, V, 3)); a pose table needs at least one")
     if X.shape[1] < 3:
         raise ValueError(f"vertices: need at least 3 vertices per frame, got {X.shape[1]}")
     bad = ~np.isfinite(X).all(axis=(1, 2))

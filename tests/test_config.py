@@ -59,6 +59,7 @@ def test_settings_that_only_a_late_stage_needed_are_checked_with_the_config():
             ({"poses": {"seed": -1}}, r"poses/seed: -1 is less than the minimum of 0"),
             ({"template": {"gutter_px": 1021}}, r"template/gutter_px: 1021 .* give at most 1020"),
             ({"template": {"atlas_size": 40960}}, r"template/atlas_size: 40960 is greater than the maximum"),
+            ({"sampling_table": {"steps": [1, 1, 2]}}, r"sampling_table/steps: .*non-unique"),
             # an entry of two forms: the error of the form it was meant as, not "none of the schemas"
             ({"evaluation": {"other_methods": {"foo": {"slices": "a", "uvmesh": "b"}}}},
              r"evaluation/other_methods/foo: .*'uvmesh' was unexpected\); allowed: slices, uv_mesh"),

@@ -204,3 +204,15 @@ def test_write_pose_table_store(tmp_path, caplog):
     with pytest.raises(ValueError, match="no array 'nope'"):
         poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_pose_table_refuses_inputs_it_cannot_pose():
+    faces = np.array([[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"vertices: no frames"):       # was numpy's "need at least one array"
+        poses.pose_table(np.zeros((0, 3, 3)), faces)
+    with pytest.raises(ValueError, match=r"at least 3 vertices"):
+        poses.pose_table(np.zeros((2, 2, 3)), faces)
+    bad = np.random.default_rng(0).normal(size=(2, 3, 3))
+    bad[1, 0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"frame 1 has non-finite"):
+        poses.pose_table(bad, faces)
