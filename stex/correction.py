@@ -746,12 +746,12 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
     """
     from stex.config import section_params
     from stex.io import create_store, open_store
-    from stex.template import check_atlas, template_atlas_digest
+    from stex.template import check_atlas
 
     p = section_params("correction", params)
     template = open_store(template_path, "template")
     volume = open_store(volume_path, "volume")
-    check_atlas(volume, volume_path, template, template_path)
+    digest = check_atlas([(volume_path, volume)], template, template_path)
     ids = list(volume.attrs["frame_ids"])
     temporal = p["temporal_length"] if p["temporal"] else None
     W = int(template.attrs["atlas_size"])
@@ -773,11 +773,11 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
     prev = None
     if temporal is not None and previous_path is not None:
         previous = open_store(previous_path, "corrected")
-        check_atlas(previous, previous_path, template, template_path)
+        check_atlas([(previous_path, previous)], template, template_path)
         prev = previous["texture"][-1]
     W = system.W
     attrs = {"frame_ids": ids, "gutter_px": int(volume.attrs["gutter_px"]),
-             "atlas_digest": template_atlas_digest(template)}
+             "atlas_digest": digest}
     first = int(volume.attrs["first_position"])
     chart = (system.texel_face, system.face_chart)
     steps = []

@@ -202,9 +202,9 @@ class TextureSlices:
         from stex.template import check_atlas
 
         if self.uv_mesh is None:
-            for path, g in zip(self._seq.paths, self._seq.groups) if self._seq is not None else ():
+            if self._seq is not None:
                 try:
-                    check_atlas(g, path, template, template_path)
+                    check_atlas(zip(self._seq.paths, self._seq.groups), template, template_path)
                 except ValueError as exc:
                     raise ValueError(f"{exc}; slices in another UV layout need that layout's mesh "
                                      f"(--uv-mesh NAME=MESH, or other_methods' uv_mesh)") from None
@@ -977,7 +977,7 @@ class _Inputs:
 
         # the global baseline (Kim 2019), built from the source frames by the global_texture stage
         global_store = open_store(global_texture_path, "global_texture")
-        check_atlas(global_store, global_texture_path, template, template_path)
+        check_atlas([(global_texture_path, global_store)], template, template_path)
         self.global_tex = np.asarray(global_store["texture"][...], np.uint8)
         self.global_faces = np.asarray(global_store["face_textured"][...], bool)
         if self.global_tex.shape[0] != W:
@@ -1046,9 +1046,8 @@ class _Inputs:
         self.masks = FrameSequence(list(masks_paths), "masks")
         self.volume = FrameSequence(list(volume_paths), "volume")
         self.corrected = FrameSequence(list(corrected_paths), "corrected")
-        for seq in (self.volume, self.corrected):
-            for path, g in zip(seq.paths, seq.groups):
-                check_atlas(g, path, template, template_path)
+        check_atlas([(p, g) for seq in (self.volume, self.corrected) for p, g in zip(seq.paths, seq.groups)],
+                    template, template_path)
         for name, paths, seq in (("frames", frames_paths, self.photos), ("masks", masks_paths, self.masks),
                                  ("volume", volume_paths, self.volume),
                                  ("corrected", corrected_paths, self.corrected)):

@@ -623,8 +623,7 @@ class _Results:
         self.scene = open_store(self.dir / "scene.zarr", "scene")
         self.textures = FrameSequence(self._blocks(source), source)
         template = open_store(self.dir / "template.zarr", "template")
-        for path, g in zip(self.textures.paths, self.textures.groups):
-            check_atlas(g, path, template, self.dir / "template.zarr")
+        check_atlas(zip(self.textures.paths, self.textures.groups), template, self.dir / "template.zarr")
         self.n_vertices = template["vertices"].shape[0]
         self.faces = template["faces"][...]
         self.texcoords = template["texcoords"][...]

@@ -944,18 +944,19 @@ def template_atlas_digest(template) -> str:
                         int(template.attrs["atlas_size"]))
 
 
-def check_atlas(store, where, template, template_where) -> None:
-    """Raise ValueError when ``store`` (an open texture store, at ``where``) records another atlas
-    than the open ``template`` store's (at ``template_where``). Stores without the attr (written
-    before it existed) pass."""
-    made_in = store.attrs.get("atlas_digest")
-    if made_in is None:
-        return
+def check_atlas(stores, template, template_where) -> str:
+    """Raise ValueError when one of ``stores`` ((where, open texture store) pairs, e.g. a
+    sequence's block stores) records another atlas than the open ``template`` store's (at
+    ``template_where``); stores without the attr (written before it existed) pass. Returns the
+    template's :func:`atlas_digest` (computed once for all the stores)."""
     have = template_atlas_digest(template)
-    if made_in != have:
-        raise ValueError(f"{where} holds textures of another UV atlas than the template {template_where} "
-                         f"(atlas {made_in}, the template's is {have}): a run's stores must come from "
-                         f"one template (another run's or scene's?)")
+    for where, store in stores:
+        made_in = store.attrs.get("atlas_digest")
+        if made_in is not None and made_in != have:
+            raise ValueError(f"{where} holds textures of another UV atlas than the template {template_where} "
+                             f"(atlas {made_in}, the template's is {have}): a run's stores must come from "
+                             f"one template (another run's or scene's?)")
+    return have
 
 
 def border_gap(face_id) -> int:
