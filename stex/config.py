@@ -30,7 +30,8 @@ def _with_defaults(validator_class):
 
 
 def load_schema(path: str | Path = SCHEMA_PATH) -> dict:
-    return yaml.safe_load(Path(path).read_text())
+    # libyaml's loader when PyYAML has it: every snakemake start (every cluster job) reads the schema
+    return yaml.load(Path(path).read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def validate_config(config: dict, schema: dict | None = None) -> dict:

@@ -12,6 +12,7 @@ Later stages never touch the source files again.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import time
 from pathlib import Path
@@ -58,12 +59,25 @@ class Source:
 
 class SyntheticSource(Source):
     def __init__(self, cfg: dict):
-        from stex.synth.scene import SyntheticScene
         self.cfg = cfg
-        self.scene = SyntheticScene(cfg)
-        self.calibration = self.scene.calibration
-        self.frame_ids = list(range(self.scene.n_frames))
+        self.frame_ids = list(range(int(cfg["n_frames"])))
+        if not self.frame_ids:
+            raise ValueError(f"synthetic scene needs n_frames >= 1, got {cfg['n_frames']}")
         self.description = {"kind": "synthetic", "object": cfg["object"]}
+        if cfg["object"] != "procedural":
+            # a glTF asset is read now, so that a bad one is named before any job runs; the
+            # procedural body cannot fail, and the workflow (parsed again by every cluster job)
+            # needs only its frame count: its renderer is not imported until a frame is asked for
+            self.scene
+
+    @functools.cached_property
+    def scene(self):
+        from stex.synth.scene import SyntheticScene
+        return SyntheticScene(self.cfg)
+
+    @property
+    def calibration(self):
+        return self.scene.calibration
 
     def template(self) -> Mesh:
         # The template is the true mesh at frame 0 (with the object's own atlas).

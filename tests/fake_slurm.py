@@ -47,7 +47,9 @@ wrap = value("--wrap")
 out = value("--output").replace("%j", jobid)
 os.makedirs(os.path.dirname(out), exist_ok=True)
 available = sorted(os.sched_getaffinity(0))
-cpus = [available[i % len(available)] for i in range(int(value("--cpus-per-task") or 1))]
+# CPUs handed out in turn from the job id on, as a cluster gives jobs running side by side
+# different CPUs (all from the first, two one-CPU jobs would share one core)
+cpus = sorted({available[(int(jobid) + i) % len(available)] for i in range(int(value("--cpus-per-task") or 1))})
 jobs = os.path.join(state, "jobs")
 with open(jobs, "a") as f:
     f.write(jobid + "|RUNNING\n")

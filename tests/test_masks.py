@@ -11,7 +11,7 @@ from stex.synth.scene import SyntheticScene
 def test_default_scene_masks_reach_iou_095(demo_config):
     scene = SyntheticScene(demo_config["source"]["synthetic"])
     ious = []
-    for t in range(0, scene.n_frames, 5):
+    for t in range(0, scene.n_frames, 10):
         r = scene.render_frame(t)
         mask, seeds = compute_mask(r.color, r.depth_mm, scene.calibration, demo_config["masks"], seed=t)
         ious.append(mask_iou(mask, r.true_mask))

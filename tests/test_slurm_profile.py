@@ -36,10 +36,11 @@ def rule_threads_and_runtime():
 def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     work = tmp_path / "wf"
     work.mkdir()
-    cfg = {"scene": "tiny", "results": str(work / "results"), "frame_block": 4,
+    # one frame block and the jobs up to the poses (two threads, after the sequence-long tracking):
+    # each job is a snakemake of its own on the stand-in nodes, so the job count is the test's time
+    cfg = {"scene": "tiny", "results": str(work / "results"), "frame_block": 6,
            "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
-           "template": {"atlas_size": 256},
-           "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10}}
+           "template": {"atlas_size": 256}, "tracking": {"mode": "given"}}
     (work / "tiny.yaml").write_text(yaml.safe_dump(cfg))
     env = fake_slurm.install(tmp_path / "bin", tmp_path / "slurm")
     res = work / "results" / "tiny"
@@ -51,7 +52,7 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     assert "set-resources" not in settings
     assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     # snakemake's command line, its slurm status checks at most 2 s apart (fake_slurm's __main__)
-    cmd = [sys.executable, fake_slurm.__file__, str(res / "poses.zarr"), str(res / "texcoords.zarr"),
+    cmd = [sys.executable, fake_slurm.__file__, str(res / "poses.zarr"),
            "--snakefile", str(REPO / "Snakefile"),
            "--workflow-profile", str(profile),
            "--directory", str(work), "--configfile", str(work / "tiny.yaml"),
@@ -71,10 +72,9 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
         submitted[rule] = (cpus, args[args.index("--mem") + 1], args[args.index("-t") + 1],
                            args[args.index("-A") + 1], args[args.index("-p") + 1])
     threads, runtime = rule_threads_and_runtime()
-    expected = {"ingest_scene", "ingest_block", "masks", "template", "tracking", "poses",
-                "projection", "texcoords"}
+    expected = {"ingest_scene", "ingest_block", "masks", "template", "tracking", "poses"}
     assert expected <= set(submitted), submitted
-    assert threads["texcoords"] == threads["poses"] == 2
+    assert threads["poses"] == 2 and threads["template"] == 1
     assert runtime["tracking"] > defaults["runtime"]  # a sequence-long job
     for rule, (cpus, mem, minutes, account, partition) in submitted.items():
         assert cpus == [f"--cpus-per-task={threads[rule]}"], (rule, cpus)
@@ -82,4 +82,4 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
         assert (account, partition) == ("acct", "part"), rule
     # the jobs ran on the stand-in nodes and wrote complete stores
     assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)
-    assert open_store(res / "texcoords.zarr", "texcoords")["xi"].shape[0] == 6
+    assert open_store(res / "tracking.zarr", "tracking")["vertices"].shape[0] == 6
