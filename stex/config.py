@@ -161,6 +161,15 @@ def check_relations(config: dict) -> None:
         raise ValueError(f"config error at template/gutter_px: {gutter} texels on either side leave "
                          f"{W - 2 * gutter} of the atlas side template.atlas_size {W} for the charts; "
                          f"give at most {(W - 8) // 2} (default 4)")
+    # Decimated meshes end at target_faces, smaller ones are split up to min_faces: below it, a mesh
+    # just over the target would end with fewer faces than one just under it.
+    target, least = template.get("target_faces"), template.get("min_faces")
+    if template.get("decimate", True) and target is not None and least is not None and target < least:
+        raise ValueError(f"config error at template/target_faces: decimation (template.decimate) takes larger "
+                         f"meshes down to target_faces {target}, below template.min_faces {least}, up to which "
+                         f"smaller meshes are split, so a mesh just over the target would end with fewer faces "
+                         f"than one just under it; give target_faces >= min_faces (e.g. min_faces: {target}, "
+                         f"or 0: no splitting)")
     steps = (config.get("sampling_table") or {}).get("steps")
     if steps and 1 not in steps:
         raise ValueError(f"config error at sampling_table/steps: {steps} needs 1 (every frame a key frame: "

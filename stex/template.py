@@ -3,7 +3,9 @@
 What it computes
 ----------------
 - :func:`clean_mesh` — merges exactly duplicated vertices, drops degenerate and duplicated faces
-  and unreferenced vertices, and reports non-manifold and boundary edges (reported, not fixed).
+  and unreferenced vertices, turns round the coherently wound parts that face the wrong way
+  (closed parts by signed volume and nesting, open parts towards the depth camera), and reports
+  non-manifold and boundary edges and faces of opposite winding (reported, not fixed).
 - :func:`decimate` — pymeshlab quadric edge collapse to a target face count (the paper's
   templates have 10-30k faces; default 20k). A no-op when the mesh is already small enough.
 - :func:`build_atlas` — a UV atlas from xatlas in one square ``resolution`` x ``resolution``
@@ -22,8 +24,10 @@ What it computes
 
 Conventions
 -----------
-Vertices are metres in depth-camera coordinates (never recentred); faces are counter-clockwise
-seen from outside. Texcoords follow stex (see :mod:`stex.render`): u right, v **down**, origin at
+Vertices are metres in depth-camera coordinates (never recentred; the depth camera sits at the
+origin looking along +z); faces are counter-clockwise seen from outside: from outside the solid for
+closed parts (into its cavity for a cavity's wall), from the depth camera for open ones (a
+single-view scan). Texcoords follow stex (see :mod:`stex.render`): u right, v **down**, origin at
 the texture's top-left corner, texel (r, c) centred at ((c + .5) / W, (r + .5) / W).
 
 **UV orientation.** With v pointing down, a UV triangle is *front-facing* (the texture image shows
@@ -171,26 +175,33 @@ def nonmanifold_vertices(faces) -> np.ndarray:
     return vid[per_vertex > 1].astype(np.int32)
 
 
-def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = False):
+def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = False, camera=None):
     """Clean a triangle mesh for decimation and unwrapping.
 
     Steps: merge vertices with exactly equal coordinates; drop faces that use a vertex twice or
     whose area is below ``area_tol`` x (bounding-box diagonal)^2; drop repeated faces (same three
-    vertices in any order, keeping the first); drop vertices no face uses. Non-manifold edges
-    (shared by more than two faces), non-manifold vertices (:func:`nonmanifold_vertices`) and
-    boundary edges are counted, not repaired.
+    vertices in any order, keeping the first); drop vertices no face uses; turn round the
+    coherently wound parts that face the wrong way (:func:`_orient_parts`: closed parts by their
+    signed volume and nesting, open parts towards the camera). Non-manifold edges (shared by more
+    than two faces), non-manifold vertices (:func:`nonmanifold_vertices`), boundary edges and
+    edges between faces of opposite winding are counted, not repaired.
 
     Args:
-        vertices: (V, 3) float, metres.
+        vertices: (V, 3) float, metres, depth-camera coordinates.
         faces: (F, 3) int vertex indices.
         area_tol: relative area below which a face is degenerate.
+        camera: the depth camera (:class:`stex.camera.Intrinsics`) that open parts should face;
+            its centre is the origin and it looks along +z. None (default): a pinhole at the
+            origin looking along +z whose image frames the open parts.
 
     Returns:
         (vertices (V', 3) float64 m, faces (F', 3) int32, report): ``report`` is a JSON-able dict
         with ``vertices_in/out``, ``faces_in/out``, ``duplicate_vertices`` (merged),
         ``degenerate_faces``, ``duplicate_faces``, ``unreferenced_vertices`` (removed),
-        ``nonmanifold_edges``, ``nonmanifold_vertices``, ``boundary_edges`` (counts) and
-        ``nonmanifold_examples`` (up to 10 vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
+        ``nonmanifold_edges``, ``nonmanifold_vertices``, ``boundary_edges``,
+        ``inconsistent_winding_edges`` (counts), ``inverted_parts_flipped``,
+        ``open_parts_flipped`` (closed and open parts turned round) and ``nonmanifold_examples``
+        (up to 10 vertex-id pairs, in output numbering). Face order is kept (minus removed faces).
         With ``return_corners`` also ``corners`` (F', 3) int64: the input corner ``3 f + k``
         (corner k of input face f) that each output corner is, so that per-corner data such as
         texture coordinates can follow (``data.reshape(3 F, ...)[corners]``), faces turned round
@@ -243,7 +254,7 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = 
         raise ValueError("the mesh has no non-degenerate faces")
     nm, boundary = nonmanifold_edges(F2)
     nm_vertices = nonmanifold_vertices(F2)
-    F2, winding, turned = _orient_closed_parts(V2, F2)
+    F2, winding, turned = _orient_parts(V2, F2, camera)
     corners[turned] = corners[turned][:, [0, 2, 1]]
     report.update(vertices_out=len(V2), faces_out=len(F2), nonmanifold_edges=int(len(nm)),
                   nonmanifold_vertices=int(len(nm_vertices)), boundary_edges=int(len(boundary)), nonmanifold_examples=nm[:10].tolist(), **winding)
@@ -256,8 +267,13 @@ def clean_mesh(vertices, faces, area_tol: float = 1e-12, return_corners: bool = 
         log.warning("template: %d non-manifold vertices (their faces form more than one fan), e.g. %s",
                     len(lone), lone[:3].tolist())
     if winding["inverted_parts_flipped"]:
-        log.warning("template: %d closed parts of the mesh faced inwards (clockwise seen from outside); "
-                    "their faces were turned round", winding["inverted_parts_flipped"])
+        log.warning("template: %d closed parts of the mesh faced inwards, into the solid (an outer surface "
+                    "clockwise seen from outside, or a cavity's wall facing away from the cavity); their faces "
+                    "were turned round", winding["inverted_parts_flipped"])
+    if winding["open_parts_flipped"]:
+        log.warning("template: %d open parts of the mesh faced away from the camera over most of what it sees of "
+                    "them (clockwise seen from it: the visible side would be a back face); their faces were "
+                    "turned round", winding["open_parts_flipped"])
     if winding["inconsistent_winding_edges"]:
         log.warning("template: %d edges join faces of opposite winding, so some faces face inwards: the "
                     "renderer treats them as back faces (unseen); re-orient the mesh's faces coherently "
@@ -306,13 +322,32 @@ def drop_small_parts(vertices, faces, min_faces: int, return_kept: bool = False)
     return (V[used], remap[F].astype(np.int32), report) + ((keep,) if return_kept else ())
 
 
-def _orient_closed_parts(V, F):
-    """Turn round every closed, coherently wound connected part whose faces point inwards
-    (negative signed volume), and count the edges whose two faces have opposite winding (an edge
-    both faces traverse in the same direction). Parts with such edges or a boundary are left as
-    they are: their inside is not defined. Returns (faces, {``inverted_parts_flipped``,
-    ``inconsistent_winding_edges``}, (F,) bool: the faces turned round)."""
+def _orient_parts(V, F, camera=None):
+    """Turn round the coherently wound connected parts that face the wrong way, and count the
+    edges whose two faces have opposite winding (an edge both faces traverse in the same
+    direction). Parts with such edges are left as they are: which way they face is not defined.
+
+    - A **closed** part (every edge shared by exactly two faces) should enclose its solid: outward
+      (positive signed volume) when it lies inside an even number of other closed parts, into its
+      cavity (negative volume, e.g. the inner wall of a hollow shell) when inside an odd number
+      (:func:`_nesting_depth`).
+    - An **open** part (a boundary or non-manifold edges: no inside), e.g. a single-view scan,
+      should face the camera: it is turned round when most of its area that the camera sees
+      (pixels of a z-buffer render, other parts occluding) faces away from it
+      (:func:`_parts_facing_away`). Parts the camera does not see are left as they are.
+
+    Args:
+        V: (V, 3) float vertices, metres, depth-camera coordinates. F: (F, 3) int faces.
+        camera: the depth camera (:class:`stex.camera.Intrinsics`), centre at the origin looking
+            along +z; None: a pinhole at the origin looking along +z whose image frames the open
+            parts.
+
+    Returns:
+        (faces (F, 3) int32, {``inverted_parts_flipped``, ``open_parts_flipped``,
+        ``inconsistent_winding_edges``}, (F,) bool: the faces turned round).
+    """
     F = np.asarray(F, np.int64)
+    V = np.asarray(V, np.float64)
     e, owner = _edge_table(F)  # corner edges in the order (0, 1), (1, 2), (2, 0) of every face
     first = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
     # an edge both of whose faces run it the same way (its smaller vertex first in both, or in
@@ -324,16 +359,231 @@ def _orient_closed_parts(V, F):
     _, uinv, ucounts = np.unique(e[:, 0] * n + e[:, 1], return_inverse=True, return_counts=True)
     part = mesh_parts(F)
     n_parts = int(part.max()) + 1
-    open_or_odd = np.zeros(n_parts, bool)
-    open_or_odd[part[owner[(ucounts[uinv] != 2) | same_way]]] = True
-    tri = np.asarray(V, np.float64)[F]
+    incoherent = np.zeros(n_parts, bool)
+    incoherent[part[owner[same_way]]] = True
+    closed = np.ones(n_parts, bool)
+    closed[part[owner[ucounts[uinv] != 2]]] = False
+    tri = V[F]
     volume = np.bincount(part, np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0, n_parts)
-    inverted = ~open_or_odd & (volume < 0)
+    odd = _nesting_depth(V, F, part, closed) % 2 == 1
+    inverted = closed & ~incoherent & np.where(odd, volume > 0, volume < 0)
+    away = _parts_facing_away(V, F, part, ~closed & ~incoherent, camera)
     out = F.copy()
-    flip = inverted[part]
+    flip = (inverted | away)[part]
     out[flip] = out[flip][:, [0, 2, 1]]
     return out.astype(np.int32), {"inverted_parts_flipped": int(inverted.sum()),
+                                  "open_parts_flipped": int(away.sum()),
                                   "inconsistent_winding_edges": int(same_way.sum() // 2)}, flip
+
+
+def _faces_by_part(part, n_parts: int):
+    """Faces grouped by part: (face ids sorted by part (F,), start of each part's run (P + 1,))."""
+    order = np.argsort(part, kind="stable")
+    return order, np.searchsorted(part[order], np.arange(n_parts + 1))
+
+
+# Directions along which _nesting_depth takes a part's extreme vertices: the 3 axes, 6 face
+# diagonals and 4 body diagonals of a cube (each way: 26 vertices).
+_EXTREME_DIRECTIONS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [1, 0, 1], [1, 0, -1],
+                                [0, 1, 1], [0, 1, -1], [1, 1, 1], [1, 1, -1], [1, -1, 1], [-1, 1, 1]], np.float64)
+# ... and this many more of its vertices, evenly through its vertex list.
+NESTING_SAMPLE_VERTICES = 256
+
+
+def _nesting_depth(V, F, part, closed) -> np.ndarray:
+    """(P,) int: for each closed part, how many other closed parts enclose it (0 for open parts).
+
+    Part p lies inside closed part q when its sample vertices that it does not share with q all
+    lie inside q (:func:`points_inside`: ray parity, whatever the winding). The sample is its extreme vertices along 13 directions (:data:`_EXTREME_DIRECTIONS`,
+    both ways) and :data:`NESTING_SAMPLE_VERTICES` more: all of them, not one, so that a part
+    poking out of another (an eyeball set into a closed head) is not inside it. Only pairs whose
+    bounding boxes nest are tested.
+    """
+    n_parts = len(closed)
+    depth = np.zeros(n_parts, np.int64)
+    ids = np.flatnonzero(closed)
+    if len(ids) < 2:
+        return depth
+    order, start = _faces_by_part(part, n_parts)
+    verts = {p: np.unique(F[order[start[p]:start[p + 1]]]) for p in ids}
+    lo = np.array([V[verts[p]].min(0) for p in ids])
+    hi = np.array([V[verts[p]].max(0) for p in ids])
+    for k, q in enumerate(ids):
+        inside_box = (lo >= lo[k]).all(1) & (hi <= hi[k]).all(1) & (ids != q)
+        if not inside_box.any():
+            continue
+        candidates, points = ids[inside_box], []
+        for p in candidates:
+            along = V[verts[p]] @ _EXTREME_DIRECTIONS.T
+            spread = np.linspace(0, len(verts[p]) - 1, min(len(verts[p]), NESTING_SAMPLE_VERTICES)).astype(np.int64)
+            sample = verts[p][np.r_[along.argmin(0), along.argmax(0), spread]]
+            points.append(np.setdiff1d(sample, verts[q]))  # a shared vertex lies on q: parity undefined
+        tested = np.array([len(x) > 0 for x in points])
+        if not tested.any():
+            continue
+        inside = points_inside(V, F[order[start[q]:start[q + 1]]], V[np.concatenate(points)])
+        owner = np.repeat(np.arange(len(candidates)), [len(x) for x in points])
+        outside = np.bincount(owner, ~inside, len(candidates)) > 0
+        depth[candidates[tested & ~outside]] += 1
+    return depth
+
+
+# The rays of :func:`points_inside` run along (RAY_SHEAR_X, RAY_SHEAR_Y, 1): off every axis, so
+# that they do not run exactly along the edges of a grid-like mesh (a height field, a box).
+RAY_SHEAR_X, RAY_SHEAR_Y = 0.1234567, 0.0765432
+
+
+def _upward_crossings(X, Y, Z, F, px, py, pz, grid, out):
+    """numba kernel of :func:`points_inside`: out[i] = how many triangles (X, Y, Z)[F] the vertical
+    ray from (px, py, pz)[i] towards +Z crosses. Triangles are binned by their XY bounding box
+    into a grid x grid table of cells over the mesh's XY box; a ray tests the triangles of its
+    cell. Exactly-on-edge hits are not resolved (the callers' sheared rays make them unlikely)."""
+    n_faces = F.shape[0]
+    x0, x1, y0, y1 = np.inf, -np.inf, np.inf, -np.inf
+    for f in range(n_faces):
+        for k in range(3):
+            v = F[f, k]
+            x0, x1 = min(x0, X[v]), max(x1, X[v])
+            y0, y1 = min(y0, Y[v]), max(y1, Y[v])
+    sx = grid / max(x1 - x0, 1e-300)
+    sy = grid / max(y1 - y0, 1e-300)
+    lo = np.empty((n_faces, 2), np.int64)
+    hi = np.empty((n_faces, 2), np.int64)
+    count = np.zeros(grid * grid + 1, np.int64)
+    for f in range(n_faces):
+        a, b, c = F[f, 0], F[f, 1], F[f, 2]
+        lo[f, 0] = min(grid - 1, int((min(X[a], X[b], X[c]) - x0) * sx))
+        hi[f, 0] = min(grid - 1, int((max(X[a], X[b], X[c]) - x0) * sx))
+        lo[f, 1] = min(grid - 1, int((min(Y[a], Y[b], Y[c]) - y0) * sy))
+        hi[f, 1] = min(grid - 1, int((max(Y[a], Y[b], Y[c]) - y0) * sy))
+        for i in range(lo[f, 0], hi[f, 0] + 1):
+            for j in range(lo[f, 1], hi[f, 1] + 1):
+                count[i * grid + j + 1] += 1
+    start = np.cumsum(count)
+    fill = start[:-1].copy()
+    cell_faces = np.empty(start[-1], np.int64)
+    for f in range(n_faces):
+        for i in range(lo[f, 0], hi[f, 0] + 1):
+            for j in range(lo[f, 1], hi[f, 1] + 1):
+                cell_faces[fill[i * grid + j]] = f
+                fill[i * grid + j] += 1
+    for k in range(px.shape[0]):
+        out[k] = 0
+        if not (x0 <= px[k] <= x1 and y0 <= py[k] <= y1):
+            continue
+        cell = min(grid - 1, int((px[k] - x0) * sx)) * grid + min(grid - 1, int((py[k] - y0) * sy))
+        for m in range(start[cell], start[cell + 1]):
+            f = cell_faces[m]
+            a, b, c = F[f, 0], F[f, 1], F[f, 2]
+            # barycentric coordinates of the ray's XY in the triangle's XY projection
+            d = (X[b] - X[a]) * (Y[c] - Y[a]) - (X[c] - X[a]) * (Y[b] - Y[a])
+            if d == 0.0:
+                continue  # seen edge-on: the ray grazes it
+            wb = ((px[k] - X[a]) * (Y[c] - Y[a]) - (X[c] - X[a]) * (py[k] - Y[a])) / d
+            wc = ((X[b] - X[a]) * (py[k] - Y[a]) - (px[k] - X[a]) * (Y[b] - Y[a])) / d
+            if wb < 0.0 or wc < 0.0 or wb + wc > 1.0:
+                continue
+            if Z[a] + wb * (Z[b] - Z[a]) + wc * (Z[c] - Z[a]) > pz[k]:
+                out[k] += 1
+
+
+_CROSSINGS_KERNEL = []  # compiled on first use: importing numba costs ~0.8 s, most users never need it
+
+
+def points_inside(vertices, faces, points) -> np.ndarray:
+    """(N,) bool: the points inside the closed mesh, by ray parity (an odd number of crossings of
+    a ray from the point), whatever the winding of its faces.
+
+    The ray of every point runs along (:data:`RAY_SHEAR_X`, :data:`RAY_SHEAR_Y`, 1). A point on the
+    surface, or a ray through an edge or vertex exactly, may come out either way.
+
+    Args:
+        vertices: (V, 3) float. faces: (F, 3) int, a closed surface. points: (N, 3) float.
+    """
+    if not _CROSSINGS_KERNEL:
+        from numba import njit
+        _CROSSINGS_KERNEL.append(njit(cache=True, nogil=True)(_upward_crossings))
+    V = np.asarray(vertices, np.float64)
+    F = np.ascontiguousarray(faces, np.int64)
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros(len(P), np.int64)
+    if len(F) == 0 or len(P) == 0:
+        return out.astype(bool)
+    # sheared so that the rays are vertical: (x, y) - z (RAY_SHEAR_X, RAY_SHEAR_Y)
+    X = np.ascontiguousarray(V[:, 0] - RAY_SHEAR_X * V[:, 2])
+    Y = np.ascontiguousarray(V[:, 1] - RAY_SHEAR_Y * V[:, 2])
+    grid = int(np.clip(np.sqrt(len(F) / 2.0), 1, 1024))  # about 2 faces per cell of a surface seen from above
+    # long slivers fall into many cells each: a coarser grid keeps the table within ~16 entries a face
+    bx, by = X[F], Y[F]
+    lo, span = np.array([bx.min(), by.min()]), np.array([np.ptp(bx), np.ptp(by)]) + 1e-300
+    while grid > 1:
+        cells = [np.minimum(grid - 1, ((b.max(1) - o) * grid / w).astype(np.int64))
+                 - np.minimum(grid - 1, ((b.min(1) - o) * grid / w).astype(np.int64)) + 1
+                 for b, o, w in ((bx, lo[0], span[0]), (by, lo[1], span[1]))]
+        if int((cells[0] * cells[1]).sum()) <= 16 * len(F):
+            break
+        grid //= 2
+    _CROSSINGS_KERNEL[0](X, Y, np.ascontiguousarray(V[:, 2]), F, P[:, 0] - RAY_SHEAR_X * P[:, 2],
+                         P[:, 1] - RAY_SHEAR_Y * P[:, 2], np.ascontiguousarray(P[:, 2]), grid, out)
+    return out % 2 == 1
+
+
+# Longer side of the image of the camera :func:`_parts_facing_away` makes up when none is given
+# (pixels), and the widest view angle it frames (tangent; 10 = 84 degrees off the axis).
+FRAMING_CAMERA_PX = 512
+FRAMING_CAMERA_MAX_TAN = 10.0
+
+
+def _framing_camera(points, near: float = 1e-3):
+    """(K (3, 3), width, height) of a pinhole at the origin looking along +z whose image frames
+    ``points`` (those in front of it), :data:`FRAMING_CAMERA_PX` pixels on the longer side;
+    None when no point is in front."""
+    P = np.asarray(points, np.float64)
+    P = P[P[:, 2] > near]
+    if len(P) == 0:
+        return None
+    t = np.clip(P[:, :2] / P[:, 2:], -FRAMING_CAMERA_MAX_TAN, FRAMING_CAMERA_MAX_TAN)
+    lo, hi = t.min(0), t.max(0)
+    f = (FRAMING_CAMERA_PX - 1) / max(float((hi - lo).max()), 1e-9)
+    width, height = (np.ceil((hi - lo) * f).astype(int) + 1).tolist()
+    K = np.array([[f, 0.0, -lo[0] * f], [0.0, f, -lo[1] * f], [0.0, 0.0, 1.0]])
+    return K, int(width), int(height)
+
+
+def _parts_facing_away(V, F, part, candidates, camera=None) -> np.ndarray:
+    """(P,) bool: the ``candidates`` parts most of whose area seen by the camera faces away from it.
+
+    The whole mesh is rendered (:func:`stex.render.rasterize`, no back-face culling, so other
+    parts occlude); each pixel counts for the face it shows, and a face faces the camera when the
+    camera centre (the origin) lies on the side of its plane its normal points to. A part whose
+    pixels facing away outnumber those facing the camera is marked; a part without pixels is not.
+
+    Args:
+        V, F: the mesh (metres, depth-camera coordinates; (F, 3) int).
+        part: (F,) int part of each face. candidates: (P,) bool parts to decide.
+        camera: :class:`stex.camera.Intrinsics` of the depth camera, or None for a pinhole at the
+            origin looking along +z that frames the candidate parts (:func:`_framing_camera`).
+    """
+    from stex.render import rasterize
+
+    away = np.zeros(len(candidates), bool)
+    if not candidates.any():
+        return away
+    if camera is None:
+        framing = _framing_camera(V[F[candidates[part]].ravel()])
+        if framing is None:
+            return away
+        K, width, height = framing
+    else:
+        K, width, height = camera.K, camera.width, camera.height
+    face_id = rasterize(V, F, K, width, height).face_id
+    pixels = np.bincount(face_id[face_id >= 0], minlength=len(F)).astype(np.float64)
+    v0 = V[F[:, 0]]
+    facing = np.einsum("ij,ij->i", np.cross(V[F[:, 1]] - v0, V[F[:, 2]] - v0), -v0) > 0
+    n_parts = len(candidates)
+    towards = np.bincount(part, pixels * facing, n_parts)
+    backwards = np.bincount(part, pixels * ~facing, n_parts)
+    return candidates & (backwards > towards)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1083,7 +1333,7 @@ def _warn_faces_without_texel(face_id, uv_area, size: int, gutter: int, keep_uv:
     return int(len(missing))
 
 
-def prepare_template(mesh, params: dict) -> dict:
+def prepare_template(mesh, params: dict, camera=None) -> dict:
     """Run the template stage on a mesh.
 
     Args:
@@ -1093,6 +1343,11 @@ def prepare_template(mesh, params: dict) -> dict:
             coordinates, carried through cleaning, decimation and subdivision, see
             :func:`keep_layout`); completed with the schema's defaults and validated
             (:func:`stex.config.section_params`: unknown keys and bad values raise ValueError).
+        camera: the scene's depth camera (:class:`stex.camera.Intrinsics`, e.g.
+            ``Calibration.depth``): open parts of the mesh (a single-view scan) are turned to face
+            what it sees of them (:func:`clean_mesh`). Its centre is the origin of the mesh's
+            coordinates, looking along +z. None (default): a pinhole at the origin looking along
+            +z that frames the open parts.
 
     Returns:
         dict with the ``template`` store's arrays (keys as in :data:`stex.io.ARTIFACTS`) and
@@ -1112,7 +1367,7 @@ def prepare_template(mesh, params: dict) -> dict:
             raise ValueError("template.uv is 'mesh' but the template mesh has no texture coordinates (OBJ vt, "
                              "glTF TEXCOORD_0); use template.uv: xatlas")
         corner_uv = np.asarray(mesh.texcoords, np.float64)[np.asarray(mesh.texcoord_faces, np.int64)]
-    V, F, report, corners = clean_mesh(mesh.vertices, mesh.faces, return_corners=True)
+    V, F, report, corners = clean_mesh(mesh.vertices, mesh.faces, return_corners=True, camera=camera)
     V, F, parts, kept = drop_small_parts(V, F, int(params["min_part_faces"]), return_kept=True)
     if keep_uv:  # the corners' coordinates follow the faces that stay, turned round or not
         corner_uv = corner_uv.reshape(-1, 2)[corners][kept]
@@ -1316,8 +1571,11 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
         raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
                          f"template.from_depth to build one from the first frame's depth (one view only)")
+    calibration = scene.attrs.get("calibration")
+    # the mesh is in depth-camera coordinates at frame 0: open parts are turned to face that camera
+    camera = Calibration.from_dict(calibration).depth if calibration else None
     try:
-        result = prepare_template(mesh, params)
+        result = prepare_template(mesh, params, camera=camera)
     except (ValueError, RuntimeError) as e:  # name the mesh: the stage's errors speak of faces only
         raise type(e)(f"{scene_path}: template ({origin}): {e}") from e
     attrs = result.pop("attrs")

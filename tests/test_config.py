@@ -124,3 +124,17 @@ def test_a_missing_source_names_its_scene(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode != 0
     assert "scene 'monday': dataset folder not found: data/monday" in run.stdout + run.stderr
+
+
+def test_a_decimation_target_below_min_faces_is_refused_naming_both_keys():
+    """Decimated meshes end at target_faces, smaller ones are split up to min_faces: with the target
+    below min_faces, a mesh just over the target ended with fewer faces than one just under it
+    (target 1000, min_faces 4000: 1020 faces -> 1000, 980 -> 3920)."""
+    for check in (lambda t: validate_config({"template": t})["template"], lambda t: section_params("template", t)):
+        with pytest.raises(ValueError, match=r"template/target_faces: .* target_faces 1000, below template\.min_faces "
+                                             r"4000, .* give target_faces >= min_faces"):
+            check({"target_faces": 1000})  # min_faces' default 4000
+        assert check({"target_faces": 1000, "min_faces": 1000})["target_faces"] == 1000
+        assert check({"target_faces": 1000, "min_faces": 0})["min_faces"] == 0
+        # without decimation the target is not used: nothing to contradict
+        assert check({"target_faces": 1000, "decimate": False})["min_faces"] == 4000

@@ -185,7 +185,7 @@ def _tiny_scene(tmp_path):
 def test_write_template_on_a_synthetic_scene(tmp_path):
     from stex.io import open_store
     cfg, scene_path = _tiny_scene(tmp_path)
-    params = dict(cfg["template"], atlas_size=256, target_faces=500)
+    params = dict(cfg["template"], atlas_size=256, target_faces=500, min_faces=0)
     out = tmp_path / "template.zarr"
     write_template(scene_path, params, out)
     g = open_store(out, "template")
@@ -227,7 +227,7 @@ def test_write_template_without_template_mesh(tmp_path):
     with create_store(scene, "scene", attrs={"has_template": False, "source": {"kind": "mkv"}}):
         pass
     with pytest.raises(ValueError, match=r"no template mesh; set source\.mkv\.template, or template\.from_depth"):
-        write_template(scene, {"decimate": True, "target_faces": 100, "atlas_size": 64, "gutter_px": 1},
+        write_template(scene, {"decimate": True, "target_faces": 100, "min_faces": 0, "atlas_size": 64, "gutter_px": 1},
                        tmp_path / "template.zarr")
     assert not (tmp_path / "template.zarr").exists()
 
@@ -295,6 +295,10 @@ def test_low_poly_meshes_are_subdivided_without_changing_shape():
     out = prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)),
                            {"target_faces": 20000, "min_faces": 1000, "decimate": True, "atlas_size": 256, "gutter_px": 2})
     assert len(out["faces"]) == 320 and out["attrs"]["subdivided"] == 1  # 1280 would exceed 1000
+    # a decimation target below min_faces is refused: a mesh just over the target would end with
+    # fewer faces than one just under it (target 1000, min_faces 4000: 1020 -> 1000, 980 -> 3920)
+    with pytest.raises(ValueError, match=r"target_faces 1000, below template\.min_faces 4000"):
+        prepare_template(Mesh(np.asarray(m.vertices), np.asarray(m.faces)), {"target_faces": 1000, "atlas_size": 256})
     # the embedding carries the original mesh's motion to the subdivided one exactly
     moved = np.asarray(m.vertices) * 1.5 + 0.1
     assert np.allclose(transfer_vertices(moved, m.faces, out["embedding/face"], out["embedding/bary"]),
@@ -383,10 +387,157 @@ def test_faces_turned_inwards_are_turned_round_and_mixed_winding_is_counted(capl
     mixed[::2] = mixed[::2, ::-1]
     V, F, r = clean_mesh(s.vertices, mixed)
     assert r["inconsistent_winding_edges"] > 0 and r["inverted_parts_flipped"] == 0 and np.array_equal(F, mixed)
-    # an open surface (a cap, as a template from depth) is never turned round
+    # an open surface has no inside: it is not turned round by volume; this one (the far half of
+    # the sphere, which passes through the camera centre, seen from inside) already faces the camera
     cap = s.faces[s.triangles_center[:, 2] > 1.0][:, ::-1]
     V, F, r = clean_mesh(s.vertices, cap)
-    assert r["inverted_parts_flipped"] == 0
+    assert r["inverted_parts_flipped"] == 0 and r["open_parts_flipped"] == 0
+    assert np.array_equal(V[F], s.vertices[cap])
+
+
+def _facing_camera(V, F):
+    """(F,) bool: faces whose normal points to the side of their plane the camera centre (the
+    origin) is on."""
+    V = np.asarray(V, np.float64)
+    v0 = V[F[:, 0]]
+    return np.einsum("ij,ij->i", np.cross(V[F[:, 1]] - v0, V[F[:, 2]] - v0), -v0) > 0
+
+
+def _grid(n=12, centre=(0.0, 0.0, 1.0), side=0.4):
+    """An open, bumpy n x n height field at ``centre`` (metres), wound clockwise seen from the
+    origin: every normal points away from a camera there (+z)."""
+    x, y = np.meshgrid(np.linspace(-side / 2, side / 2, n), np.linspace(-side / 2, side / 2, n))
+    z = 0.02 * np.sin(6 * x / side) * np.cos(5 * y / side)
+    V = np.stack([x, y, z], -1).reshape(-1, 3) + centre
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)).ravel()
+    F = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
+    return V, F.astype(np.int32)
+
+
+def _join(*meshes):
+    Vs, Fs, offset = [], [], 0
+    for V, F in meshes:
+        Vs.append(np.asarray(V, np.float64))
+        Fs.append(np.asarray(F, np.int64) + offset)
+        offset += len(V)
+    return np.concatenate(Vs), np.concatenate(Fs).astype(np.int32)
+
+
+def test_open_parts_are_turned_to_face_the_camera(caplog):
+    """A single-view scan (an open surface) wound clockwise seen from the depth camera has every
+    normal pointing away from it, so every face it sees would be a back face: such parts are
+    turned round; parts facing it, and parts it does not see, are left as they are."""
+    from stex.camera import Intrinsics
+
+    V, F = _grid()
+    assert not _facing_camera(V, F).any()
+    with caplog.at_level("WARNING", logger="stex.template"):
+        V1, F1, r = clean_mesh(V, F)
+    assert r["open_parts_flipped"] == 1 and r["inverted_parts_flipped"] == 0 and _facing_camera(V1, F1).all()
+    assert np.array_equal(V1, V) and np.array_equal(F1, F[:, [0, 2, 1]])
+    assert "1 open parts of the mesh faced away from the camera" in caplog.text
+    V1, F1, r = clean_mesh(V, F[:, ::-1])  # already facing it
+    assert r["open_parts_flipped"] == 0 and np.array_equal(F1, F[:, ::-1])
+    # the near half of a sphere wound inwards: curved, its rim seen edge-on (faces there face away
+    # whichever way it is wound), still turned round as a whole
+    s = trimesh.creation.icosphere(3, radius=0.2)
+    near = s.faces[s.triangles_center[:, 2] < 0][:, ::-1]
+    V1, F1, r = clean_mesh(s.vertices + [0, 0, 1.0], near)
+    assert r["open_parts_flipped"] == 1 and 0.8 < _facing_camera(V1, F1).mean() < 1
+    # unseen parts stay as they are: hidden behind a larger surface, or behind the camera
+    front = _grid(16, (0, 0, 1.0), 1.0)
+    front = (front[0], front[1][:, ::-1])
+    for hidden in (_grid(8, (0, 0, 2.0), 0.2), _grid(8, (0, 0, -1.0), 0.2)):
+        V1, F1, r = clean_mesh(*_join(front, hidden))
+        assert r["open_parts_flipped"] == 0 and np.array_equal(F1, _join(front, hidden)[1])
+    # the depth camera given: a part outside its view is not seen, so not turned round (the default
+    # camera frames every open part)
+    camera = Intrinsics(np.array([[500.0, 0, 319.5], [0, 500.0, 287.5], [0, 0, 1]]), 640, 576)
+    V2, F2 = _join(_grid(), _grid(centre=(3.0, 0, 1.0)))
+    _, F3, r = clean_mesh(V2, F2, camera=camera)
+    assert r["open_parts_flipped"] == 1 and _facing_camera(V2, F3)[: len(F)].all() and not _facing_camera(V2, F3)[len(F):].any()
+    _, F3, r = clean_mesh(V2, F2)
+    assert r["open_parts_flipped"] == 2 and _facing_camera(V2, F3).all()
+
+
+def test_the_template_stage_turns_an_open_scan_towards_the_scenes_depth_camera(tmp_path):
+    """write_template hands the scene's depth camera to the cleaning: of two clockwise open
+    surfaces, the one in its view is turned to face it, the one outside it is not; the report
+    says how many."""
+    from stex.camera import Calibration, Intrinsics
+    from stex.io import create_store, open_store
+
+    camera = Intrinsics(np.array([[500.0, 0, 319.5], [0, 500.0, 287.5], [0, 0, 1]]), 640, 576)
+    V, F = _join(_grid(), _grid(centre=(3.0, 0, 1.0)))
+    scene = tmp_path / "scene.zarr"
+    with create_store(scene, "scene", attrs={"has_template": True, "source": {"kind": "folder"},
+                                             "calibration": Calibration(camera, camera).to_dict()}) as store:
+        store.write("template/vertices", V.astype(np.float32))
+        store.write("template/faces", F)
+    write_template(scene, dict(decimate=False, min_faces=0, atlas_size=128, gutter_px=1), tmp_path / "template.zarr")
+    g = open_store(tmp_path / "template.zarr", "template")
+    assert g.attrs["clean_report"]["open_parts_flipped"] == 1 and g.attrs["clean_report"]["inverted_parts_flipped"] == 0
+    Vt, Ft = g["vertices"][...].astype(np.float64), g["faces"][...]
+    seen = Vt[Ft].mean(1)[:, 0] < 1.0
+    assert _facing_camera(Vt, Ft)[seen].all() and not _facing_camera(Vt, Ft)[~seen].any()
+
+
+def test_points_inside_a_closed_mesh_by_ray_parity():
+    """points_inside against exact answers: a box, and a sphere's polygon (points off its surface
+    by more than the polygon's sag), whatever the winding; a grid-like mesh (the box) does not
+    catch the rays on its edges."""
+    from stex.template import points_inside
+
+    rng = np.random.default_rng(0)
+    box = trimesh.creation.box((0.2, 0.3, 0.4))
+    p = rng.uniform(-0.3, 0.3, (5000, 3))
+    p[:100] = np.round(p[:100], 1)  # on the box's axis-aligned planes and edge lines' extensions
+    inside = (np.abs(p) < [0.1, 0.15, 0.2]).all(1)
+    clear = (np.abs(np.abs(p) - [0.1, 0.15, 0.2]) > 1e-9).all(1)
+    assert (points_inside(box.vertices, box.faces, p) == inside)[clear].all() and clear.sum() > 4900
+    assert (points_inside(box.vertices, box.faces[:, ::-1], p) == inside)[clear].all()
+    s = trimesh.creation.icosphere(4, radius=0.3)
+    r = np.linalg.norm(p, axis=1)
+    sure = np.abs(r - 0.3) > 0.003  # the polygon lies within 0.4 mm inside the sphere
+    assert (points_inside(s.vertices, s.faces, p) == (r < 0.3))[sure].all()
+    assert not points_inside(s.vertices, s.faces, [[5.0, 0, 0], [0, 0, -5.0]]).any()
+
+
+def test_a_cavity_wall_keeps_facing_into_its_cavity(caplog):
+    """A closed part inside an odd number of other closed parts is the wall of a cavity (a hollow
+    shell's inner surface) and faces into it (negative signed volume); inside an even number it
+    faces out. Only parts wound the other way are turned round."""
+    def shell(radius, sign, centre=(0.0, 0.0, 0.0), subdivisions=3):
+        s = trimesh.creation.icosphere(subdivisions, radius=radius)
+        return s.vertices + centre + [0, 0, 1.0], s.faces[:, ::sign]
+
+    def volumes(V, F, sizes):
+        ends = np.cumsum(sizes)
+        return [trimesh.Trimesh(V, F[e - n:e], process=False).volume for n, e in zip(sizes, ends)]
+
+    n_outer, n_inner = 1280, 320  # icosphere 3, 2
+    for signs, flipped in [((1, -1), 0), ((1, 1), 1), ((-1, 1), 2), ((-1, -1), 1)]:
+        V, F = _join(shell(0.3, signs[0]), shell(0.2, signs[1], subdivisions=2))
+        with caplog.at_level("WARNING", logger="stex.template"):
+            V1, F1, r = clean_mesh(V, F)
+        outer, inner = volumes(V1, F1, (n_outer, n_inner))
+        assert r["inverted_parts_flipped"] == flipped and outer > 0 and inner < 0, (signs, r, outer, inner)
+    assert "faced inwards, into the solid" in caplog.text
+    # a ball in the cavity lies inside two closed parts: it faces out
+    for sign, flipped in [(1, 0), (-1, 1)]:
+        V, F = _join(shell(0.3, 1), shell(0.2, -1, subdivisions=2), shell(0.1, sign, subdivisions=2))
+        V1, F1, r = clean_mesh(V, F)
+        assert r["inverted_parts_flipped"] == flipped
+        assert [np.sign(v) for v in volumes(V1, F1, (n_outer, n_inner, n_inner))] == [1, -1, 1]
+    # a part poking out of another (an eyeball set into a closed head) by 1.2 cm along a diagonal,
+    # its bounding box inside the other's and 92 % of its vertices (its first too): not inside it,
+    # it faces out
+    head, eye = shell(0.3, 1), shell(0.1, 1, centre=(0.15, 0.15, 0.0), subdivisions=2)
+    V, F = _join(head, eye)
+    inside = trimesh.Trimesh(*head, process=False).contains(eye[0])
+    assert inside[0] and 0.9 < inside.mean() < 1
+    V1, F1, r = clean_mesh(V, F)
+    assert r["inverted_parts_flipped"] == 0 and all(v > 0 for v in volumes(V1, F1, (n_outer, n_inner)))
 
 
 def test_a_millimetre_object_is_decimated_onto_its_surface():
