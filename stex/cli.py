@@ -7,8 +7,8 @@
     stex evaluate results/demo --texture mine=my_slices/ --out eval_mine/   # another method beside ours
     stex evaluate results/demo --texture kim=their_out/ --uv-mesh kim=their_mesh.obj --out eval_kim/
 
-Errors (missing or incomplete stores, a frame range outside the sequence) print one line on
-stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
+Errors (missing, incomplete or damaged stores, a frame range outside the sequence) print one
+line on stderr and exit with status 1; progress of long work goes to stderr as a frame counter.
 """
 
 from __future__ import annotations

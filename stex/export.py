@@ -652,7 +652,13 @@ class _Results:
         g, rows = self._tracking
         if fid not in rows:
             raise StoreError(f"{self.dir / 'tracking.zarr'}: no vertices for frame {fid}")
-        return g["vertices"][rows[fid]]
+        vertices = g["vertices"][rows[fid]]
+        if not np.isfinite(vertices).all():
+            # the tracking writes finite vertices: a store written before chunk checksums, damaged
+            # in place, decodes to garbage (a damaged chunk of a newer store does not decode)
+            raise StoreError(f"{self.dir / 'tracking.zarr'}: the vertices of frame {fid} are not finite; "
+                             f"the store is damaged: re-run the stage that writes it")
+        return vertices
 
     def color(self, fid: int) -> np.ndarray:
         if self._frames is None:

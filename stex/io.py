@@ -14,8 +14,11 @@ Every store carries attrs: ``stex_artifact`` (its kind), ``stex_version``, ``com
 ``frame_ids`` (global frame indices, where the store is per-frame), ``params`` (the settings that
 produced it), ``units`` (per array), ``conventions`` and ``chunk_files`` (per array, the chunk
 files written: zarr reads a missing chunk as zeros, so :func:`open_store` refuses a store that
-lacks some, e.g. a partial copy; it also re-checks the arrays against ``ARTIFACTS``, and
-:meth:`FrameSequence.read` names the store and frame of a chunk it cannot decode).
+lacks some, e.g. a partial copy; it also re-checks the arrays against ``ARTIFACTS``).
+
+Chunks carry a checksum (:data:`CHUNK_CODEC`), and the arrays :func:`open_store` hands out
+(:class:`StoreArray`) turn a chunk that does not decode (cut short, or damaged in place) into a
+:class:`StoreError` naming the store, the array and the chunk file, in every read.
 
 Per-frame arrays are chunked one frame per chunk along axis 0, so frame-block jobs and readers
 touch only the frames they need. Frame-block artifacts (one store per block of frames) are read
@@ -155,7 +158,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "atlas_size": "int: atlas side W (texels)",
             "gutter_px": "int: xatlas padding around every chart (texels); charts end up >= 2*gutter_px+2 texels apart and >= gutter_px from the atlas border",
             "counts": "dict: vertices, faces, texcoords, charts, adjacent_pairs, covered_texels, faces_in",
-            "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges; closed parts facing inwards turned round, edges between faces of opposite winding)",
+            "clean_report": "dict: stex.template.clean_mesh report (duplicates, degenerates, non-manifold edges; closed parts turned round to face out (cavity walls into their cavity) and open parts to face the depth camera, edges between faces of opposite winding)",
             "decimated": "bool: whether quadric decimation ran",
             "subdivided": "int: midpoint subdivisions applied to a low-poly mesh",
             "uv": "str: 'xatlas' (a new atlas) or 'mesh' (the template mesh's own texture coordinates, template.uv)",
@@ -394,6 +397,165 @@ class StoreError(ValueError):
     """A store is missing, incomplete, of the wrong kind or malformed."""
 
 
+#: Every array's chunks: zstd at its default level (zarr's own default codec, ``level=0``) with
+#: the frame's content checksum (XXH64 of the decoded bytes, 4 bytes a chunk), so a chunk damaged
+#: in place, which zstd would otherwise decode to wrong values without a word, fails to decode.
+#: Stores written before (``checksum: false`` in each array's zarr.json) still read; there a
+#: damaged chunk is caught only when it no longer decodes at all.
+CHUNK_CODEC = zarr.codecs.ZstdCodec(level=0, checksum=True)
+
+# what zstd / blosc / the bytes codec raise on a chunk that does not decode (a selection the
+# array cannot take raises IndexError, which passes through)
+_DECODE_ERRORS = (RuntimeError, ValueError)
+
+
+class StoreArray:
+    """An array of a store opened by :func:`open_store`: a read (``arr[...]``, ``arr[i]``,
+    ``np.asarray(arr)``) that meets a chunk it cannot decode raises :class:`StoreError` naming
+    the store, the array and the chunk file. Everything else (``shape``, ``dtype``, ``chunks``,
+    ``attrs``, ...) is the zarr array's own."""
+
+    __slots__ = ("_array", "_store", "_name")
+
+    def __init__(self, array: zarr.Array, store: Path, name: str):
+        self._array, self._store, self._name = array, store, name
+
+    def __getitem__(self, selection):
+        return self.read(selection)
+
+    def read(self, selection, what: str = ""):
+        """``self[selection]``; ``what`` (e.g. ``"of frame 12"``) goes into the error message."""
+        try:
+            return self._array[selection]
+        except _DECODE_ERRORS as exc:
+            _settle_zarr_reads()
+            error = self._damaged(selection, exc, f" {what}" if what else "")
+            if error is exc:
+                raise
+            raise error from exc
+
+    def __array__(self, dtype=None, copy=None):
+        data = self[...]
+        return data if dtype is None else data.astype(dtype, copy=False)
+
+    def __getattr__(self, attr):
+        if attr in self.__slots__:  # not set yet (copy, pickle): no recursion
+            raise AttributeError(attr)
+        return getattr(self._array, attr)
+
+    def __repr__(self) -> str:
+        return f"<StoreArray {self._store}/{self._name} {self._array.shape} {self._array.dtype}>"
+
+    def _damaged(self, selection, exc: Exception, what: str) -> Exception:
+        """The StoreError for a failed read, naming the first chunk of ``selection`` that does
+        not decode (each chunk read again on its own: the error path only). If every chunk reads,
+        ``exc`` was not a damaged chunk and is returned as it is."""
+        chunk = ""
+        try:
+            coords = _chunks_of(selection, self._array.shape, self._array.chunks)
+            bad = None if coords is None else next((c for c in coords if not self._decodes(c)), "none")
+        except Exception:  # naming the chunk is a courtesy: never mask the read's own error
+            bad = None
+        if bad == "none":
+            return exc
+        if bad is not None:
+            try:
+                key = self._array.metadata.encode_chunk_key(bad)
+            except Exception:  # another metadata layout: the chunk's grid index
+                key = str(bad)
+            chunk = f"chunk file {self._name}/{key}: "
+        reason = " ".join(str(exc).split()) or type(exc).__name__  # one line, for the CLI
+        return StoreError(f"{self._store}: array {self._name!r}{what} cannot be read ({chunk}{reason}); "
+                          f"the store is damaged: re-run the stage that writes it")
+
+    def _decodes(self, coords: tuple) -> bool:
+        try:
+            self._array.get_block_selection(coords)
+        except _DECODE_ERRORS:
+            return False
+        return True
+
+
+def _settle_zarr_reads(timeout: float = 5.0) -> None:
+    """Wait (at most ``timeout`` s) for the reads still running on zarr's event loop. zarr reads
+    an array's chunks concurrently; when one does not decode, the read fails at once and leaves
+    the others running, and a process that exits right away (the CLI after its one-line error)
+    prints "Task was destroyed but it is pending!" for each on stderr."""
+    import asyncio
+
+    async def settle():
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if others:
+            await asyncio.wait(others, timeout=timeout)
+
+    try:
+        from zarr.core.sync import sync  # zarr 3's own loop runner
+
+        sync(settle())
+    except Exception:  # another zarr layout: the messages are cosmetic, the error stands
+        pass
+
+
+def _chunks_of(selection, shape: tuple, chunks: tuple, limit: int = 100_000):
+    """Chunk coordinates (tuples, in order) that an integer / slice / integer-list selection of
+    an array of ``shape`` and ``chunks`` touches; None for another kind of selection or more
+    than ``limit`` chunks."""
+    import itertools
+
+    sel = selection if isinstance(selection, tuple) else (selection,)
+    if any(s is Ellipsis for s in sel):
+        k = next(i for i, s in enumerate(sel) if s is Ellipsis)
+        sel = sel[:k] + (slice(None),) * (len(shape) - len(sel) + 1) + sel[k + 1:]
+    if len(sel) > len(shape):
+        return None
+    sel = sel + (slice(None),) * (len(shape) - len(sel))
+    axes = []
+    for s, n, c in zip(sel, shape, chunks):
+        if isinstance(s, slice):
+            idx = np.arange(*s.indices(n))
+        elif isinstance(s, (int, np.integer)):
+            idx = np.array([s + n if s < 0 else s])
+        else:
+            idx = np.asarray(s)
+            if idx.dtype == bool:
+                idx = np.flatnonzero(idx)
+            elif idx.dtype.kind not in "iu" or idx.ndim != 1:
+                return None
+            idx = np.where(idx < 0, idx + n, idx)
+        axes.append(np.unique(idx // c).tolist())
+    if int(np.prod([len(a) for a in axes])) > limit:
+        return None
+    return list(itertools.product(*axes))
+
+
+class StoreGroup:
+    """A store (or a group inside one) opened by :func:`open_store`: ``group[name]`` gives a
+    :class:`StoreArray` (or a StoreGroup); ``attrs``, ``in`` and everything else are the zarr
+    group's own (``members()`` yields plain zarr arrays)."""
+
+    __slots__ = ("_group", "_store", "_prefix")
+
+    def __init__(self, group: zarr.Group, store: Path, prefix: str = ""):
+        self._group, self._store, self._prefix = group, store, prefix
+
+    def __getitem__(self, name: str):
+        member = self._group[name]
+        if isinstance(member, zarr.Group):
+            return StoreGroup(member, self._store, f"{self._prefix}{name}/")
+        return StoreArray(member, self._store, f"{self._prefix}{name}")
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._group
+
+    def __getattr__(self, attr):
+        if attr in self.__slots__:  # not set yet (copy, pickle): no recursion
+            raise AttributeError(attr)
+        return getattr(self._group, attr)
+
+    def __repr__(self) -> str:
+        return f"<StoreGroup {self._store}{'/' + self._prefix.rstrip('/') if self._prefix else ''}>"
+
+
 def _resolve_chunks(spec: ArraySpec, shape: tuple[int, ...]) -> tuple[int, ...]:
     if spec.chunks is None:
         return tuple(max(1, s) for s in shape)
@@ -420,7 +582,7 @@ class StoreWriter:
             raise StoreError(f"{self.artifact}/{name}: expected {len(spec.shape)} dims {spec.shape}, got shape {shape}")
         return self.group.create_array(name, shape=tuple(shape), dtype=spec.dtype,
                                        chunks=_resolve_chunks(spec, tuple(shape)),
-                                       fill_value=0, overwrite=True)
+                                       compressors=CHUNK_CODEC, fill_value=0, overwrite=True)
 
     def write(self, name: str, data: np.ndarray) -> zarr.Array:
         """Write a whole array at once (converted to the declared dtype, checked for NaN)."""
@@ -527,8 +689,12 @@ def move_into_place(tmp: Path, path: Path) -> None:
         shutil.rmtree(aside, ignore_errors=True)
 
 
-def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
-    """Open a complete store of kind ``artifact`` read-only, or raise :class:`StoreError`."""
+def open_store(path: str | os.PathLike, artifact: str) -> StoreGroup:
+    """Open a complete store of kind ``artifact`` read-only, or raise :class:`StoreError`.
+
+    Its arrays (:class:`StoreArray`) raise :class:`StoreError` naming the store, the array and
+    the chunk file when a read meets a chunk that does not decode (cut short, or damaged in
+    place: :data:`CHUNK_CODEC`'s checksum)."""
     path = Path(path)
     if not path.exists():
         raise StoreError(f"{path}: no such store (has the {artifact!r} stage run?)")
@@ -552,7 +718,7 @@ def open_store(path: str | os.PathLike, artifact: str) -> zarr.Group:
         if have != n:
             raise StoreError(f"{path}: array {name!r} has {have} of the {n} chunk files it was written with "
                              f"(a partial copy?); the store is damaged: re-run the stage that writes it")
-    return group
+    return StoreGroup(group, path)
 
 
 def partial_path(path: str | os.PathLike) -> Path:
@@ -685,8 +851,10 @@ class FrameSequence:
             raise KeyError(f"frame {frame_id} is not in the {self.artifact!r} blocks")
         b, i = self._where[frame_id]
         try:
-            return self.groups[b][name][i]
-        except Exception as exc:  # a damaged chunk: zstd / blosc raise RuntimeError, zarr others
+            return self.groups[b][name].read(i, f"of frame {frame_id}")
+        except StoreError:  # a damaged chunk, named by StoreArray
+            raise
+        except Exception as exc:  # e.g. the array's metadata unreadable
             raise StoreError(f"{self.paths[b]}: array {name!r} of frame {frame_id} cannot be read ({exc}); "
                              f"the store is damaged: re-run the stage that writes it") from exc
 
@@ -712,7 +880,9 @@ def artifacts_markdown() -> str:
         "`<path>.partial-<host>-<pid>`, one folder per writer, moved into place when complete). Every store has the attrs "
         "`stex_artifact`, `stex_version`, `complete`, `params`, `units`, `conventions` and "
         "`chunk_files` (per array, the chunk files it was written with: a reader refuses a store "
-        "missing some, e.g. a partial copy, which zarr would read as zeros).",
+        "missing some, e.g. a partial copy, which zarr would read as zeros). Chunks are zstd "
+        "with a content checksum: a reader names the store, array and chunk file of a chunk "
+        "cut short or damaged in place (stores written before the checksum still read).",
         "",
         f"Conventions: {CONVENTIONS}",
         "",

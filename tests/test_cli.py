@@ -106,6 +106,28 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
     assert list(tmp_path.glob(".*partial*")) == []
 
 
+@pytest.mark.parametrize("chunk,array,how", [
+    ("tracking.zarr/vertices/c/2/0/0", "vertices", "overwritten"),
+    ("template.zarr/faces/c/0/0", "faces", "cut"),
+    ("corrected/block_0000.zarr/texture/c/1/0/0/0", "texture", "overwritten"),
+    ("corrected/block_0000.zarr/texture/c/1/0/0/0", "texture", "cut"),
+])
+def test_export_of_a_run_with_a_damaged_chunk_is_one_line_and_status_1(tmp_path, capsys, chunk, array, how):
+    """A chunk cut short or damaged in place (same size) in a finished run: `stex export` says so
+    in one line naming the store, the array and the chunk file, and writes nothing."""
+    from test_io import damage
+
+    res = make_results(tmp_path / "cube")
+    damage(res / chunk, how)
+    store, _, key = chunk.partition(f"/{array}/")
+    out = tmp_path / "out"
+    assert main(["export", str(res), "--what", "obj", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {res / store}: array '{array}'"), err
+    assert f"cannot be read (chunk file {array}/{key}: " in err[0] and "re-run the stage" in err[0], err
+    assert not out.exists() or list(out.iterdir()) == []
+
+
 def test_an_interrupted_export_leaves_no_file_under_its_final_name(tmp_path, monkeypatch):
     """A sequence of PNG, OBJ/MTL or glTF files is written in a hidden folder and moved into
     place when all are complete: an export stopped inside a write (here a KeyboardInterrupt after

@@ -348,6 +348,17 @@ def test_export_results_reads_stores(tmp_path):
         export_results(res, "png", tmp_path / "x", source="volume")
 
 
+def test_non_finite_tracked_vertices_name_their_store_and_frame(tmp_path):
+    """A store written before chunk checksums and damaged in place can decode to garbage: the
+    export names the store and frame, not only the writer's "vertices must be finite"."""
+    res = make_results(tmp_path / "res")
+    zarr.open_group(str(res / "tracking.zarr"), mode="r+")["vertices"][2, 3] = np.nan
+    with pytest.raises(StoreError, match=r"tracking\.zarr: the vertices of frame 12 are not finite; "
+                                         r"the store is damaged"):
+        export_results(res, "obj", tmp_path / "obj", frames="11:14")
+    assert len(export_results(res, "gltf", tmp_path / "glb", frames="13:")) == 2
+
+
 def test_sequence_writers_refuse_names_that_collide(tmp_path):
     """Repeated frame ids (or a pattern without {frame}) wrote one file and returned two paths."""
     import numpy as np
