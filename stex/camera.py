@@ -131,12 +131,14 @@ class Intrinsics:
     @classmethod
     def from_dict(cls, d: dict, name: str = "camera") -> "Intrinsics":
         """From ``{fx, fy, cx, cy, width, height[, distortion]}``; ValueError naming ``name`` (e.g.
-        'color camera') and the key when ``d`` is missing, lacks a key or holds a bad value."""
+        'color camera') and the key when ``d`` is missing, lacks a key or holds a bad value.
+        ``"distortion": null`` means no distortion, as a missing key or ``[]`` (all zero)."""
         if not isinstance(d, dict):
             raise ValueError(f"{name}: missing (a dict of fx, fy, cx, cy, width, height)")
+        distortion = d.get("distortion")
         try:
             return cls.from_focal(d["fx"], d["fy"], d["cx"], d["cy"], d["width"], d["height"],
-                                  d.get("distortion", ()))
+                                  () if distortion is None else distortion)
         except KeyError as e:
             raise ValueError(f"{name}: missing key {e}") from None
         except (TypeError, ValueError) as e:

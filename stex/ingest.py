@@ -267,6 +267,8 @@ def write_scene(source_cfg: dict, block: int, out: str | Path) -> None:
 def write_frames_block(source_cfg: dict, start: int, stop: int, out_frames: str | Path,
                        out_truth: str | Path | None = None) -> None:
     """Write frames at positions [start, stop) to a ``frames`` store (and ``truth`` if synthetic)."""
+    from stex.readers.images import check_mask  # here: cv2 is not imported when the workflow is parsed
+
     src = open_source(source_cfg)
     T = len(src.frame_ids)
     if not 0 <= start < stop <= T:
@@ -306,8 +308,7 @@ def write_frames_block(source_cfg: dict, start: int, stop: int, out_frames: str 
             if m is not None:
                 if mask_arr is None:
                     mask_arr = store.create("mask", (n, cal.color.height, cal.color.width))
-                if not m.any():
-                    raise ValueError(f"frame {fid}: the source's mask is empty")
+                check_mask(m, f"frame {fid} (the source's mask)")  # empty, all foreground, or inverted
                 mask_arr[k] = m
             if truth is not None:
                 if k == 0:

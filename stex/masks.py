@@ -289,6 +289,26 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
 
 
+def _unread_mask_files(source_cfg: dict | None) -> str:
+    """For the error of masks.use_given without masks: the folder dataset's mask files that match
+    no selected frame (``FolderDataset.mask_note``), read again from the source; '' when there are
+    none, the source is no folder, or it cannot be read any more."""
+    import warnings
+
+    if not isinstance(source_cfg, dict) or source_cfg.get("kind") != "folder":
+        return ""
+    try:
+        from stex.readers.folder import FolderDataset
+
+        cfg = source_cfg["folder"]
+        with warnings.catch_warnings():  # ingest has warned already
+            warnings.simplefilter("ignore")
+            note = FolderDataset(cfg["path"], cfg["layout"], cfg["start"], cfg["stop"]).mask_note
+    except Exception:  # the dataset moved or changed since ingest: the error stands without it
+        return ""
+    return f": {note}" if note else ""
+
+
 def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
     """Masks stage for one frame block: read ``frames``, write a ``masks`` store to ``out``.
 
@@ -308,7 +328,8 @@ def write_masks_block(scene_path, frames_path, params: dict, out) -> None:
     ids = list(frames.attrs["frame_ids"])
     n = len(ids)
     if params["use_given"] and "mask" not in frames:
-        raise ValueError(f"{frames_path}: masks.use_given is set but the source supplied no masks")
+        raise ValueError(f"{frames_path}: masks.use_given is set but the source supplied no masks"
+                         + _unread_mask_files(frames.attrs.get("params", {}).get("source")))
     t0 = time.perf_counter()
     planes = []
     with create_store(out, "masks", attrs={"frame_ids": ids}, params=params) as store:

@@ -1230,7 +1230,9 @@ def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, wher
         raise ValueError(
             f"{where}: at frame {frame_id} the mesh lies {ratio:.{0 if ratio >= 10 else 2}f} times as far from "
             f"the depth camera as the depth image reads where they overlap: the mesh must be in metres "
-            f"(millimetres give 1000, centimetres 100) and in the depth camera's coordinates")
+            f"(millimetres give 1000, centimetres 100) and in the depth camera's coordinates. The depth is "
+            f"read where the frame's mask puts the object, so a mask that marks the background instead (an "
+            f"inverted mask) gives such a ratio too: look at the masks (previews/masks.png)")
 
 
 def _runs(ids) -> str:

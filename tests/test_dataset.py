@@ -85,20 +85,50 @@ def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
         dataset_scene_configs({"scene_files": ["captures/nowhere.yaml"]}, None)
 
 
-def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path):
-    """Both scenes are reconstructed and evaluated, with their own sources; the cluster wall time
+def _capture_with_a_corrupt_frame(folder):
+    """A folder capture (stex layout) of the tiny scene's first two frames, the second colour
+    image cut short: the workflow lists it at parse time, its ingest job cannot decode it."""
+    import cv2
+    import trimesh
+
+    from stex.config import load_config
+    from stex.synth.scene import SyntheticScene
+
+    synthetic = SyntheticScene(load_config(overrides={"source": {"synthetic": TINY_SYNTHETIC}})["source"]["synthetic"])
+    for sub in ("color", "depth", "meshes"):
+        (folder / sub).mkdir(parents=True)
+    (folder / "calibration.json").write_text(json.dumps(synthetic.calibration.to_dict()))
+    for i in range(2):
+        frame = synthetic.render_frame(i)
+        assert cv2.imwrite(str(folder / "color" / f"{i:06d}.png"), frame.color[..., ::-1])
+        assert cv2.imwrite(str(folder / "depth" / f"{i:06d}.png"), frame.depth_mm)
+        trimesh.Trimesh(synthetic.given_vertices(i), synthetic.faces, process=False).export(
+            folder / "meshes" / f"{i:06d}.obj")
+    corrupt = folder / "color" / "000001.png"
+    corrupt.write_bytes(corrupt.read_bytes()[:2000])
+    return folder
+
+
+def test_a_dataset_run_is_the_runs_each_scene_file_makes_alone_and_a_failed_scene_is_left_out(tmp_path):
+    """Two scenes are reconstructed and evaluated, with their own sources; the cluster wall time
     of the sequence-long jobs holds for the prefixed rules; and each scene's results are what the
-    main workflow would make from its scene file: run alone afterwards, it has nothing to do."""
+    main workflow would make from its scene file: run alone afterwards, it has nothing to do.
+    A third scene fails in a job (a corrupt colour frame): --keep-going finishes the others,
+    --report on the whole dataset names the incomplete scene and how to report the rest, and
+    --config scenes=[...] is the report of the finished scenes."""
     # one frame block and the given meshes: every job is a process of its own, so their count
-    # (and the tracking's work) is most of the test's time
+    # (and the tracking's work) is most of the test's time; one run serves both halves
     common = {"results": str(tmp_path / "results"), "frame_block": 6, "template": {"atlas_size": 256},
               "tracking": {"mode": "given"},
               "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10},
               "sampling_table": {"steps": []}}
+    capture = _capture_with_a_corrupt_frame(tmp_path / "capture")
     files = [_write(tmp_path / "tiny_a.yaml", {"scene": "tiny-a", "source": {
                  "kind": "synthetic", "synthetic": TINY_SYNTHETIC}}),
              _write(tmp_path / "tiny_b.yaml", {"scene": "tiny_b", "source": {
-                 "kind": "synthetic", "synthetic": {**TINY_SYNTHETIC, "seed": 1}}})]
+                 "kind": "synthetic", "synthetic": {**TINY_SYNTHETIC, "seed": 1}}}),
+             _write(tmp_path / "broken.yaml", {"scene": "broken", "source": {
+                 "kind": "folder", "folder": {"path": str(capture), "layout": "stex"}}})]
     dataset = _write(tmp_path / "dataset.yaml", {"scene_files": files, "common": common})
     common_file = _write(tmp_path / "common.yaml", common)
     # the working directory's config/config.yaml is under every scene, as under a run of ../Snakefile;
@@ -107,14 +137,16 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
     # (the scenes' wall stands at 2.2 m: a far end beyond it would make the background the object)
     _write(tmp_path / "config" / "config.yaml", {"source": {"synthetic": {"fps": 25.0}}, "masks": {"depth_far_m": 1.8}})
 
-    def snakemake(snakefile, configfiles, *args):
+    def snakemake(snakefile, configfiles, *args, ok=True):
         run = subprocess.run([sys.executable, "-m", "snakemake", "--snakefile", str(snakefile),
                               "--directory", str(tmp_path), "--configfile", *configfiles, "--cores", "2", *args],
                              capture_output=True, text=True, timeout=900)
-        assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+        assert (run.returncode == 0) == ok, (run.stdout + run.stderr)[-3000:]
         return run.stdout + run.stderr
 
-    log = snakemake(REPO / "workflow" / "dataset.smk", [dataset])
+    log = snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--keep-going", ok=False)
+    assert "Error in rule broken_ingest_block" in log, log[-3000:]
+    assert "cannot decode image" in (tmp_path / "results" / "broken" / "logs" / "ingest_block_0000.log").read_text()
     jobs = re.split(r"\n(?=\[[A-Z][a-z]{2} |rule \w+:)", log)  # one block per job (a time stamp, or its rule line)
     tracking_jobs = [j for j in jobs if "rule tiny_a_tracking:" in j or "rule tiny_b_tracking:" in j]
     assert len(tracking_jobs) == 2 and all("runtime=240" in j for j in tracking_jobs), tracking_jobs
@@ -126,13 +158,24 @@ def test_two_scenes_in_one_run_are_the_runs_each_scene_file_makes_alone(tmp_path
     scene = open_store(tmp_path / "results" / "tiny-a" / "scene.zarr", "scene")
     assert scene.attrs["params"]["source"]["synthetic"]["fps"] == 25.0  # the base was read
 
-    # one report over the dataset: every category holds a group per scene
-    snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--report", str(tmp_path / "report.html"))
-    html = (tmp_path / "report.html").read_text()
+    # the report of the whole dataset names the failed scene and how to report the others
+    report = tmp_path / "report.html"
+    log = snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--report", str(report), ok=False)
+    assert not report.exists()
+    assert re.search(r"scene 'broken' is incomplete: .*results/broken/\S+ and \d+ more of its results are missing", log), log
+    assert "Report the complete scenes with --config scenes=[tiny-a,tiny_b]" in log and "'tiny-a' is" not in log, log
+    log = snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--config", "scenes=[tiny_a]", "-n", ok=False)
+    assert "scenes must name scenes of the dataset (tiny-a, tiny_b, broken), got ['tiny_a']: " \
+           "'tiny_a' is not one" in log, log[-2000:]  # the rules' spelling, not the scene's
+
+    # one report over the finished scenes: every category holds a group per scene
+    snakemake(REPO / "workflow" / "dataset.smk", [dataset], "--config", "scenes=[tiny-a,tiny_b]", "--report", str(report))
+    html = report.read_text()
     categories = json.loads(re.search(r"var categories = (\{.*?\});?\n", html)[1])
     assert {"Masks", "Tracking", "Evaluation"} <= set(categories)
     for groups in categories.values():
         assert set(groups) == {"tiny-a", "tiny_b"}, groups
     assert "stex over a dataset of captures" in html and "tiny_b.yaml" in html  # its description
-    for scene_file in files:
+    assert "tiny_a_tracking" in html and "broken_" not in html  # their rules, none of the failed one's
+    for scene_file in files[:2]:
         assert "Nothing to be done" in snakemake(REPO / "Snakefile", [common_file, scene_file], "-n")

@@ -265,8 +265,9 @@ def test_stex_layout_default_template_is_first_given_mesh(tmp_path, synth):
     np.testing.assert_allclose(src.template().vertices, s.verts[1], atol=1e-9)
     assert src.template().texcoords is None
     bad = root / "meshes" / f"{FIRST + 3:06d}.obj"
-    _write_obj(bad, s.verts[3], s.faces[:, [1, 2, 0]])  # same triangles, other corner order
-    with pytest.raises(ValueError, match=re.escape(bad.name) + ": mesh topology differs"):
+    _write_obj(bad, s.verts[3], s.faces[:, [0, 2, 1]])  # the same triangles turned round (other winding)
+    with pytest.raises(ValueError, match=re.escape(bad.name) + r": mesh topology differs from the template \(.*\): "
+                       r"its face 0 \[\d+, \d+, \d+\] is among the template's triangles with the other winding"):
         write_scene(folder_cfg(root, "stex"), 2, tmp_path / "scene.zarr")
     assert not (tmp_path / "scene.zarr").exists()
 
@@ -574,6 +575,107 @@ def test_empty_mask_at_ingest(tmp_path, authors):
     assert not any((tmp_path / "frames").iterdir())
 
 
+def test_masks_all_foreground_or_inverted_are_refused(tmp_path, authors, synth, monkeypatch):
+    """A mask of every pixel, or an inverted one (object 0, background 255, 88 % of the image), was
+    stored; tracking then blamed the mesh's units. Refused at reading, naming the file, and at
+    ingest for any source, naming the frame."""
+    bad = authors / "stream" / "mask" / f"Frame_{FIRST + 1:06d}.png"
+    cv2.imwrite(str(bad), np.full((120, 160), 255, np.uint8))
+    with pytest.raises(ValueError, match=re.escape(str(bad)) + r": the mask is all foreground \(every pixel >= 1\)"):
+        FolderDataset(authors).mask(FIRST + 1)
+    cv2.imwrite(str(bad), (~synth.mask[1]).astype(np.uint8) * 255)
+    out = tmp_path / "f.zarr"
+    with pytest.raises(ValueError, match=re.escape(bad.name) + r": the mask's foreground covers 100 % of the image "
+                       r"border \(more than 50 %\) and 8\d % of the image: .* Is the mask inverted"):
+        write_frames_block(folder_cfg(authors), 0, N, out)
+    assert not out.exists()
+    # a source whose reader checks nothing: ingest refuses it too
+    monkeypatch.setattr(FolderDataset, "mask", lambda self, fid: ~synth.mask[IDS.index(fid)])
+    with pytest.raises(ValueError, match=rf"frame {FIRST} \(the source's mask\): the mask's foreground covers 100 % "
+                       r"of the image border"):
+        write_frames_block(folder_cfg(authors), 0, N, out)
+    # an object that reaches into the image from one side is fine: the bottom edge and a quarter of each side
+    m = np.zeros((120, 160), bool)
+    m[90:, 20:140] = True
+    m[95:, :] = True
+    monkeypatch.setattr(FolderDataset, "mask", lambda self, fid: m)
+    write_frames_block(folder_cfg(authors), 0, 1, out)
+    np.testing.assert_array_equal(open_store(out, "frames")["mask"][0], m)
+
+
+def test_real_masks_leave_the_image_border_to_the_background():
+    """The shared samples' real masks (KillingFusion Snoopy, frames 0, 1, 50, 51) have no
+    foreground on the image border, far below the 50 % an inverted mask is refused at."""
+    from stex.readers.images import MAX_MASK_BORDER_FOREGROUND, border_foreground, check_mask
+
+    paths = sorted((data_samples() / "killingfusion_snoopy").glob("*/*omask_*.png"))
+    assert len(paths) == 4
+    for p in paths:
+        m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED) >= 1
+        assert border_foreground(m) == 0.0 and border_foreground(~m) == 1.0
+        check_mask(m, str(p))
+        with pytest.raises(ValueError, match="Is the mask inverted"):
+            check_mask(~m, str(p))
+    assert MAX_MASK_BORDER_FOREGROUND == 0.5
+
+
+def test_rgba_masks_cut_out_in_the_alpha_or_ambiguous(authors, synth):
+    """An RGBA cut-out (the same colour everywhere, the object in the alpha, as image editors export
+    a selection) was read as all foreground (the alpha was ignored). Its alpha is the mask now; a
+    mask in the colour with a constant alpha is read from the colour; colour and alpha that both
+    vary and disagree are refused."""
+    folder = authors / "stream" / "mask"
+    obj = synth.mask[0].astype(np.uint8) * 255
+    white = np.full_like(obj, 255)
+    cv2.imwrite(str(folder / f"Frame_{FIRST:06d}.png"), np.dstack([white] * 3 + [obj]))
+    in_colour = synth.mask[1].astype(np.uint8) * 255
+    cv2.imwrite(str(folder / f"Frame_{FIRST + 1:06d}.png"), np.dstack([in_colour] * 3 + [white]))
+    grey_alpha = np.dstack([synth.mask[2].astype(np.uint8) * 255] * 3 + [synth.mask[2].astype(np.uint8) * 255])
+    cv2.imwrite(str(folder / f"Frame_{FIRST + 2:06d}.png"), grey_alpha)  # both vary, and agree
+    ds = FolderDataset(authors)
+    np.testing.assert_array_equal(ds.mask(FIRST), synth.mask[0])
+    np.testing.assert_array_equal(ds.mask(FIRST + 1), synth.mask[1])
+    np.testing.assert_array_equal(ds.mask(FIRST + 2), synth.mask[2])
+    photo = np.dstack([synth.color[3][..., ::-1], synth.mask[3].astype(np.uint8) * 255])  # a cut-out photo
+    bad = folder / f"Frame_{FIRST + 3:06d}.png"
+    cv2.imwrite(str(bad), photo)
+    with pytest.raises(ValueError, match=re.escape(str(bad)) + r": ambiguous mask: its colour channels and its alpha "
+                       r"channel both vary and mark different pixels \(\d+ % and 1\d % of the image"):
+        ds.mask(FIRST + 3)
+
+
+def test_masks_that_match_no_frame_are_named(tmp_path, authors):
+    """Masks numbered from 0 (as the authors' meshes) while the colour frames are 7..10 were dropped
+    without a word, and masks.use_given said 'the source supplied no masks'. A mask file with no
+    colour frame beside masks that match is named too."""
+    from stex.masks import write_masks_block
+
+    folder = authors / "stream" / "mask"
+    extra = folder / f"Frame_{FIRST + 50:06d}.png"
+    shutil.copy(folder / f"Frame_{FIRST:06d}.png", extra)
+    with pytest.warns(UserWarning, match=re.escape(str(folder)) + r": 1 mask file\(s\) match no colour frame on disk "
+                      r"and are not read: \['Frame_000057\.png'\]; .* colour frames on disk are "
+                      rf"{FIRST}\.\.{FIRST + N - 1}"):
+        assert FolderDataset(authors).has_masks
+    extra.unlink()
+    for k, fid in enumerate(IDS):
+        (folder / f"Frame_{fid:06d}.png").rename(folder / f"Frame_{k:06d}.png")
+    expected = (re.escape(str(folder)) + r": 4 mask file\(s\) exist but match no selected frame "
+                rf"\({FIRST}\.\.{FIRST + N - 1}\): \['Frame_000000\.png', .*\]; masks are named Frame_<frame index>\.png "
+                rf"with the colour frame's absolute index \(e\.g\. Frame_{FIRST:06d}\.png; .*these look numbered from 0"
+                rf".*add {FIRST} to their numbers")
+    with pytest.warns(UserWarning, match=expected):
+        assert not FolderDataset(authors).has_masks
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        write_scene(folder_cfg(authors), N, tmp_path / "scene.zarr")
+        write_frames_block(folder_cfg(authors), 0, N, tmp_path / "frames.zarr")
+    with pytest.raises(ValueError, match=r"frames\.zarr: masks\.use_given is set but the source supplied no masks: "
+                       + expected):
+        write_masks_block(tmp_path / "scene.zarr", tmp_path / "frames.zarr",
+                          dict(load_config()["masks"], use_given=True), tmp_path / "masks.zarr")
+
+
 def test_a_dropped_depth_frame_is_named_and_float_depth_refused(tmp_path, authors, monkeypatch, caplog):
     """A depth frame with no valid pixel (a dropped frame) is ingested with a warning naming it;
     depth that is not uint16 millimetres (a reader returning float metres or NaN) is refused
@@ -590,18 +692,54 @@ def test_a_dropped_depth_frame_is_named_and_float_depth_refused(tmp_path, author
 
 
 def test_given_mesh_with_other_topology(tmp_path, authors, synth):
+    """A per-frame mesh supplies vertex positions only: the same triangles in another order, or
+    with their corners rotated, are its template's topology. Another triangle is refused, naming
+    the first face the template lacks; so are other counts."""
     bad = authors / "mesh" / "Frame_002.off"
-    F = synth.faces.copy()
-    F[[0, 1]] = F[[1, 0]]  # same vertices, faces reordered
-    _write_off(bad, synth.verts[2], F)
+    order = np.random.default_rng(0).permutation(len(synth.faces))
+    _write_off(bad, synth.verts[2], np.roll(synth.faces[order], 1, axis=1))  # reordered, corners rotated
     out = tmp_path / "scene.zarr"
-    with pytest.raises(ValueError, match=re.escape(str(bad)) + ": mesh topology differs from the template"):
+    write_scene(folder_cfg(authors), 2, out)
+    np.testing.assert_allclose(open_store(out, "scene")["given/vertices"][2], synth.verts[2], atol=1e-6)
+    shutil.rmtree(out)
+    F = synth.faces.copy()
+    F[5, 2] = next(v for v in range(len(synth.verts[2])) if v not in F[5])  # one corner moved to another vertex
+    _write_off(bad, synth.verts[2], F)
+    with pytest.raises(ValueError, match=re.escape(str(bad)) + rf": mesh topology differs from the template \(.*\): "
+                       rf"its face 5 {re.escape(str(F[5].tolist()))} is not among the template's triangles; the "
+                       rf"template's face 5 is {re.escape(str(synth.faces[5].tolist()))}"):
         write_scene(folder_cfg(authors), 2, out)
     assert not out.exists() and not list(tmp_path.glob("scene.zarr.partial*"))
     keep = (synth.faces < len(synth.verts[2]) - 5).all(1)
     _write_off(bad, synth.verts[2][:-5], synth.faces[keep])  # fewer vertices and faces
     with pytest.raises(ValueError, match=re.escape(bad.name) + ": mesh topology differs"):
         write_scene(folder_cfg(authors), 2, out)
+
+
+def test_a_quad_mesh_as_obj_template_and_off_or_ply_frames(tmp_path, authors):
+    """The same quads split by two readers: OBJ fans each quad in place ([0,1,5], [0,5,4]),
+    trimesh (OFF, PLY) lists every quad's first triangle before the second ones. It was refused as
+    'topology differs (18 faces / 16 vertices vs 18 faces / 16 vertices)'."""
+    n = 4
+    g = np.linspace(-0.1, 0.1, n)
+    V = np.array([[x, y, 0.5] for y in g for x in g])
+    Q = [[r * n + c, r * n + c + 1, (r + 1) * n + c + 1, (r + 1) * n + c] for r in range(n - 1) for c in range(n - 1)]
+    (authors / "tex_mesh.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in V)
+                                          + "".join("f " + " ".join(str(i + 1) for i in q) + "\n" for q in Q))
+    off = "OFF\n%d %d 0\n" % (len(V), len(Q)) + "".join(f"{x} {y} {z}\n" for x, y, z in V) \
+        + "".join("4 " + " ".join(map(str, q)) + "\n" for q in Q)
+    ply = ("ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\nproperty float z\n"
+           "element face %d\nproperty list uchar int vertex_indices\nend_header\n" % (len(V), len(Q))
+           + "".join(f"{x} {y} {z}\n" for x, y, z in V) + "".join("4 " + " ".join(map(str, q)) + "\n" for q in Q))
+    for p in (authors / "mesh").iterdir():
+        p.unlink()
+    for k in range(N):
+        (authors / "mesh" / f"Frame_{k:03d}.{'off' if k % 2 else 'ply'}").write_text(off if k % 2 else ply)
+    template, frame = load_mesh(authors / "tex_mesh.obj"), load_mesh(authors / "mesh" / "Frame_001.off")
+    assert not np.array_equal(template.faces, frame.faces)  # the two orders differ
+    write_scene(folder_cfg(authors), 2, tmp_path / "scene.zarr")
+    given = open_store(tmp_path / "scene.zarr", "scene")["given/vertices"][:]
+    np.testing.assert_allclose(given, np.broadcast_to(V, given.shape), atol=1e-6)
 
 
 def test_given_mesh_with_nan_vertices(tmp_path, authors, synth):
@@ -690,6 +828,16 @@ def test_stex_calibration_is_validated(stex_ds, synth):
         ds = FolderDataset(stex_ds, "stex")
     assert ds.calibration.color.distortion[0] == 0.1  # reported, kept, not applied
 
+    # "distortion": null is no distortion, as a missing key (it was refused as "got [nan]")
+    bad = json.loads(json.dumps(good))
+    bad["color"]["distortion"] = None
+    path.write_text(json.dumps(bad))
+    assert not _silent(stex_ds, "stex").calibration.color.distortion.any()
+    bad["color"]["distortion"] = [0.1, None]
+    path.write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match=r"color camera: distortion coefficients must be finite, got \[0\.1, nan\]"):
+        FolderDataset(stex_ds, "stex")
+
     path.unlink()
     with pytest.raises(FileNotFoundError, match=r"calibration\.json: missing"):
         FolderDataset(stex_ds, "stex")
@@ -728,6 +876,26 @@ def test_a_truncated_colour_jpeg_is_refused(stex_ds):
     with pytest.raises(ValueError, match=rf"{IDS[1]:06d}\.jpg: the JPEG ends without its end-of-image marker"):
         ds.color(IDS[1])
     assert whole.shape == (SYN["color"]["height"], SYN["color"]["width"], 3)
+
+
+def test_a_colour_jpeg_damaged_inside_is_refused(tmp_path, stex_ds, synth):
+    """600 bytes zeroed in the middle, the end marker intact: libjpeg decodes a full-size image,
+    wrong in 88 of its 120 rows, and says so only on stderr (which OpenCV does not pass on).
+    Ingest stored it; now the file is named with libjpeg's words."""
+    jpg = _as_jpeg(stex_ds, IDS[1])
+    ds = FolderDataset(stex_ds, "stex")
+    whole = ds.color(IDS[1])  # the undamaged JPEG reads as OpenCV decodes it
+    np.testing.assert_array_equal(whole, cv2.imread(str(jpg))[..., ::-1])
+    b = bytearray(jpg.read_bytes())
+    b[len(b) // 3: len(b) // 3 + 600] = bytes(600)
+    jpg.write_bytes(bytes(b))
+    with pytest.raises(ValueError, match=re.escape(str(jpg)) + r": the JPEG's data is damaged \(libjpeg: 'Corrupt JPEG "
+                       r"data: [^']+'\)"):
+        ds.color(IDS[1])
+    out = tmp_path / "f.zarr"
+    with pytest.raises(ValueError, match=re.escape(jpg.name) + ": the JPEG's data is damaged"):
+        write_frames_block(folder_cfg(stex_ds, "stex"), 0, N, out)
+    assert not out.exists()
 
 
 def test_exif_orientation_of_a_colour_jpeg_is_not_applied(stex_ds):

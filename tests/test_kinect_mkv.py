@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import re
 import warnings
 from fractions import Fraction
 from pathlib import Path
@@ -808,3 +809,55 @@ def test_a_capture_lost_inside_the_recording_warns(tmp_path):
         warnings.filterwarnings("error", message=".*not evenly spaced.*")
         with open_kinect_mkv(path2, backend="pyav") as rec:
             assert rec.n_frames == 4
+
+
+# ------------------------------------------------------------------ principal point check
+
+
+def _with_colour_cx(calibration: dict, cx_normalised: float) -> dict:
+    """``calibration`` with the colour camera's principal point x moved (fraction of the sensor width)."""
+    out = copy.deepcopy(calibration)
+    colour = next(c for c in out["CalibrationInformation"]["Cameras"] if c["Location"] == "CALIBRATION_CameraLocationPV0")
+    colour["Intrinsics"]["ModelParameters"][0] = cx_normalised
+    return out
+
+
+def _principal_point_warnings(path) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with open_kinect_mkv(path, backend="pyav"):
+            pass
+    return [str(w.message) for w in caught if "principal point" in str(w.message)]
+
+
+def test_a_principal_point_far_from_the_image_centre_warns_naming_the_recording(synthetic_mkv, tmp_path):
+    """Colour cx at 0.70 of the sensor width is 0.70 * 1280 - 0.5 = 895.5 px in the 720P image,
+    20 % of its width right of the centre (639.5): beyond stex.camera's 15 %, the warning the
+    folder reader gives too. The device's own calibration (0.4998) does not warn."""
+    assert _principal_point_warnings(synthetic_mkv[0]) == []
+    path = tmp_path / "shifted.mkv"
+    write_test_mkv(path, 2, COLOR_SIZE, DEPTH_SIZE, _with_colour_cx(K4A_CALIBRATION, 0.70))
+    with pytest.warns(UserWarning, match=re.escape(f"{path}: color camera: principal point (895.5, ") + r"[\d.]+\) is "
+                                         r"20 % of the width and 1 % of the height from the centre of the 1280x720 "
+                                         r"image .* another resolution"):
+        with open_kinect_mkv(path, backend="pyav") as rec:
+            assert rec.calibration.color.cx == pytest.approx(895.5)
+
+
+@needs_real
+def test_the_real_recording_does_not_warn_about_its_principal_point():
+    assert _principal_point_warnings(REAL / "recording.mkv") == []
+
+
+@needs_real
+def test_a_colour_jpeg_damaged_inside_is_refused_naming_its_frame(tmp_path):
+    """16 bytes zeroed inside the real recording's MJPEG packet (its end marker intact): libjpeg
+    decodes it to a full-size image, wrong from the damage on, and only says so on stderr."""
+    data = bytearray((REAL / "recording.mkv").read_bytes())
+    data[28084:28100] = bytes(16)  # inside the colour packet (found by zeroing 16 bytes at offsets)
+    p = tmp_path / "damaged.mkv"
+    p.write_bytes(bytes(data))
+    with open_kinect_mkv(p, backend="pyav") as rec:
+        with pytest.raises(ValueError, match=r"damaged\.mkv: frame 0 .*source\.mkv\.start / stop.*"
+                                             r"the JPEG's data is damaged \(libjpeg: 'Corrupt JPEG data"):
+            list(rec.frames())

@@ -147,3 +147,31 @@ def test_report_holds_the_tables(tiny_run):
         assert row in embedded, (row, embedded[:2000])
     # the tracking-fit plot is in the report, with its caption
     assert "tracking_fit.png" in html and "min_silhouette_iou" in html
+
+
+def test_the_evaluation_merge_has_a_benchmark_that_its_own_timing_table_leaves_out(tiny_run):
+    """The merge writes benchmarks/evaluate.tsv as every job does; `stex tables` over the finished
+    run shows it. The timing table the merge writes while it runs cannot time the merge: it has
+    no row for it, not even the previous run's (Snakemake deletes that file before the job)."""
+    import csv
+
+    from stex.reporting import runs_tables
+
+    res = tiny_run / "results" / "tiny"
+    bench = res / "benchmarks" / "evaluate.tsv"
+
+    def stages():
+        with open(res / "evaluation" / "table_timing.csv", newline="") as fh:
+            return [row[0] for row in csv.reader(fh)][1:]
+
+    def merge_seconds():
+        with open(bench, newline="") as fh:
+            return float(next(csv.DictReader(fh, delimiter="\t"))["s"])
+
+    assert 0 < merge_seconds() < 999
+    assert "evaluate_frames" in stages() and "evaluate" not in stages()
+    assert re.search(r"^\| evaluate +\| \d+\.\d\d", runs_tables([res]), re.M)
+    bench.write_text("s\th:m:s\n999.0\t0:16:39\n")  # as a previous run's merge left it
+    run = snakemake(tiny_run, "--cores", "2", "--forcerun", "evaluate")
+    assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+    assert "evaluate" not in stages() and merge_seconds() < 999

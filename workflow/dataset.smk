@@ -7,7 +7,13 @@
 # Each scene is exactly the run `snakemake --configfile <scene file>` would make in this
 # directory (config/config.yaml, then common, then the scene file), in its own
 # <results>/<scene>/; its rules are named <scene>_<rule> (e.g. fox_tracking).
+# `scenes` (a key of the dataset file, or `--config scenes=[a,b]`) names the scenes a run makes
+# and a report holds (default: all): with --keep-going, the scenes that did not fail finish, and
+#   snakemake --snakefile workflow/dataset.smk --configfile my_dataset.yaml --config scenes=[a,b] --report report.html
+# is their report (a report of a scene with missing results is refused, naming the scene).
+import os
 import re
+import sys
 
 from snakemake.utils import min_version
 
@@ -19,7 +25,18 @@ min_version("9.1")  # module names given by a variable
 report: "report/dataset.rst"
 
 
-SCENES = dataset_scene_configs(config, where="the dataset config (scene_files, common)")
+_WHERE = "the dataset config (scene_files, common, scenes)"
+_ALL_SCENES = dataset_scene_configs({k: v for k, v in config.items() if k != "scenes"}, where=_WHERE)
+# `scenes`: a name or a list of names (--config scenes=tiny parses as a string, scenes=[2024] as a
+# list of strings, scenes=2024 as an int); absent or null: every scene
+_chosen = config.get("scenes")
+_names = list(_ALL_SCENES) if _chosen is None else [str(n) for n in (_chosen if isinstance(_chosen, list) else [_chosen])]
+_unknown = [n for n in _names if n not in _ALL_SCENES]
+if not _names or _unknown:
+    raise ValueError(f"{_WHERE}: scenes must name scenes of the dataset ({', '.join(_ALL_SCENES)}), got {_chosen!r}"
+                     + (f": {', '.join(map(repr, _unknown))} is not one" if _unknown else ""))
+SCENES = {name: cfg for name, cfg in _ALL_SCENES.items() if name in _names}  # in dataset order
+config["scenes"] = list(SCENES)  # the report's description names them
 _PREFIXES = {}
 for scene_name, scene_config in SCENES.items():
     # a rule name is a Python identifier: '-' and '.' of a scene name become '_'
@@ -34,6 +51,25 @@ for scene_name, scene_config in SCENES.items():
         config: scene_config
 
     use rule * from scene_name as prefix*
+
+
+# A report of a scene with missing results: Snakemake's own refusal names one missing file of one
+# scene; name every unfinished scene and the option that reports the others. Snakemake tells a
+# workflow nothing about a report, so it is read from the command line (--report, or --reporter
+# with its options; --report-after-run reports after the run, when the results exist).
+if "--report-after-run" not in sys.argv and any(a.split("=")[0] in ("--report", "--reporter") for a in sys.argv):
+    _missing = {name: [f for f in getattr(rules, f"{prefix}all").input if not os.path.exists(f)]
+                for prefix, name in _PREFIXES.items()}
+    _unfinished = [
+        f"scene {name!r} is incomplete: {files[0]}"
+        + (f" and {len(files) - 1} more of its results are" if len(files) > 1 else " is")
+        + f" missing (its run failed or has not finished: see {SCENES[name]['results']}/{name}/logs)"
+        for name, files in _missing.items() if files]
+    if _unfinished:
+        _finished = [name for name, files in _missing.items() if not files]
+        raise ValueError("; ".join(_unfinished) + ". " + (
+            f"Report the complete scenes with --config scenes=[{','.join(_finished)}]" if _finished
+            else "None of these scenes is complete: finish their runs first"))
 
 
 rule all:

@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, Intrinsics
+from stex.readers.images import check_mask, decode_jpeg
 from stex.readers.kinect_mkv import jpeg_ends
 from stex.readers.meshes import Mesh, load_mesh
 
@@ -68,6 +69,30 @@ def _numbered_files(folder: Path, pattern: re.Pattern, shift: int = 0) -> tuple[
     return out, other
 
 
+def _mask_values(img: np.ndarray, path: Path) -> np.ndarray:
+    """(H, W) values of a mask image as read (any bit depth), foreground where >= 1: grey as it
+    is, colour as the largest colour channel; with alpha (BGRA, or grey + alpha), the alpha
+    channel when the colour is the same everywhere (a cut-out, as image editors export a
+    selection: the object in the alpha), else the colour. Refused when colour and alpha both vary
+    and mark different pixels (which of the two is the mask cannot be told)."""
+    if img.ndim == 2:
+        return img
+    colour = img[..., :3].max(axis=2)
+    if img.shape[2] != 4:
+        return colour
+    alpha = img[..., 3]
+    colour_varies = bool((img[..., :3] != img[0, 0, :3]).any())
+    alpha_varies = bool((alpha != alpha[0, 0]).any())
+    if alpha_varies and not colour_varies:
+        return alpha
+    if alpha_varies and not np.array_equal(colour >= 1, alpha >= 1):
+        raise ValueError(f"{path}: ambiguous mask: its colour channels and its alpha channel both vary and mark "
+                         f"different pixels ({100 * float((colour >= 1).mean()):.0f} % and "
+                         f"{100 * float((alpha >= 1).mean()):.0f} % of the image as foreground); give the mask in the "
+                         "colour (or grey) channels with a constant alpha, or in the alpha with a constant colour")
+    return colour
+
+
 def _some(names: list[str]) -> str:
     """The first few of ``names``, and how many more."""
     more = len(names) - _NAMED
@@ -81,14 +106,18 @@ class FolderDataset:
         root: dataset folder. layout: 'authors' or 'stex'.
         calibration: :class:`~stex.camera.Calibration`.
         frame_ids: list of absolute frame indices (sorted).
+        has_masks: whether every selected frame has a mask file.
+        mask_note: the warning naming the mask files when there are some but none for a selected
+            frame (masks.use_given repeats it in its error), else None.
         mesh_base: authors' layout: the frame of ``mesh/Frame_000`` (conf.json's ``main.start_idx``,
             else the first colour frame on disk); None in stex's layout.
 
     The same rules in both layouts: colour JPEGs are read as stored (their EXIF orientation is
-    ignored, as the depth and the calibration know nothing of it) and refused when cut short; masks
-    must be PNG; two files for one frame (``8.png`` and ``000008.png``, or ``.png`` and ``.jpg``;
-    ``7.obj`` and ``000007.ply``) are refused; files of the image and mesh folders that are not
-    read are named in a warning.
+    ignored, as the depth and the calibration know nothing of it) and refused when cut short or
+    damaged inside (libjpeg's corrupt-data warnings); masks must be PNG and neither empty, all
+    foreground nor inverted (:func:`stex.readers.images.check_mask`); two files for one frame
+    (``8.png`` and ``000008.png``, or ``.png`` and ``.jpg``; ``7.obj`` and ``000007.ply``) are
+    refused; files of the image and mesh folders that are not read are named in a warning.
     """
 
     def __init__(self, root: str | Path, layout: str = "authors", start: int = 0, stop: int | None = None):
@@ -164,6 +193,7 @@ class FolderDataset:
             raise ValueError(f"{self._mask_dir}: masks missing for frame(s) {[i for i in ids if i not in self._mask_files][:10]} "
                              "(give a mask for every frame or none)")
         self.has_masks = bool(with_mask)
+        self.mask_note = self._unread_masks(ids, color_ids, with_mask)
         if layout == "authors" and self.mesh_base is None:
             self.mesh_base = min(color_ids)
         self._mesh_files = self._meshes(color_ids)
@@ -171,6 +201,32 @@ class FolderDataset:
     def _not_read(self, names: list[str], exts: str) -> str:
         return (f"{len(names)} file(s) not read, as they are not named {self._prefix}<frame index>.{exts}: "
                 f"{_some(names)}")
+
+    def _unread_masks(self, ids: list[int], on_disk: dict[int, Path], with_mask: list[int]) -> str | None:
+        """Warn about mask files that are not read: when none is for a selected frame (``ids``),
+        all of them, and return that text (``mask_note``, for the error of masks.use_given);
+        else those whose index is no colour frame on disk (``on_disk``). None when all are read."""
+        stray = sorted(p.name for i, p in self._mask_files.items() if i not in on_disk)
+        if with_mask or not self._mask_files:
+            if stray:
+                warnings.warn(f"{self._mask_dir}: {len(stray)} mask file(s) match no colour frame on disk and are not "
+                              f"read: {_some(stray)}; {self._mask_naming(on_disk)}", stacklevel=3)
+            return None
+        names = sorted(p.name for p in self._mask_files.values())
+        note = (f"{self._mask_dir}: {len(names)} mask file(s) exist but match no selected frame "
+                f"({ids[0]}..{ids[-1]}): {_some(names)}; {self._mask_naming(on_disk)}")
+        warnings.warn(f"{note}. The masks are not read", stacklevel=3)
+        return note
+
+    def _mask_naming(self, on_disk: dict[int, Path]) -> str:
+        """How masks are named, for the texts about those that are not read."""
+        first = min(on_disk)
+        out = (f"masks are named {self._prefix}<frame index>.png with the colour frame's absolute index "
+               f"(e.g. {self._prefix}{first:06d}.png; the colour frames on disk are {first}..{max(on_disk)})")
+        numbers = sorted(self._mask_files)
+        if first and numbers[0] == 0 and all(k + first in on_disk for k in numbers):
+            out += f"; these look numbered from 0, as the authors' meshes: add {first} to their numbers"
+        return out
 
     def _meshes(self, on_disk: dict[int, Path]) -> dict[int, Path]:
         """The per-frame mesh files by absolute frame id (frames not on disk included: the authors'
@@ -252,7 +308,8 @@ class FolderDataset:
             if not jpeg_ends(buf):
                 # libjpeg decodes a JPEG cut short to a full-size image with invented rows
                 raise ValueError(f"{path}: the JPEG ends without its end-of-image marker (the file is cut short)")
-            img = cv2.imdecode(np.frombuffer(buf, np.uint8), flags | cv2.IMREAD_IGNORE_ORIENTATION)
+            # libjpeg's "Corrupt JPEG data" warnings (damage inside, end marker intact) raise
+            img = decode_jpeg(buf, flags | cv2.IMREAD_IGNORE_ORIENTATION, str(path))
         else:
             img = cv2.imread(str(path), flags)
         if img is None:
@@ -286,15 +343,14 @@ class FolderDataset:
         path = self._mask_files.get(frame_id)
         if path is None:
             raise FileNotFoundError(f"{self._mask_dir}: no mask for frame {frame_id}")
-        img = self._read(path, cv2.IMREAD_UNCHANGED)  # not GRAYSCALE: it rescales 16-bit and weights colours
-        if img.ndim == 3:
-            img = img[..., :3].max(axis=2)  # any colour channel >= 1 (alpha ignored)
+        # not IMREAD_GRAYSCALE: it rescales 16-bit and weights colours
+        img = _mask_values(self._read(path, cv2.IMREAD_UNCHANGED), path)
         c = self.calibration.color
         if img.shape != (c.height, c.width):
             raise ValueError(f"{path}: mask is {img.shape[1]}x{img.shape[0]}, must match the colour size {c.width}x{c.height}")
-        if not img.any():
-            raise ValueError(f"{path}: the mask is empty (no pixel >= 1)")
-        return img >= 1
+        mask = img >= 1
+        check_mask(mask, str(path))  # empty, all foreground, or inverted
+        return mask
 
     def mesh_path(self, frame_id: int) -> Path | None:
         """The given mesh file of ``frame_id``, or None.

@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, Intrinsics
+from stex.readers.images import decode_jpeg
 
 log = logging.getLogger(__name__)
 
@@ -418,7 +419,9 @@ def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.
         _check_jpeg_ends(buf, what)
         img = None
         if a.size:
-            img = cv2.imdecode(a, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+            # damage inside the data (end marker intact) decodes to a wrong full-size image: refused
+            img = decode_jpeg(a, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION,
+                              f"{what} (read around it with source.mkv.start / stop)")
         if img is None:
             img = _decode_mjpeg_ffmpeg(buf)
         if img is None:
@@ -655,6 +658,9 @@ class KinectRecording:
             self.calibration = calibration_from_k4a_json(self.calibration_json, self.color_mode, self.depth_mode)
         except ValueError as e:
             raise ValueError(f"{self.path}: bad calibration.json attachment: {e}") from e
+        # as the folder reader does for its calibration file: a principal point far from the
+        # centre of the recorded images (in none of the 30 modes of the shared sample's device)
+        self.calibration.warn_suspicious(str(self.path))
 
     # ---------------------------------------------------------------- PyAV backend
 

@@ -7,6 +7,7 @@ at import, and nowhere else).
 from __future__ import annotations
 
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -127,21 +128,67 @@ def load_mesh(path: str | Path) -> Mesh:
     if len(F) and (F.min() < 0 or F.max() >= len(mesh.vertices)):
         bad = int(np.flatnonzero((F < 0).any(1) | (F >= len(mesh.vertices)).any(1))[0])
         raise ValueError(f"{path}: face {bad} refers to vertex {F[bad].tolist()}, outside 0..{len(mesh.vertices) - 1}")
-    if not np.isfinite(mesh.vertices).all():
-        bad = int(np.flatnonzero(~np.isfinite(mesh.vertices).all(1))[0])
-        raise ValueError(f"{path}: vertex {bad} is not finite")
+    for name, tag, values in (("vertex", "v", mesh.vertices), ("texture coordinate", "vt", mesh.texcoords)):
+        if values is not None and not np.isfinite(values).all():
+            # refused here, naming the file (and the OBJ line), not later by the store, naming neither
+            bad = int(np.flatnonzero(~np.isfinite(values).all(1))[0])
+            if suffix == ".obj":  # the line as written (the stored v of a vt is flipped)
+                lineno, text = _obj_line(path, tag, bad)
+                raise ValueError(f"{path}:{lineno}: {name} {bad} is not finite: {text!r}")
+            raise ValueError(f"{path}: {name} {bad} is not finite ({np.asarray(values[bad]).tolist()})")
     return mesh
 
 
+def _obj_line(path: Path, tag: str, index: int) -> tuple[int, str]:
+    """Number (from 1) and text of the ``index``-th (from 0) ``tag`` line ('v', 'vt') of an OBJ."""
+    with open(path, "r", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            parts = line.split(None, 1)
+            if parts and parts[0] == tag:
+                if index == 0:
+                    return lineno, line.strip()
+                index -= 1
+    raise ValueError(f"{path}: fewer {tag} lines than were read (the file changed?)")
+
+
 def check_same_topology(reference_faces: np.ndarray, n_vertices: int, mesh: Mesh, where: str) -> None:
-    """Raise ValueError naming ``where`` unless ``mesh`` has exactly the reference faces and
-    ``n_vertices`` vertices (per-frame meshes must share the template's topology)."""
-    if (mesh.faces.shape != reference_faces.shape or not np.array_equal(mesh.faces, reference_faces)
-            or len(mesh.vertices) != n_vertices):
-        raise ValueError(
-            f"{where}: mesh topology differs from the template "
-            f"({len(mesh.faces)} faces / {len(mesh.vertices)} vertices vs "
-            f"{len(reference_faces)} faces / {n_vertices} vertices)")
+    """Raise ValueError naming ``where`` unless ``mesh`` has ``n_vertices`` vertices and the
+    reference's triangles, in any order (per-frame meshes must share the template's topology).
+
+    A per-frame mesh only supplies vertex positions, so the order in which its reader lists the
+    triangles does not matter: OBJ fans each polygon in place, trimesh (OFF, PLY) lists every
+    polygon's first triangle before the second ones. A triangle counts as the same with its
+    corners rotated (the same winding), not reversed. The error names the first face of ``mesh``
+    that the reference lacks (or has fewer times)."""
+    faces, ref = np.asarray(mesh.faces), np.asarray(reference_faces)
+    counts = f"{len(faces)} faces / {len(mesh.vertices)} vertices vs {len(ref)} faces / {n_vertices} vertices"
+    if len(mesh.vertices) != n_vertices or faces.shape != ref.shape:
+        raise ValueError(f"{where}: mesh topology differs from the template ({counts})")
+    if np.array_equal(faces, ref):
+        return
+    a, b = _rotated_to_smallest(faces), _rotated_to_smallest(ref)
+    if np.array_equal(a[np.lexsort(a.T[::-1])], b[np.lexsort(b.T[::-1])]):
+        return  # the same triangles, listed in another order
+    left = Counter(map(tuple, b.tolist()))
+    for i, tri in enumerate(map(tuple, a.tolist())):
+        if not left[tri]:
+            break
+        left[tri] -= 1
+    if tri in left:  # used up
+        why = "occurs more often than among the template's triangles"
+    elif _rotated_to_smallest(faces[i:i + 1, ::-1])[0].tolist() in b.tolist():
+        why = "is among the template's triangles with the other winding (corners reversed)"
+    else:
+        why = "is not among the template's triangles"
+    raise ValueError(
+        f"{where}: mesh topology differs from the template ({counts}): its face {i} {faces[i].tolist()} {why}; the "
+        f"template's face {i} is {ref[i].tolist()} (vertex indices from 0; the faces may be in another order)")
+
+
+def _rotated_to_smallest(F: np.ndarray) -> np.ndarray:
+    """(F, 3) triangles with their corners rotated (winding kept) so that the smallest index is first."""
+    k = np.argmin(F, axis=1)
+    return np.take_along_axis(F, (k[:, None] + np.arange(3)) % 3, axis=1)
 
 
 def write_obj(path: str | Path, mesh: Mesh, mtl: str | None = None) -> None:
