@@ -698,14 +698,10 @@ def read_vertices(source, array: str | None = None):
     ``given/vertices`` if present, else ``truth/vertices`` (a ``scene`` store), else
     ``vertices``. Faces come from ``template/faces`` or ``faces`` in the same store (or None).
     """
-    import zarr
-
     path = Path(source)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such store")
-    g = zarr.open_group(str(path), mode="r")
-    if g.attrs.get("complete") is False:
-        raise ValueError(f"{path}: store is incomplete (its writer did not finish)")
+    g = _open_vertices_store(path)
     if array is None:
         for name in ("given/vertices", "truth/vertices", "vertices"):
             if name in g:
@@ -723,6 +719,22 @@ def read_vertices(source, array: str | None = None):
             break
     frame_ids = g.attrs.get("frame_ids", list(range(X.shape[0])))
     return X, faces, list(frame_ids), array
+
+
+def _open_vertices_store(path: Path):
+    """A stex store through :func:`stex.io.open_store` (its kind read from it: a damaged chunk
+    is then named), or a plain zarr group holding vertices."""
+    import zarr
+
+    from stex.io import open_store
+
+    g = zarr.open_group(str(path), mode="r")
+    kind = g.attrs.get("stex_artifact")
+    if kind:
+        return open_store(path, kind)
+    if g.attrs.get("complete") is False:
+        raise ValueError(f"{path}: store is incomplete (its writer did not finish)")
+    return g
 
 
 def write_pose_table(vertices_source, out, params: dict | None = None, array: str | None = None,
@@ -746,8 +758,7 @@ def write_pose_table(vertices_source, out, params: dict | None = None, array: st
     if faces is None:
         faces = own_faces
     elif isinstance(faces, (str, os.PathLike)):
-        import zarr
-        g = zarr.open_group(str(faces), mode="r")
+        g = _open_vertices_store(Path(faces))
         name = next((n for n in ("template/faces", "faces") if n in g), None)
         if name is None:
             raise ValueError(f"{faces}: no template/faces or faces array")

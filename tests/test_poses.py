@@ -6,7 +6,7 @@ import pytest
 
 from stex import poses
 from stex.config import load_config
-from stex.io import create_store, open_store
+from stex.io import StoreError, create_store, open_store
 from stex.synth.procedural import ProceduralBody
 from stex.synth.scene import SyntheticScene
 
@@ -203,6 +203,12 @@ def test_write_pose_table_store(tmp_path, caplog):
     assert g2.attrs["vertices_array"] == "given/vertices"
     with pytest.raises(ValueError, match="no array 'nope'"):
         poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
+    assert not (tmp_path / "x.zarr").exists()
+    # a chunk cut short is named (zarr's own error named neither the store nor the array)
+    chunk = sorted((scene / "truth" / "vertices" / "c").rglob("*"))[-1]
+    chunk.write_bytes(chunk.read_bytes()[: chunk.stat().st_size // 2])
+    with pytest.raises(StoreError, match=r"scene\.zarr: array 'truth/vertices' cannot be read \(chunk file"):
+        poses.write_pose_table(scene, tmp_path / "x.zarr", load_config()["poses"])
     assert not (tmp_path / "x.zarr").exists()
 
 
