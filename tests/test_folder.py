@@ -603,6 +603,7 @@ def test_masks_all_foreground_or_inverted_are_refused(tmp_path, authors, synth, 
     np.testing.assert_array_equal(open_store(out, "frames")["mask"][0], m)
 
 
+@pytest.mark.skipif(not (data_samples() / "killingfusion_snoopy").is_dir(), reason="shared data samples absent")
 def test_real_masks_leave_the_image_border_to_the_background():
     """The shared samples' real masks (KillingFusion Snoopy, frames 0, 1, 50, 51) have no
     foreground on the image border, far below the 50 % an inverted mask is refused at."""

@@ -13,9 +13,17 @@ from stex.readers.meshes import load_mesh
 
 
 def _jpeg(size=(160, 120)) -> bytes:
-    """A real colour frame (DeepDeform seq017 frame 300, Structure sensor), resized and encoded."""
+    """A real colour frame (DeepDeform seq017 frame 300, Structure sensor), resized and encoded;
+    without the shared samples, a frame of the tiny synthetic scene."""
     path = data_samples() / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017" / "color" / "000300.jpg"
-    img = cv2.resize(cv2.imread(str(path)), size, interpolation=cv2.INTER_AREA)
+    if path.is_file():
+        img = cv2.imread(str(path))
+    else:
+        from conftest import tiny_scene_config
+        from stex.synth.scene import SyntheticScene
+
+        img = SyntheticScene(tiny_scene_config()["source"]["synthetic"]).render_frame(0).color[..., ::-1]
+    img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
 
 
