@@ -558,7 +558,7 @@ def test_floating_fragments_are_kept_or_dropped_on_request():
     from stex.template import prepare_template
 
     s = trimesh.creation.icosphere(3)
-    boxes = [trimesh.creation.box((0.01, 0.01, 0.01)).apply_translation([0.3 + 0.05 * i, 0, 0]) for i in range(5)]
+    boxes = [trimesh.creation.box((0.01, 0.01, 0.01)).apply_translation([1.3 + 0.05 * i, 0, 0]) for i in range(5)]  # beside the unit sphere, not in it
     m = trimesh.util.concatenate([s.copy().apply_translation([0, 0, 1.0])] +
                                  [b.apply_translation([0, 0, 1.0]) for b in boxes])
     params = dict(decimate=False, target_faces=20000, min_faces=0, atlas_size=256, gutter_px=2)
