@@ -252,7 +252,7 @@ def section_params(section: str, params: dict | None = None) -> dict:
     return schema_order(cfg[section], sub)
 
 
-DATASET_KEYS = {"scene_files", "common"}
+DATASET_KEYS = {"scene_files", "common", "scenes"}
 
 
 def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/config.yaml",
@@ -265,19 +265,23 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
     what ``snakemake --configfile <scene file>`` runs, plus the shared settings.
 
     Args:
-        dataset: ``{"scene_files": [path, ...], "common": {...}}`` (``common`` optional); an
-            entry of ``scene_files`` may be a list of paths, merged left to right as several
-            ``--configfile`` files are (e.g. ``[config/scenes/fox.yaml, config/scenes/fox_heldout.yaml]``).
+        dataset: ``{"scene_files": [path, ...], "common": {...}, "scenes": [name, ...]}``
+            (``common`` and ``scenes`` optional); an entry of ``scene_files`` may be a list of
+            paths, merged left to right as several ``--configfile`` files are (e.g.
+            ``[config/scenes/fox.yaml, config/scenes/fox_heldout.yaml]``). ``scenes`` (a name or
+            a list of names; absent or None: all) picks the scenes returned, in the dataset's
+            order; every scene file is read and checked either way.
         base: the default config file, or None.
         where: how to name the dataset in errors (e.g. its file).
     Raises:
         ValueError naming the dataset and the scene file: unknown keys, no scene files, a scene
-        file that is not a mapping or whose config is invalid, two scene files naming one scene.
+        file that is not a mapping or whose config is invalid, two scene files naming one scene,
+        ``scenes`` naming none or a scene the dataset does not have.
         FileNotFoundError naming a missing scene file.
     """
     unknown = sorted(set(dataset or {}) - DATASET_KEYS)
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; expected scene_files (and common)")
+        raise ValueError(f"{where}: unknown key(s) {unknown}; expected scene_files (and common, scenes)")
     files = (dataset or {}).get("scene_files")
     if not isinstance(files, list) or not files or not all(
             isinstance(f, str) or (isinstance(f, list) and f and all(isinstance(g, str) for g in f)) for f in files):
@@ -317,7 +321,23 @@ def dataset_scene_configs(dataset: dict, base: str | Path | None = "config/confi
             raise ValueError(f"{where}: scene files {named_by[name]} and {f} both name scene {name!r} "
                              f"(set a different `scene:` in each: it names the results folder)")
         configs[name], named_by[name] = cfg, f
-    return configs
+    return {name: configs[name] for name in _chosen_scenes(list(configs), dataset.get("scenes"), where)}
+
+
+def _chosen_scenes(names: list[str], chosen, where: str) -> list[str]:
+    """The scenes of ``names`` that the dataset's ``scenes`` setting picks, in ``names``' order.
+
+    ``chosen`` is a name, a list of names or None (all). Snakemake's ``--config scenes=tiny``
+    parses as a string, ``scenes=[2024]`` as a list of strings and ``scenes=2024`` as an int, so
+    every name is compared as a string."""
+    if chosen is None:
+        return names
+    wanted = [str(n) for n in (chosen if isinstance(chosen, list) else [chosen])]
+    unknown = [n for n in wanted if n not in names]
+    if not wanted or unknown:
+        raise ValueError(f"{where}: scenes must name scenes of the dataset ({', '.join(names)}), got {chosen!r}"
+                         + (f": {', '.join(map(repr, unknown))} is not one" if unknown else ""))
+    return [n for n in names if n in wanted]
 
 
 def other_method_paths(others) -> dict:

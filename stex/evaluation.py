@@ -1371,7 +1371,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     ``frames[i] = {frame, position, held_out, motion_mm, methods: {method: {metric: value}}}``,
     ``summary`` (:func:`summarise_frames`), ``tables`` (:func:`table_rows`)); ``per_frame.csv``
     (one row per frame x method); ``table_<name>.csv`` per table; ``tables.rst``
-    (:func:`rst_tables`); figures ``psnr_per_frame.png``, ``blur_vs_motion.png``,
+    (:func:`rst_tables`) and ``tables.html``; figures ``psnr_per_frame.png``, ``blur_vs_motion.png``,
     ``side_by_side.png``, ``label_map.png`` and, with observations, ``dynamism.png``.
 
     Returns:
@@ -1446,6 +1446,9 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         fig_pos = inp.fig_pos
         _write_csvs(out_dir, records, tabs, timing, sampling)
         (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing, sampling))
+        from stex.reporting import tables_html  # the report embeds HTML
+
+        (out_dir / "tables.html").write_bytes(tables_html((out_dir / "tables.rst").read_text()))
         _plot_psnr(out_dir / "psnr_per_frame.png", records)
         _plot_blur_motion(out_dir / "blur_vs_motion.png", records, ids, motion)
         _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, inp.photos, inp.masks,
@@ -1528,7 +1531,9 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
         threads: frames scored at once.
 
     Returns:
-        the ``evaluation.json`` content.
+        the ``evaluation.json`` content. ``out_dir`` holds what the workflow's evaluation folder
+        holds (with the run's sampling table, ``tables.html``) but the timing table: the stage
+        times are the run's (``stex tables results/<scene>``).
     """
     from stex.io import StoreError, open_store, run_block_paths
 
@@ -1557,13 +1562,15 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
     elif (R / "texcoords.zarr").exists():
         coords = R / "texcoords.zarr"
     chosen = None if frames is None else [int(f) for f in frames][::int(params["stride"])]
+    sampling = R / "texcoords_sampling.json"
     return write_evaluation(
         R / "scene.zarr", blocks("frames"), blocks("masks"), R / "template.zarr", R / "tracking.zarr",
         R / "projection.zarr", R / "labels.zarr", blocks("volume"), blocks("corrected"), out_dir,
         params, global_texture_path=R / "global_texture.zarr",
         truth_paths=blocks("truth") if "truth" in scene else None, coords_path=coords,
         observations_path=observations if observations.exists() else None,
-        tables_paths=blocks("tables"), frames=chosen, threads=threads, others=others)
+        tables_paths=blocks("tables"), frames=chosen, threads=threads, others=others,
+        sampling_path=sampling if sampling.is_file() else None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -172,6 +172,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
             "origin": "str: 'source' (the scene's template/*; embedding/* refer to it) or 'depth of frame N' "
                       "(template.from_depth: built from that frame's depth inside its mask; embedding/* refer to that mesh)",
+            "timings_s": "dict: wall time (s) of clean, decimate, embed, atlas, adjacency_texels",
         },
     ),
     "tracking": ArtifactSpec(
@@ -324,9 +325,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each row",
-            "rounds": "list[dict]: per round: energy, seconds, frames changed",
+            "rounds": "list[dict]: per round: round, energy, seconds, changed (labels (frame, face) that changed in the round; round 0: the labels set)",
             "n_never_seen": "int: faces without any source (never_seen)",
             "n_glimpsed": "int: faces labelled with their glimpse_source",
+            "coverage_of_seen_faces": "list[float]: per frame, the fraction of the faces some source frame sees that got a label (1.0 when no face is seen)",
         },
     ),
     "volume": ArtifactSpec(
@@ -923,7 +925,7 @@ def artifacts_markdown() -> str:
         "all-frame Eq. 1 energy), seconds, error_ratio (energy / that of step 1), speedup "
         "(seconds of step 1 / seconds)}`.",
         "- `stex evaluate RUN --texture NAME=PATH --out DIR` (stex.evaluation.evaluate_results) "
-        "writes the same files into DIR with other methods beside ours (`methods` lists them; "
+        "writes the same files into DIR with other methods beside ours, but the timing table (the run's job times: `stex tables RUN`) (`methods` lists them; "
         "their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "
         "(8-bit RGB, the run's atlas size) or a `corrected` / `volume` store. Slices in another UV "
         "layout: `--uv-mesh NAME=MESH` (that layout's mesh, in the template's coordinates; "

@@ -173,6 +173,8 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
     import trimesh
     from scipy.spatial import cKDTree
 
+    from stex.template import points_inside
+
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
     if len(nodes) < 2:
         return edges
@@ -190,7 +192,8 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
         cand = cand[[tuple(c) not in known for c in cand.tolist()]]
     if not len(cand):
         return edges
-    inside = mesh.contains(0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))  # ray parity: any winding
+    # ray parity, any winding (trimesh's contains took 3.3 of the demo graph's 4.0 s; same links)
+    inside = points_inside(mesh.vertices, faces, 0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))
     log.info("deformation graph: %d links through the solid (of %d candidates)", int(inside.sum()), len(cand))
     out = np.concatenate([np.asarray(edges, np.int32).reshape(-1, 2), cand[inside].astype(np.int32)])
     return np.unique(out, axis=0)

@@ -35,6 +35,22 @@ def test_scene_configs_merge_base_common_and_scene_file(tmp_path):
     assert dataset_scene_configs({"scene_files": [a]}, tmp_path / "none.yaml")["a"]["frame_block"] != 16
 
 
+def test_scenes_picks_scenes_in_the_datasets_order_and_names_unknown_ones(tmp_path):
+    """``scenes`` (a dataset key, or --config scenes=...: a string, a list, or an int for a
+    numeric name) returns the chosen scenes in the dataset's order; a name the dataset lacks is
+    refused naming it and the dataset's scenes."""
+    files = [_write(tmp_path / f"{n}.yaml", {"scene": n}) for n in ("b", "a", "2024")]
+    pick = lambda chosen: list(dataset_scene_configs({"scene_files": files, "scenes": chosen}, None))
+    assert pick(None) == ["b", "a", "2024"]
+    assert pick(["a", "b"]) == ["b", "a"]
+    assert pick("a") == ["a"] and pick(2024) == ["2024"] and pick([2024]) == ["2024"]
+    with pytest.raises(ValueError, match=r"my\.yaml: scenes must name scenes of the dataset \(b, a, 2024\), "
+                                         r"got \['a', 'c'\]: 'c' is not one"):
+        dataset_scene_configs({"scene_files": files, "scenes": ["a", "c"]}, None, where="my.yaml")
+    with pytest.raises(ValueError, match=r"scenes must name scenes of the dataset \(b, a, 2024\), got \[\]"):
+        pick([])
+
+
 def test_the_shipped_datasets_resolve(monkeypatch):
     """config/datasets/*.yaml name existing scene files and distinct scenes (run from the checkout)."""
     monkeypatch.chdir(REPO)
@@ -54,8 +70,8 @@ def test_bad_datasets_name_the_file_and_the_cause(tmp_path):
     bad = _write(tmp_path / "bad.yaml", {"scene": "bad", "masks": {"depth_far_m": -1}})
     with pytest.raises(ValueError, match=r"scene file .*bad\.yaml: config error at masks/depth_far_m"):
         dataset_scene_configs({"scene_files": [a, bad]}, None)
-    with pytest.raises(ValueError, match=r"unknown key\(s\) \['scenes'\]"):
-        dataset_scene_configs({"scenes": [a]}, None)
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['scene'\]"):
+        dataset_scene_configs({"scene_files": [a], "scene": "a"}, None)
     with pytest.raises(ValueError, match="scene_files must be a non-empty list"):
         dataset_scene_configs({"scene_files": []}, None)
     with pytest.raises(ValueError, match="scene_files must be a non-empty list"):

@@ -345,8 +345,14 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     ids = ours.frame_ids
     write_png_slices((ours.read("texture", i) for i in ids), ids, tmp_path / "mine")
     R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    # the run's sampling table (texcoords_sampling.json) goes into the new folder's tables too
+    steps = [{"step": 1, "keyframes": 6, "energy": 2.0, "seconds": 4.0, "error_ratio": 1.0, "speedup": 1.0},
+             {"step": 2, "keyframes": 3, "energy": 2.5, "seconds": 2.0, "error_ratio": 1.25, "speedup": 2.0}]
+    (R / "texcoords_sampling.json").write_text(json.dumps({"steps": steps, "params": {}}))
     got = evaluate_results(R, tmp_path / "eval", {"mine": tmp_path / "mine", "unc": R / "volume"})
     assert got["methods"] == list(METHODS) + ["mine", "unc"]
+    html = (tmp_path / "eval" / "tables.html").read_text()  # as the workflow's evaluation folder
+    assert "mine" in html and "1.25" in html and (tmp_path / "eval" / "table_sampling.csv").is_file()
     assert [f["frame"] for f in got["frames"]] == [f["frame"] for f in res["frames"]]
     keys = ("psnr", "psnr_plain", "ssim", "blur", "blur_interior", "gt_novel_psnr_unseen",
             "gt_input_psnr_all", "flicker", "coverage_faces")

@@ -26,16 +26,7 @@ report: "report/dataset.rst"
 
 
 _WHERE = "the dataset config (scene_files, common, scenes)"
-_ALL_SCENES = dataset_scene_configs({k: v for k, v in config.items() if k != "scenes"}, where=_WHERE)
-# `scenes`: a name or a list of names (--config scenes=tiny parses as a string, scenes=[2024] as a
-# list of strings, scenes=2024 as an int); absent or null: every scene
-_chosen = config.get("scenes")
-_names = list(_ALL_SCENES) if _chosen is None else [str(n) for n in (_chosen if isinstance(_chosen, list) else [_chosen])]
-_unknown = [n for n in _names if n not in _ALL_SCENES]
-if not _names or _unknown:
-    raise ValueError(f"{_WHERE}: scenes must name scenes of the dataset ({', '.join(_ALL_SCENES)}), got {_chosen!r}"
-                     + (f": {', '.join(map(repr, _unknown))} is not one" if _unknown else ""))
-SCENES = {name: cfg for name, cfg in _ALL_SCENES.items() if name in _names}  # in dataset order
+SCENES = dataset_scene_configs(config, where=_WHERE)  # the chosen ones (`scenes`), in dataset order
 config["scenes"] = list(SCENES)  # the report's description names them
 _PREFIXES = {}
 for scene_name, scene_config in SCENES.items():

@@ -2,7 +2,7 @@
 (+ the stage timings)."""
 from stex.evaluation import write_evaluation
 from stex.logs import setup_logging
-from stex.reporting import stage_timings, write_tables_html
+from stex.reporting import stage_timings
 
 setup_logging(snakemake.log[0])
 i = snakemake.input
@@ -13,4 +13,3 @@ write_evaluation(i.scene, list(i.frames), list(i.masks), i.template, i.tracking,
                  coords_path=i.coords, observations_path=i.observations, tables_paths=list(i.tables),
                  records_paths=list(i.records), timing=stage_timings(snakemake.params.benchmarks, len(i.corrected)),
                  sampling_path=i.sampling[0] if i.sampling else None)
-write_tables_html(f"{out}/tables.rst", f"{out}/tables.html")
