@@ -230,3 +230,103 @@ def test_label_boundary_step_against_pairs_listed_by_hand():
         got = label_boundary_step(im, lm, tf, chart) if use_chart else label_boundary_step(im, lm)
         assert got == pytest.approx(np.mean(steps), rel=1e-12)
     assert np.isnan(label_boundary_step(im, np.zeros((23, 31), np.int16)))
+
+
+@pytest.fixture(scope="module")
+def small_quad():
+    """The quad of ``quad`` on a 64² atlas (fast solves)."""
+    F = np.array([[0, 2, 1], [0, 3, 2]], np.int32)
+    tc = np.array([[.05, .05], [.95, .05], [.95, .95], [.05, .95]], np.float32)
+    face, _ = texel_map(tc, F, 64)
+    return F, tc, face
+
+
+def test_unlabelled_texels_keep_no_gradients(small_quad):
+    """Covered texels without a source label (their face had no frame; the volume filled
+    them) keep no gradients of their own: they are interpolated smoothly from the labelled
+    surroundings, so a pattern the fill left there is flattened, while the same pattern on
+    labelled texels is kept."""
+    F, tc, face = small_quad
+    cov = face >= 0
+    rr, cc = np.mgrid[0:64, 0:64]
+    band = cov & (cc >= 24) & (cc < 40)
+    checker = np.where((rr + cc) % 2 == 0, 30, -30)
+    img = np.where(cov, 120 + np.where(band | (cc < 12), checker, 0), 0)[..., None].repeat(3, 2).astype(np.uint8)
+    lm = np.where(cov, np.where(band, -1, 0), -1).astype(np.int32)
+    cs = CorrectionSystem(face, tc, F, F, screen_length=1 / 16, gutter_px=2)
+    out = cs.correct(img, lm).astype(float)
+    assert np.abs(out[band] - 120).mean() < 5.0                 # the fill's checker is smoothed away
+    labelled = cov & (cc < 12)
+    assert np.abs(out[labelled] - img[labelled]).max() <= 1      # a labelled checker stays
+
+
+def test_one_sided_guidance_skips_neighbours_across_another_boundary(small_quad):
+    """The one-sided guidance of a boundary pair averages only same-label gradients: a label
+    one texel wide (both its pairs cross a boundary) gets guidance 0, so its step to the equal
+    colours on either side is removed, not half kept (15 of its 30 levels)."""
+    F, tc, face = small_quad
+    cov = face >= 0
+    cc = np.mgrid[0:64, 0:64][1]
+    lm = np.where(cov, np.where(cc < 32, 0, np.where(cc == 32, 1, 2)), -1).astype(np.int32)
+    img = np.where(cov, np.where(lm == 1, 130, 100), 0)[..., None].repeat(3, 2).astype(np.uint8)
+    cs = CorrectionSystem(face, tc, F, F, screen_length=1 / 16, gutter_px=2, keep_own_frame=False)
+    out = cs.correct(img, lm).astype(float)
+    rows = np.flatnonzero(cov[:, 31] & cov[:, 33])
+    sliver = out[rows, 32, 0] - (out[rows, 31, 0] + out[rows, 33, 0]) / 2
+    assert label_boundary_step(img, lm) == pytest.approx(30.0)
+    assert np.abs(sliver).mean() < 3.0, sliver.mean()
+
+
+def test_charts_touching_in_the_atlas_are_not_neighbours():
+    """Texel pairs couple only inside one chart: two unrelated surface pieces whose charts touch
+    in the atlas, each with its own source and colour, are not smoothed into each other (each
+    is one label of one colour: nothing to correct)."""
+    F = np.array([[0, 2, 1], [0, 3, 2], [4, 6, 5], [4, 7, 6]], np.int32)   # two separate squares
+    tc = np.array([[.05, .1], [.5, .1], [.5, .9], [.05, .9], [.5, .1], [.95, .1], [.95, .9], [.5, .9]],
+                  np.float32)
+    face, _ = texel_map(tc, F, 64)
+    cs = CorrectionSystem(face, tc, F, F, screen_length=1 / 16, gutter_px=2)
+    chart = cs.chart_tex
+    assert ((chart[:, :-1] == 0) & (chart[:, 1:] == 1)).any()   # the charts share texel edges
+    lm = np.where(chart >= 0, chart, -1).astype(np.int32)
+    img = np.where(chart[..., None] == 0, 100, np.where(chart[..., None] == 1, 140, 0)).repeat(3, 2).astype(np.uint8)
+    out = cs.correct(img, lm)
+    np.testing.assert_array_equal(out[chart >= 0], img[chart >= 0])
+
+
+def test_temporal_coupling_pulls_only_borrowed_texels(small_quad):
+    """The temporal term acts on borrowed texels (label >= 0 and != the slice's frame) only:
+    with keep_own_frame off, the own frame's texels that changed since the previous slice
+    keep their new colour away from the boundary instead of being pulled back to it."""
+    F, tc, face = small_quad
+    cov = face >= 0
+    cc = np.mgrid[0:64, 0:64][1]
+    lm = np.where(cov, (cc >= 32).astype(np.int32), -1).astype(np.int32)
+    prev = np.where(cov, 110, 0)[..., None].repeat(3, 2).astype(np.uint8)
+    cur = prev.copy()
+    cur[lm == 1] += 25                                   # the own frame (1) saw a brighter surface
+    cs = CorrectionSystem(face, tc, F, F, screen_length=1 / 16, temporal_length=1 / 64, gutter_px=2,
+                          keep_own_frame=False)
+    out = cs.correct(cur, lm, previous=prev, frame=1)
+    assert interior_change(cur, out, lm, margin=10) < 2.0
+
+
+def test_gutter_is_refilled_from_the_corrected_texels(small_quad):
+    """After the solve the gutter holds the corrected colours (stex.volume.fill_gutter of the
+    covered texels), not the uncorrected ones it had: bilinear lookups at chart edges would
+    otherwise bring the removed step back."""
+    from stex.volume import fill_gutter
+
+    F, tc, face = small_quad
+    cov = face >= 0
+    cc = np.mgrid[0:64, 0:64][1]
+    lm = np.where(cov, (cc >= 32).astype(np.int32), -1).astype(np.int32)
+    img = np.where(cov, np.where(lm == 1, 140, 100), 0)[..., None].repeat(3, 2).astype(np.uint8)
+    fill_gutter(img, cov, cov, 2)                        # the volume's gutter, of the raw slice
+    cs = CorrectionSystem(face, tc, F, F, screen_length=1 / 16, gutter_px=2)
+    out = cs.correct(img, lm)
+    want = out.copy()
+    want[~cov] = 0
+    fill_gutter(want, cov, cov, 2)
+    assert (want[~cov] > 0).any() and (out[~cov] != img[~cov]).any()
+    np.testing.assert_array_equal(out, want)

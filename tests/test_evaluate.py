@@ -139,6 +139,26 @@ def test_patch_shift_r0_equals_plain_psnr_and_empty_mask():
     assert np.isnan(empty["psnr"]) and empty["n_patches"] == 0
 
 
+def test_patch_counts_at_exactly_min_fraction_and_border_shifts_are_chebyshev():
+    """Two documented patch-shift details: a patch with exactly ``min_fraction`` of its P^2
+    pixels in the mask counts ("at least 50 %", docs/metrics.md), and
+    ``frac_shift_at_radius`` counts shifts on the square search border (|dy| or |dx| = r), so a
+    pure shift along one axis by r is flagged as "r too small"."""
+    rng = np.random.default_rng(21)
+    ref = rng.uniform(30, 225, (12, 12, 3))
+    mask = np.zeros((12, 12), bool)
+    mask[2:10, 2:6] = True                       # P = 8: one patch, 8 x 4 = exactly half masked
+    res = ev.patch_shift_psnr(ref, ref, mask, patch=8, radius=1)
+    assert res["n_patches"] == 1 and res["n_pixels"] == 32
+    assert ev.patch_shift_psnr(ref, ref, mask, patch=8, radius=1, min_fraction=0.51)["n_patches"] == 0
+    big = textured_image(64, 64, seed=22)
+    moved = np.roll(big, 2, axis=0)               # content 2 px down, no horizontal shift
+    full = np.ones((64, 64), bool)
+    res = ev.patch_shift_psnr(big, moved, full, patch=16, radius=2)
+    assert res["mean_shift_px"] == pytest.approx(2.0, abs=1e-12)
+    assert res["frac_shift_at_radius"] == 1.0
+
+
 # ----------------------------------------------------------------------------------- psnr/ssim
 
 def test_masked_psnr_matches_skimage():
@@ -147,6 +167,18 @@ def test_masked_psnr_matches_skimage():
     ours = ev.masked_psnr(ref, tst, np.ones(ref.shape[:2], bool), data_range=255)
     assert ours["psnr"] == pytest.approx(peak_signal_noise_ratio(ref, tst, data_range=255), abs=1e-10)
     assert ev.masked_psnr(ref, ref)["psnr"] == ev.PSNR_CAP
+
+
+def test_psnr_is_capped_at_100_db():
+    """The cap is part of the metric's definition (module docstring, docs/metrics.md: 100 dB,
+    also the value for MSE = 0): a near-perfect image scores 100, not 168 dB, and the cap is
+    not a free constant (scores of different runs are averaged against it)."""
+    assert ev.PSNR_CAP == 100.0
+    assert ev.psnr_from_mse(0.0) == 100.0
+    assert ev.psnr_from_mse(1e-12) == 100.0                 # 10 log10(255^2 / 1e-12) = 168 dB
+    np.testing.assert_array_equal(ev.psnr_from_mse(np.array([0.0, 1e-9, 65025.0])), [100.0, 100.0, 0.0])
+    ref = textured_image(32, 32, seed=23)
+    assert ev.masked_psnr(ref, ref + 1e-6)["psnr"] == 100.0
 
 
 def test_masked_ssim_matches_skimage():
@@ -218,6 +250,32 @@ def test_blur_orders_sharp_and_blurred():
     white = np.where(mask[..., None], ref, 255.0)
     assert ev.blur(white, mask)["blur"] == pytest.approx(b_sharp["blur"], abs=1e-12)
     assert ev.blur(white, mask, fill="none")["blur"] != pytest.approx(b_sharp["blur"], abs=1e-3)
+
+
+def test_blur_definition_and_fills_on_an_asymmetric_mask():
+    """blur() is skimage's blur_effect with reduce_func=max (docs/metrics.md) on the crop: an
+    image blurred along one axis only scores that axis's blur, not the mean of both. On an
+    off-centre, non-square mask, the "nearest" fill still makes the score independent of the
+    background, and "mean" equals "none" on the same image with the background already set
+    to the masked mean colour."""
+    from skimage.measure import blur_effect
+
+    img = ndi.gaussian_filter(textured_image(64, 80, seed=24), (0, 3, 0))   # blurred along x only
+    res = ev.blur(img, None)
+    want = blur_effect(img / 255.0, h_size=11, channel_axis=-1, reduce_func=np.max)
+    assert res["blur"] == pytest.approx(want, abs=1e-12)
+    assert res["blur"] > blur_effect(img / 255.0, h_size=11, channel_axis=-1, reduce_func=np.mean) + 0.05
+    H, W = 96, 128
+    ref = textured_image(H, W, seed=25)
+    y, x = np.mgrid[0:H, 0:W]
+    mask = (((y - 40) / 25.0) ** 2 + ((x - 75) / 45.0) ** 2 <= 1) & (x > y + 10)   # no symmetry
+    black = np.where(mask[..., None], ref, 0.0)
+    white = np.where(mask[..., None], ref, 255.0)
+    assert ev.blur(black, mask)["blur"] == pytest.approx(ev.blur(white, mask)["blur"], abs=1e-12)
+    filled = np.where(mask[..., None], ref, ref[mask].mean(axis=0))
+    mean_fill = ev.blur(black, mask, fill="mean")["blur"]
+    assert mean_fill == pytest.approx(ev.blur(filled, mask, fill="none")["blur"], abs=1e-12)
+    assert mean_fill != pytest.approx(ev.blur(black, mask, fill="none")["blur"], abs=1e-3)
 
 
 def test_blur_erode_leaves_out_the_silhouette_band():

@@ -124,3 +124,34 @@ def test_glimpse_sources_pick_the_best_glimpse_of_a_source_frame():
     assert got.dtype == np.int32
     assert got.tolist() == [2, 4, -1, -1]         # ... but frame 3 is not a source
     assert glimpse_sources(glimpsed, cos, never, np.ones(T, bool)).tolist() == [3, 0, -1, -1]
+
+
+def test_gate_is_the_smaller_of_both_frames():
+    """The selective gate multiplies E_temp by min(gate[a, f], gate[b, f]): a link is switched
+    off when either end is dynamic, the neighbouring frame's label as well as the candidate."""
+    fs = np.zeros((3, 1, 4), np.uint8)
+    fs[2, 0] = 255
+    gates = np.ones((3, 1), np.float32)
+    gates[2, 0] = 0.0                                      # frame 2 dynamic at face 0
+    c = temporal_cost(fs, np.array([[0, 1]]), np.array([0]), np.array([2]), gates)
+    assert c[0].tolist() == [0.0, 0.0]
+    assert temporal_cost(fs, np.array([[0, 1]]), np.array([0]), np.array([2]))[0].tolist() == [1.0, 1.0]
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_bcd_couples_a_frame_to_both_neighbours(flip):
+    """Eq. 2's temporal term links t with t - 1 and t + 1: the end frame (0, or 1 with
+    ``flip``), whose only neighbour is the other frame, gives up its slightly cheaper own label
+    to agree with the other frame's (whose unary strongly prefers it), as the total energy
+    wants (0.1 instead of >= 1)."""
+    cand = np.array([[[0, 1]], [[0, 1]]], np.int16)           # (T=2, F=1, K=2)
+    unary = np.array([[[0.0, 0.1]], [[1.0, 0.0]]], np.float32)
+    face_samples = np.array([[[0] * 4], [[255] * 4]], np.uint8)   # E_temp(0, 1) = 1
+    if flip:
+        unary, face_samples = unary[::-1].copy(), face_samples[::-1].copy()
+    P = dict(cand=cand, unary=unary, pairs=np.zeros((0, 2), np.int64), pair_weight=np.zeros(0),
+             edge_samples=np.zeros((2, 0, 3), np.uint8), face_samples=face_samples)
+    res = label_sequence(**P, omega_t=1.0, max_rounds=4, rel_tol=0.0, threads=1)
+    assert res["labels"][:, 0].tolist() == [1, 1]
+    assert res["energy"][-1] == pytest.approx(0.1, rel=1e-6)
+    assert total_energy(res["labels"], omega_t=1.0, **P) == pytest.approx(0.1, rel=1e-6)

@@ -221,6 +221,20 @@ def test_fill_gutter_rings():
     assert (img[2:7, 2:7] == 200).all() and img[1].sum() == 0
 
 
+def test_fill_gutter_takes_the_rounded_mean_of_the_valid_neighbours():
+    """A filled texel is the mean of its valid 8-neighbours per channel, rounded to the nearest
+    grey level (not truncated: truncation darkens every ring by up to 1 level, and the rings
+    compound it outwards)."""
+    img = np.zeros((5, 5, 3), np.uint8)
+    valid = np.zeros((5, 5), bool)
+    img[1, 1:4] = [(100, 10, 0), (101, 12, 0), (101, 12, 2)]
+    valid[1, 1:4] = True
+    fill_gutter(img, valid, valid.copy(), 1)
+    assert tuple(img[2, 2]) == (101, 11, 1)              # means 100.67, 11.33, 0.67
+    assert tuple(img[0, 2]) == (101, 11, 1)
+    assert tuple(img[2, 0]) == (100, 10, 0)              # (1, 1) alone
+
+
 def test_label_colors():
     lm = np.array([[-1, 0, 1], [2, 0, 7]], np.int32)
     pic = label_colors(lm)
