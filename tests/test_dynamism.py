@@ -325,3 +325,76 @@ def test_non_finite_texels_and_float_indices_are_refused():
     g = temporal_gate(np.ones((3, 2), np.float32), 0.95)
     with pytest.raises(ValueError, match="label_a must be integer"):
         temporal_pair_weight(g, [0, 1], [0.0, 1.0], [1, 2])
+
+
+def test_grey_is_bt601():
+    """SSIM is computed on 0.299 R + 0.587 G + 0.114 B (module docstring); a swapped R and B
+    (BGR order) changed no other test."""
+    from stex.dynamism import grey
+
+    img = np.zeros((1, 3, 3), np.uint8)
+    img[0, 0, 0] = img[0, 1, 1] = img[0, 2, 2] = 200
+    np.testing.assert_allclose(grey(img)[0], [59.8, 117.4, 22.8], atol=1e-9)
+
+
+def test_common_coverage_is_eroded_by_the_window_radius_on_every_side():
+    """Only texels whose whole (2r+1)² window (r = 5 at σ 1.5) is covered in both frames count,
+    and outside the atlas counts as uncovered: a covered square [4, 28)² shrinks to exactly
+    [9, 23)², a fully covered atlas to [5, W-5)²."""
+    W = 32
+    tex = np.random.default_rng(0).random((W, W))
+    tf = np.zeros((W, W), np.int32)
+    full = np.ones((W, W), bool)
+    block = np.zeros((W, W), bool)
+    block[4:28, 4:28] = True
+    _, _, valid = face_ssim(tex, block, tex, full, tf, 1, data_range=1.0, return_map=True)
+    want = np.zeros((W, W), bool)
+    want[9:23, 9:23] = True
+    np.testing.assert_array_equal(valid, want)
+    _, _, valid = face_ssim(tex, full, tex, full, tf, 1, data_range=1.0, return_map=True)
+    want = np.zeros((W, W), bool)
+    want[5:W - 5, 5:W - 5] = True
+    np.testing.assert_array_equal(valid, want)
+
+
+def test_ssim_map_equals_the_whole_image_ssim_on_the_valid_texels():
+    """face_ssim computes SSIM on the bounding box of the valid texels plus a margin ("same
+    values, less work"): on the valid texels the map must equal scikit-image's SSIM of the whole
+    textures (the valid texels' windows lie inside the coverage, away from the image border)."""
+    from skimage.metrics import structural_similarity
+
+    W = 48
+    rng = np.random.default_rng(1)
+    a = rng.random((W, W))
+    b = np.clip(a + rng.normal(0, 0.1, (W, W)), 0, 1)
+    tf = np.zeros((W, W), np.int32)
+    cov = np.zeros((W, W), bool)
+    cov[14:34, 14:34] = True
+    S, smap, valid = face_ssim(a, cov, b, cov, tf, 1, data_range=1.0, return_map=True)
+    _, ref = structural_similarity(a, b, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                   use_sample_covariance=False, full=True)
+    assert valid.sum() == 100                                  # [19, 29)²
+    np.testing.assert_allclose(smap[valid], ref[valid], atol=1e-6)
+    assert S[0] == pytest.approx(ref[valid].mean(), abs=1e-6)
+
+
+def test_label_set_min_skips_nan_entries():
+    """S_m(f) is the minimum over the face's labels with NaN entries skipped (docstring): a
+    label never compared does not hide another label's dynamism."""
+    S = np.array([[np.nan, 0.5, np.nan],
+                  [0.9, np.nan, np.nan]], np.float32)
+    got = label_set_min(S, np.ones((2, 3), bool))
+    np.testing.assert_array_equal(got[:2], np.float32([0.9, 0.5]))
+    assert np.isnan(got[2])
+    np.testing.assert_array_equal(spatial_face_weight(S, np.ones((2, 3), bool), 0.95), [0, 0, 1])
+
+
+def test_authors_dilation_defaults_to_ten_texels_per_thousand():
+    """The authors dilate the low-SSIM texels by 10 x 10 at 1000²; by default the side scales
+    with the atlas: 5 texels at W = 500, i.e. two texels either side of a low one."""
+    W = 500
+    tf = np.tile(np.arange(W, dtype=np.int32), (W, 1))    # face = column
+    mm = np.ones((W, W), np.float32)
+    mm[250, 250] = 0.5
+    np.testing.assert_array_equal(np.flatnonzero(authors_dynamic_faces(mm, tf, W)),
+                                  [248, 249, 250, 251, 252])

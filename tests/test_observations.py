@@ -118,3 +118,45 @@ def test_bad_inputs():
     with pytest.raises(ValueError, match="centroids"):
         blurred_faces(np.zeros((3, 2, 2)), np.ones((3, 3), bool), 20)
     assert face_centroids(np.array([[0, 0], [3, 0], [0, 3.0]]), np.array([[0, 1, 2]])).tolist() == [[1, 1]]
+
+
+def test_samples_follow_both_coordinates():
+    """The lookups use the row coordinate v as well as the column u. The ramp of the tests above
+    varies along u only, so a v taken from the wrong corner went unnoticed; on the plane
+    g = u + 2 v (exact under bilinear interpolation inside the image) every sample must equal
+    the plane at its interpolated position."""
+    h, w = 40, 60
+    img = (np.arange(w, dtype=np.float32)[None, :] + 2 * np.arange(h, dtype=np.float32)[:, None])
+    coords = np.array([[10.0, 5.0], [30.0, 8.0], [20.0, 30.0], [50.0, 20.0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    out = face_samples(img, coords, faces, np.ones(2, bool))
+    plane = coords[:, 0] + 2 * coords[:, 1]
+    want = SAMPLE_BARY @ plane[faces].T                      # (15, F)
+    assert np.abs(out.astype(float) - want.T).max() <= 0.5
+    e = edge_samples(img, coords, np.array([[0, 2], [3, 1]]), np.ones(4, bool))
+    s = np.linspace(0, 1, 9)
+    want_e = np.stack([(1 - s) * plane[0] + s * plane[2], (1 - s) * plane[3] + s * plane[1]])
+    assert np.abs(e.astype(float) - want_e).max() <= 0.5
+
+
+def test_grey_weights_each_channel():
+    """grey is 0.299 R + 0.587 G + 0.114 B (BT.601); red and white alone do not tell G from B."""
+    img = np.zeros((1, 3, 3), np.uint8)
+    img[0, 0, 0] = img[0, 1, 1] = img[0, 2, 2] = 200
+    np.testing.assert_allclose(grey(img)[0], [59.8, 117.4, 22.8], atol=1e-3)
+
+
+def test_thresholds_are_inclusive_or_strict_as_documented():
+    """E_qual's steps at their thresholds: a face is blurred when its motion *exceeds* θ_b (a
+    motion of exactly θ_b is sharp), and slanted when cos ≤ 1 − θ_n (paper) or cos ≤ θ_n
+    (authors), equality included. θ_n = 0.25 keeps 0.25 and 0.75 exact in float32."""
+    c = np.zeros((3, 1, 2))
+    c[:, 0, 0] = [0, 5, 10]                       # 5 px per frame at frame 1
+    vis = np.ones((3, 1), bool)
+    m = face_motion(c, vis)
+    assert m[1, 0] == 5.0
+    assert blur_cost(m, vis, 5.0, "step")[1, 0] == 0 and not blurred_faces(c, vis, 5.0)[1, 0]
+    assert blur_cost(m, vis, 4.999, "step")[1, 0] == 1
+    cos = np.array([[0.25, 0.75, 0.7501]])
+    assert slanted_faces(cos, 0.25, "paper").tolist() == [[True, True, False]]
+    assert slanted_faces(cos, 0.25, "authors").tolist() == [[True, False, False]]

@@ -222,3 +222,88 @@ def test_pose_table_refuses_inputs_it_cannot_pose():
     bad[1, 0, 0] = np.nan
     with pytest.raises(ValueError, match=r"frame 1 has non-finite"):
         poses.pose_table(bad, faces)
+
+
+def _noisy_rigid_pair(seed, sigma, n=300, n_out=0):
+    """Frame 0: n points in a 20 cm cube 1 m from the camera; frame 1: moved rigidly, with
+    Gaussian noise sigma and the first n_out points displaced by ~10 cm (outliers)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-0.1, 0.1, (n, 3)) + [0.0, 0.0, 1.0]
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    Q = P @ R.T + [0.05, -0.02, 0.1] + rng.normal(0, sigma, P.shape)
+    out = np.arange(n) < n_out
+    Q[out] += rng.normal(0, 0.06, (n_out, 3)) + 0.05
+    return P, Q, out
+
+
+def _least_squares_fit(P, Q):
+    """Independent reference: scipy's optimal rotation between the centred sets (Kabsch)."""
+    from scipy.spatial.transform import Rotation
+
+    pc, qc = P.mean(0), Q.mean(0)
+    R = Rotation.align_vectors(Q - qc, P - pc)[0].as_matrix()
+    return poses.to_matrix(R, qc - R @ pc)
+
+
+def test_ransac_refits_its_inliers_among_all_vertices():
+    """The best 3-point hypothesis is refitted (least squares) on its inliers among all
+    vertices: with 1 mm noise the result is the least-squares fit of the inliers, to rounding,
+    not the noisy 3-point hypothesis (which is off by ~0.1°)."""
+    P, Q, out = _noisy_rigid_pair(5, 0.001, n_out=90)
+    T, mask = poses.ransac_rigid(P, Q, n_iter=200, inlier_thresh_m=0.01)
+    assert np.array_equal(mask, ~out)
+    np.testing.assert_allclose(T, _least_squares_fit(P[~out], Q[~out]), atol=1e-9)
+    Tb, ratio = poses.pairwise_ransac(np.stack([P, Q]), n_iter=200, inlier_thresh_m=0.01)
+    np.testing.assert_allclose(Tb[0], _least_squares_fit(P[~out], Q[~out]), atol=1e-9)
+    assert ratio[0] == pytest.approx(0.7, abs=1e-6)
+
+
+def test_inlier_ratio_is_counted_after_icp():
+    """inlier_ratio[t, t'] is the fraction of vertices within θ of their partner under the
+    returned pose, i.e. after the ICP refinement, not at the RANSAC pose it started from. With
+    noise of the order of θ many vertices sit near the threshold, so the two counts differ."""
+    P, F = _body(32, 16)
+    rng = np.random.default_rng(6)
+    X = np.stack([P, P @ _random_rotation(rng, 10.0).T + [0.02, 0.0, 0.01]
+                  + rng.normal(0, 0.003, P.shape)])
+    A, ratio = poses.pose_table(X, F, {"inlier_threshold_m": 0.005, "icp_threshold_m": 0.005,
+                                       "icp_iterations": 5})
+    for t, u in ((0, 1), (1, 0)):
+        moved = X[t] @ A[t, u, :3, :3].T + A[t, u, :3, 3]
+        brute = (np.linalg.norm(moved - X[u], axis=1) < 0.005).mean()
+        assert ratio[t, u] == pytest.approx(brute, abs=0.5 / P.shape[0])
+
+
+def test_no_rigid_hypothesis_falls_back_to_the_centroid_shift():
+    """When no 3-vertex sample keeps its distances (frame 1 is frame 0 scaled by 2: nothing
+    moves rigidly), the pose is the translation by the centroid difference, R = I, and no
+    vertex is an inlier (each lands 10 cm from its partner: p + c − 2p = c − p on a 10 cm
+    sphere about c)."""
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(200, 3))
+    c = np.array([0.1, -0.05, 1.0])
+    P = c + 0.1 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    T, mask = poses.ransac_rigid(P, 2 * P, n_iter=100, inlier_thresh_m=0.01)
+    np.testing.assert_allclose(T, poses.to_matrix(np.eye(3), P.mean(0)), atol=1e-12)
+    assert not mask.any()
+    Tb, ratio = poses.pairwise_ransac(np.stack([P, 2 * P]), n_iter=100, inlier_thresh_m=0.01)
+    np.testing.assert_allclose(Tb[0], T, atol=1e-12)
+    assert ratio[0] == 0.0
+
+
+def test_pose_error_by_hand():
+    """pose_error: the angle of R_estᵀ R_true, and the distance between where the two transforms
+    put the point c (default the origin, i.e. ‖t_est − t_true‖), every axis counted."""
+    Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    T_est = poses.to_matrix(Rz90, [0.0, 0.0, 0.5])
+    T_true = np.eye(4)
+    rot, trans = poses.pose_error(T_est, T_true)
+    assert rot == pytest.approx(90.0) and trans == pytest.approx(0.5)
+    # c = (1, 0, 0): K_est c = (0, 1, 0.5), K_true c = (1, 0, 0)
+    rot, trans = poses.pose_error(T_est, T_true, center=[1.0, 0.0, 0.0])
+    assert trans == pytest.approx(np.sqrt(2.25))
+    rot, trans = poses.pose_error(np.stack([T_true, T_est]), np.stack([T_true, T_true]))
+    np.testing.assert_allclose(rot, [0.0, 90.0], atol=1e-6)
+    np.testing.assert_allclose(trans, [0.0, 0.5])

@@ -238,3 +238,71 @@ def test_preview(tiny, tmp_path):
     pic = projection_overlay(tiny["frames"].read("color", 0), r["phi"], r["vertex_visible"],
                              r["vertex_cos"], size=200, title="t")
     assert pic.shape == (200, 200, 3) and pic.dtype == np.uint8
+
+
+def _facing_grid(us, vs):
+    """A flat grid 1 m in front of a 100 x 100 colour camera (f = 100 px, centre 49.5; depth and
+    colour cameras coincide) whose vertex (i, j) projects exactly onto pixel (us[j], vs[i]);
+    faces wound to face the camera. Returns vertices, faces, calibration."""
+    K = np.array([[100.0, 0.0, 49.5], [0.0, 100.0, 49.5], [0.0, 0.0, 1.0]])
+    from stex.camera import Intrinsics
+
+    cam = Intrinsics(K, 100, 100)
+    U, Vv = np.meshgrid(np.asarray(us, float), np.asarray(vs, float))
+    V = np.stack([(U.ravel() - 49.5) / 100, (Vv.ravel() - 49.5) / 100, np.ones(U.size)], 1)
+    n, F = len(us), []
+    for i in range(len(vs) - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            F += [[a + n + 1, a + 1, a], [a + n, a + n + 1, a]]
+    return V, np.array(F), Calibration(cam, cam, np.eye(4))
+
+
+def test_margin_bounds_are_inclusive_on_both_sides():
+    """The projection must lie in u ∈ [m, Wc-1-m], v ∈ [m, Hc-1-m] (module docstring): with
+    m = 10 on a 100 px image, vertices at 10 and 89 are inside, at 9.5 and 89.5 outside. Faces
+    with a corner outside the margin are not glimpsed either (the face's own test passes)."""
+    p = {"use_mask": False, "margin_px": 10}
+    V, F, cal = _facing_grid([0, 10, 49.5, 89, 99], [0, 10, 49.5, 89, 99])
+    r = project_frame(V, F, cal, p)
+    inner = np.zeros((5, 5), bool)
+    inner[1:4, 1:4] = True
+    np.testing.assert_array_equal(r["vertex_visible"].reshape(5, 5), inner)
+    corners_in = inner.ravel()[F].all(axis=1)
+    assert corners_in.sum() == 8
+    np.testing.assert_array_equal(r["face_visible"], corners_in)
+    np.testing.assert_array_equal(r["face_glimpsed"], corners_in)
+    assert (r["face_cos"] > 0.8).all()                 # every face faces the camera
+    V, F, cal = _facing_grid([0, 9.5, 49.5, 89.5, 99], [0, 9.5, 49.5, 89.5, 99])
+    r = project_frame(V, F, cal, p)
+    only_centre = np.zeros((5, 5), bool)
+    only_centre[2, 2] = True
+    np.testing.assert_array_equal(r["vertex_visible"].reshape(5, 5), only_centre)
+    assert not r["face_glimpsed"].any()
+
+
+def test_mask_is_read_at_the_nearest_pixel():
+    """The mask is looked up at the nearest pixel of the projection (integer = pixel centre): a
+    vertex at u = 30.6 reads column 31, one at u = 70.4 column 70."""
+    V, F, cal = _facing_grid([0, 10, 30.6, 49.5, 70.4, 89, 99], [0, 10, 49.5, 89, 99])
+    mask = np.ones((100, 100), bool)
+    mask[:, [30, 70]] = False
+    r = project_frame(V, F, cal, {"use_mask": True, "mask_erode_px": 0, "margin_px": 10}, mask)
+    vis = r["vertex_visible"].reshape(5, 7)
+    assert vis[1:4, 2].all()                            # column 31: in the mask
+    assert not vis[:, 4].any()                          # column 70: outside
+    assert vis[1:4, [1, 3, 5]].all()
+
+
+def test_min_cos_applies_to_vertices():
+    """A vertex is visible only with cos > min_cos. On a flat grid facing the camera 1 m away the
+    view-ray cosine of the point (x, y, 1) is 1 / sqrt(1 + x² + y²)."""
+    us = [0, 10, 30, 49.5, 70, 89, 99]
+    V, F, cal = _facing_grid(us, us)
+    r = project_frame(V, F, cal, {"use_mask": False, "margin_px": 10, "min_cos": 0.9})
+    cos = 1 / np.sqrt(1 + V[:, 0] ** 2 + V[:, 1] ** 2)
+    np.testing.assert_allclose(r["vertex_cos"], cos, atol=1e-5)
+    inside = np.isin(np.round(r["phi"]), [10, 30, 50, 70, 89]).all(axis=1)
+    want = inside & (cos > 0.9)
+    assert want.sum() == 21           # 5 x 5 inside the margin less the 4 corners (x² + y² = 0.31)
+    np.testing.assert_array_equal(r["vertex_visible"], want)

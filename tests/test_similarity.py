@@ -317,3 +317,82 @@ def test_local_similarity_bad_input(desc_seq):
     Dh[2, 7, 3] = np.inf
     with pytest.raises(ValueError, match="non-finite"):
         S.local_similarity_triples(Dh, F, [0], [int(np.flatnonzero((F == 7).any(axis=1))[0])], [2])
+
+
+def test_global_similarity_is_zero_for_an_empty_union(blob):
+    """Both meshes outside the image (empty union of the silhouettes) give 0, as the authors'
+    code (module docstring), not the clip."""
+    V, F = blob
+    X = np.stack([V, V + [100.0, 0.0, 0.0]])               # frame 1 far to the side of the view
+    P = np.broadcast_to(np.eye(4), (2, 2, 4, 4)).copy()
+    P[0, 1, 0, 3], P[1, 0, 0, 3] = 100.0, -100.0          # exact poses
+    G = S.global_similarity(X, F, P, K, W, H)
+    assert G[0, 1] == 0.0                                  # K(M_0) = M_1: both off the image
+    assert G[1, 0] == 0.0                                  # both in view and identical
+
+
+def _grid(n=3, step=1.0):
+    """n x n vertex grid in the plane z = 1 with spacing ``step`` (vertex r * n + c at
+    (c, r) * step), two triangles per cell split along the (r, c) -> (r+1, c+1) diagonal."""
+    r, c = np.divmod(np.arange(n * n), n)
+    V = np.stack([c * step, r * step, np.ones(n * n)], 1).astype(float)
+    F = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            F += [[a, a + 1, a + n + 1], [a, a + n + 1, a + n]]
+    return V, np.array(F)
+
+
+def test_geodesic_neighbourhood_includes_the_radius():
+    """"Within radius_m" includes a neighbour at exactly the radius: on the unit grid the corner
+    reaches its two edge neighbours (1), the diagonal (√2) and the vertices two edges away (2)
+    with R = 2, but nothing further (1 + √2)."""
+    V, F = _grid(3)
+    ptr, idx, dist = S.geodesic_neighbourhoods(V, F, 2.0)
+    got = dict(zip(idx[ptr[0]:ptr[1]].tolist(), dist[ptr[0]:ptr[1]].tolist()))
+    assert got == pytest.approx({0: 0.0, 1: 1.0, 3: 1.0, 4: np.sqrt(2), 2: 2.0, 6: 2.0})
+
+
+def test_shot_needs_three_neighbours_in_the_support():
+    """A vertex with fewer than 3 neighbours within R gets an all-zero descriptor. On a square
+    of two triangles split along the diagonal 0-3 with R = 1.5 edges, vertices 0 and 3 have the
+    other three within R (at 1, 1 and √2), vertices 1 and 2 only two (the opposite corner is
+    2 edges away)."""
+    V, F = _grid(2, 0.01)                                   # 0 (0,0), 1 (1,0), 2 (0,1), 3 (1,1)
+    d = S.shot_descriptors(V, F, 0.015)
+    np.testing.assert_allclose(np.linalg.norm(d[[0, 3]], axis=1), 1.0, atol=1e-6)
+    assert not d[[1, 2]].any()
+
+
+def test_shot_flat_patch_fills_the_cos_one_bin_only():
+    """SHOT's 11 bins per volume hold cos(neighbour normal, z) from -1 (bin 0) to 1 (bin 10):
+    on a flat patch every normal is z, so all the mass is in bin 10 of the volumes."""
+    V, F = _grid(7, 0.01)
+    d = S.shot_descriptors(V, F, 0.035)
+    centre = 3 * 7 + 3
+    h = d[centre].reshape(32, 11)
+    assert h.sum() > 0 and not h[:, :10].any()
+
+
+def test_face_strain_smoothing_averages():
+    """The smoothing passes average the faces sharing a vertex: a uniform scale s stretches
+    every edge by ln s, and an average of equal values leaves them unchanged at any ring count."""
+    V, F = _grid(4, 0.01)
+    X = np.stack([V * 1.1, V])
+    for rings in (0, 1, 3):
+        st = S.face_strain(X, V, F, rings=rings)
+        np.testing.assert_allclose(st[0], np.log(1.1), atol=1e-6)
+        np.testing.assert_allclose(st[1], 0.0, atol=1e-7)
+
+
+def test_strain_similarity_is_the_clipped_l1_difference():
+    """E_str = min(1, Σ_k |s_k(t) − s_k(l)| / clip), worked by hand."""
+    st = np.zeros((3, 2, 3), np.float32)
+    st[1, 0] = [0.01, -0.02, 0.03]                           # L1 distance 0.06 from frame 0
+    st[1, 1] = [0.2, 0.0, 0.0]                              # 0.2: clipped
+    st[2, 0] = [0.01, -0.02, 0.03]
+    st[2, 1] = [0.0, 0.04, 0.0]
+    E = S.strain_similarity(st, 0, clip=0.1)
+    np.testing.assert_allclose(E, [[0, 0], [0.6, 1.0], [0.6, 0.4]], atol=1e-6)
+    np.testing.assert_allclose(S.strain_similarity(st, 1, clip=0.1)[2], [0.0, 1.0], atol=1e-6)
