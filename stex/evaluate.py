@@ -480,8 +480,10 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
             (motion blur, defocus, the mask's own error), is left out; 0 = the mask as given.
 
     Returns:
-        dict ``blur`` (dimensionless in [0, 1]), ``h_size``, ``fill``, ``erode_px``, ``bbox``
-        (r0, r1, c0, c1) half-open, ``n_pixels`` (masked pixels after the erosion).
+        dict ``blur`` (dimensionless in [0, 1]; NaN when the mask is empty or its bounding box
+        is under 4 px on a side, where skimage's blur_effect gives NaN with divide warnings),
+        ``h_size``, ``fill``, ``erode_px``, ``bbox`` (r0, r1, c0, c1) half-open, ``n_pixels``
+        (masked pixels after the erosion).
     """
     from skimage.measure import blur_effect
 

@@ -473,3 +473,22 @@ def test_inputs_of_another_convention_are_refused_not_scored():
     with pytest.raises(ValueError, match="texture times 255"):
         ev.render_texture(np.array([[0, 0, 1.0], [0.1, 0, 1], [0, 0.1, 1]]), tri, np.eye(3)[:, :2], tri,
                           rng.random((8, 8, 3)), np.array([[100, 0, 20], [0, 100, 20], [0, 0, 1.0]]), 40, 40)
+
+
+def test_blur_of_a_crop_under_four_pixels_is_nan():
+    """A mask whose bounding box is under 4 px on a side (a sliver of an object) has no blur
+    score: NaN, as an empty mask, and without the divide-by-zero warnings skimage's blur_effect
+    prints for such a crop (one per frame of a run would bury the log); from 4 px on it is
+    scored."""
+    import warnings
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 255, (20, 20, 3)).astype(np.uint8)
+    for side, scored in ((1, False), (3, False), (4, True)):
+        m = np.zeros((20, 20), bool)
+        m[5:5 + side, 2:18] = True
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            got = ev.blur(img, m)
+        assert np.isfinite(got["blur"]) == scored, (side, got)
+        assert got["bbox"] == (5, 5 + side, 2, 18)
