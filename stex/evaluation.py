@@ -1445,10 +1445,11 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     def write_all(out_dir):
         fig_pos = inp.fig_pos
         _write_csvs(out_dir, records, tabs, timing, sampling)
-        (out_dir / "tables.rst").write_text(rst_tables({scene_name: summary}, timing, sampling))
         from stex.reporting import tables_html  # the report embeds HTML
 
-        (out_dir / "tables.html").write_bytes(tables_html((out_dir / "tables.rst").read_text()))
+        rst = rst_tables({scene_name: summary}, timing, sampling)
+        (out_dir / "tables.rst").write_text(rst)
+        (out_dir / "tables.html").write_bytes(tables_html(rst))
         _plot_psnr(out_dir / "psnr_per_frame.png", records)
         _plot_blur_motion(out_dir / "blur_vs_motion.png", records, ids, motion)
         _picture_side_by_side(out_dir / "side_by_side.png", fig_pos, ids, inp.photos, inp.masks,

@@ -925,8 +925,8 @@ def artifacts_markdown() -> str:
         "all-frame Eq. 1 energy), seconds, error_ratio (energy / that of step 1), speedup "
         "(seconds of step 1 / seconds)}`.",
         "- `stex evaluate RUN --texture NAME=PATH --out DIR` (stex.evaluation.evaluate_results) "
-        "writes the same files into DIR with other methods beside ours, but the timing table (the run's job times: `stex tables RUN`) (`methods` lists them; "
-        "their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "
+        "writes the same files into DIR, but the timing table (the run's job times: `stex tables RUN`), "
+        "with other methods beside ours (`methods` lists them; their records and table rows carry NAME). Their slices: `texture_<frame:05d>.png` "
         "(8-bit RGB, the run's atlas size) or a `corrected` / `volume` store. Slices in another UV "
         "layout: `--uv-mesh NAME=MESH` (that layout's mesh, in the template's coordinates; "
         "stex.resample carries each slice into the run's atlas).",

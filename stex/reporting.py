@@ -7,7 +7,7 @@ import csv
 import json
 from pathlib import Path
 
-__all__ = ["stage_timings", "write_tables_html", "tables_html", "runs_tables"]
+__all__ = ["stage_timings", "tables_html", "runs_tables"]
 
 
 def stage_timings(benchmark_dir, n_blocks: int | None = None) -> dict:
@@ -45,18 +45,13 @@ def _block_count(scene_store) -> int | None:
 
 
 def tables_html(rst: str) -> bytes:
-    """reStructuredText tables as a standalone HTML page (docutils)."""
+    """reStructuredText tables as a standalone HTML page (docutils), for the Snakemake report,
+    which embeds HTML results (the evaluation folder's ``tables.html``)."""
     from docutils.core import publish_string
 
     return publish_string(rst, writer="html5",
                           settings_overrides={"report_level": 4, "embed_stylesheet": True,
                                               "title": "stex evaluation tables"})
-
-
-def write_tables_html(rst_path, html_path) -> None:
-    """The reStructuredText tables of the evaluation as a standalone HTML page, for the
-    Snakemake report (which embeds HTML results)."""
-    Path(html_path).write_bytes(tables_html(Path(rst_path).read_text()))
 
 
 def runs_tables(run_dirs) -> str:

@@ -1,5 +1,5 @@
 """Report helpers: stage timings from Snakemake benchmark files, RST tables to HTML."""
-from stex.reporting import stage_timings, write_tables_html
+from stex.reporting import stage_timings, tables_html
 
 
 def _bench(path, seconds):
@@ -19,7 +19,6 @@ def test_stage_timings_sums_blocks(tmp_path):
 
 
 def test_tables_html(tmp_path):
-    (tmp_path / "t.rst").write_text("Title\n-----\n\n+---+---+\n| a | b |\n+===+===+\n| 1 | 2 |\n+---+---+\n")
-    write_tables_html(tmp_path / "t.rst", tmp_path / "t.html")
-    html = (tmp_path / "t.html").read_text()
+    rst = "Title\n-----\n\n+---+---+\n| a | b |\n+===+===+\n| 1 | 2 |\n+---+---+\n"
+    html = tables_html(rst).decode()
     assert "<table" in html and "<td>1</td>" in html.replace("<td><p>1</p></td>", "<td>1</td>")
