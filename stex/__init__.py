@@ -33,7 +33,8 @@ Baselines: ``stex.baseline`` (Kim et al. 2019's global texture, naive projection
 ``stex.evaluate``; the evaluation stage ``stex.evaluation`` (other methods' textures in another
 UV layout carried into the run's atlas by ``stex.resample``). Shared building blocks: ``stex.camera`` (conventions, projection),
 ``stex.render`` (numba rasteriser, visibility, textured rendering), ``stex.io`` (the artifact
-stores and their layout).
+stores and their layout), ``stex.isolated`` (xatlas run in a child process, whose atlas is never
+destroyed: the destructor can hang).
 """
 
 __version__ = "0.1.0"

@@ -65,6 +65,11 @@ metre. The scale comes from the median face area, so the faces of a small part (
 in which parts. (Scaling up until such parts' well-shaped faces clear the limit gave them UV area,
 but xatlas then packed their few-texel charts closer than the gutter, 68-568 texels at 1024-2048^2.)
 
+Steps 1-3 run in a child process (:func:`stex.isolated.call_in_child`) that exits without
+destroying its xatlas atlas: ``xatlas::Destroy`` joins xatlas' worker threads and once waited for
+them for good. The child costs about 0.3 s (a fresh interpreter importing numpy, xatlas and this
+module).
+
 Cost for 20k faces at 4096^2: charting ~3-5 s, each repack ~0.6 s (up to ``pack_search_steps``).
 Which charts the packer transposes depends on the layout, so ``flipped_xatlas`` varies with the
 resolution; the result never has mirrored triangles.
@@ -77,6 +82,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from stex.isolated import call_in_child
 
 log = logging.getLogger("stex.template")
 
@@ -817,6 +824,86 @@ def _face_areas_quality(vertices, faces):
     return area, quality
 
 
+def _xatlas_layout(V, F, resolution, gutter_px, pack_search_steps):
+    """xatlas' part of :func:`build_atlas` (steps 1-3 of the module docstring), run in a child
+    process by :func:`stex.isolated.call_in_child`.
+
+    Args:
+        V: (V, 3) float64 vertices at the working scale; F: (F, 3) int64 faces.
+        resolution, gutter_px, pack_search_steps: as :func:`build_atlas`.
+
+    Returns:
+        dict: ``vmap`` (Vt,) int64 and ``idx`` (F, 3) int64 (pass 1's texcoord -> vertex map and
+        texcoord faces, folded faces split off), ``best``
+        (vmap2, idx2, uv2 in [0, 1] of the inner square, xatlas utilisation) of the densest
+        repack that fitted, or None, ``best_tpu`` its texel density (per working-scale unit),
+        ``hi`` the lowest density that did not fit, ``info`` (flipped_xatlas, flipped_charts,
+        fold_faces, time_chart_s, time_pack_s).
+    """
+    import xatlas
+
+    inner = resolution - 2 * gutter_px
+    info: dict = {}
+    t0 = time.perf_counter()
+    a = xatlas.Atlas()
+    a.add_mesh(V.astype(np.float32), F.astype(np.uint32))
+    co = xatlas.ChartOptions()
+    co.fix_winding = True
+    a.generate(co, _xatlas_pack_options(resolution, gutter_px, True))
+    vmap, idx, uv = (np.asarray(x) for x in a[0])
+    vmap, idx = vmap.astype(np.int64), idx.astype(np.int64)
+    if idx.shape != F.shape or not np.array_equal(vmap[idx], F):
+        raise RuntimeError("xatlas changed the faces (degenerate faces? run clean_mesh first)")
+    w1, h1, tpu1 = a.width, a.height, float(a.texels_per_unit)
+    info["time_chart_s"] = time.perf_counter() - t0
+
+    # xatlas' uv have v growing with its image rows, and front-facing = positive area in them
+    # (before its packer transposes charts). Work in texel units.
+    px = uv.astype(np.float64) * [w1, h1]
+    area = uv_signed_area(px, idx)
+    info["flipped_xatlas"] = int((area < 0).sum())
+    # each texcoord's chart, from xatlas (the same partition as uv_charts, without importing
+    # scipy into the child: 0.4 s of its 0.7 s start; faces xatlas ignored share one label, -1,
+    # and have no UV area)
+    t_chart = np.unique(np.asarray(a.get_mesh_vertex_assignment(0)[1], np.int64), return_inverse=True)[1]
+    t_chart = t_chart.reshape(-1)
+    mirrored = np.bincount(t_chart[idx[:, 0]], area, int(t_chart.max()) + 1) < 0
+    info["flipped_charts"] = int(mirrored.sum())
+    px[mirrored[t_chart], 0] *= -1.0
+    fold = uv_signed_area(px, idx) < 0
+    info["fold_faces"] = int(fold.sum())
+    if fold.any():  # each folded face becomes a chart of its own, mirrored
+        fi = np.flatnonzero(fold)
+        new = px[idx[fi]].reshape(-1, 2).copy()
+        new[:, 0] *= -1.0
+        base = len(px)
+        px = np.concatenate([px, new])
+        vmap = np.concatenate([vmap, vmap[idx[fi]].ravel()])
+        idx = idx.copy()
+        idx[fi] = base + np.arange(3 * len(fi)).reshape(-1, 3)
+
+    # Repack into exactly inner^2: largest texel density (texels per metre) that fits.
+    t1 = time.perf_counter()
+    positions = V[vmap]
+    uv_in = (px - px.min(0)) / max(float(np.ptp(px, axis=0).max()), 1e-12)
+    tpu = tpu1 * inner / max(w1, h1)  # pass 1's density scaled to fill the atlas
+    best, lo, hi, tries = None, None, None, 0
+    while tries < pack_search_steps or best is None:
+        if tries >= pack_search_steps + 30:
+            break
+        r = _repack(positions, idx, uv_in, inner, gutter_px, tpu)
+        tries += 1
+        if r is not None:
+            best, lo = r, tpu
+        else:
+            hi = tpu
+        if lo is not None and hi is not None and hi / lo < 1.01:
+            break
+        tpu = 0.92 * tpu if lo is None else 1.08 * tpu if hi is None else 0.5 * (lo + hi)
+    info["time_pack_s"] = time.perf_counter() - t1
+    return dict(vmap=vmap, idx=idx, best=best, best_tpu=lo, hi=hi, info=info)
+
+
 def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, return_info: bool = False,
                 pack_search_steps: int = 7, return_texels: bool = False):
     """A UV atlas of the mesh: xatlas charts packed into one square texture, no mirrored charts.
@@ -856,8 +943,6 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         RuntimeError: the charts do not fit one atlas even at a tiny texel density (the message
             names ``template.atlas_size`` and ``template.gutter_px``), or xatlas misbehaved.
     """
-    import xatlas
-
     F = np.asarray(faces, np.int64)
     scale = working_scale(vertices, F)  # texel densities below are per scaled unit
     V = np.asarray(vertices, np.float64) * scale
@@ -865,74 +950,25 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
     if gutter_px < 0 or resolution - 2 * gutter_px < 8:
         raise ValueError(f"need gutter_px >= 0 and resolution - 2 gutter_px >= 8, got {resolution}, {gutter_px}")
     inner = resolution - 2 * gutter_px  # the charts' square: a gutter to the border on every side
-    info: dict = {}
-    t0 = time.perf_counter()
-    a = xatlas.Atlas()
-    a.add_mesh(V.astype(np.float32), F.astype(np.uint32))
-    co = xatlas.ChartOptions()
-    co.fix_winding = True
-    a.generate(co, _xatlas_pack_options(resolution, gutter_px, True))
-    vmap, idx, uv = (np.asarray(x) for x in a[0])
-    vmap, idx = vmap.astype(np.int64), idx.astype(np.int64)
-    if idx.shape != F.shape or not np.array_equal(vmap[idx], F):
-        raise RuntimeError("xatlas changed the faces (degenerate faces? run clean_mesh first)")
-    w1, h1, tpu1 = a.width, a.height, float(a.texels_per_unit)
-    info["time_chart_s"] = time.perf_counter() - t0
-
-    # xatlas' uv have v growing with its image rows, and front-facing = positive area in them
-    # (before its packer transposes charts). Work in texel units.
-    px = uv.astype(np.float64) * [w1, h1]
-    area = uv_signed_area(px, idx)
-    info["flipped_xatlas"] = int((area < 0).sum())
-    chart = uv_charts(idx, len(px))
-    n_charts = int(chart.max()) + 1
-    mirrored = np.bincount(chart, area, n_charts) < 0
-    info["flipped_charts"] = int(mirrored.sum())
-    t_chart = np.empty(len(px), np.int64)
-    t_chart[idx.ravel()] = np.repeat(chart, 3)
-    px[mirrored[t_chart], 0] *= -1.0
-    fold = uv_signed_area(px, idx) < 0
-    info["fold_faces"] = int(fold.sum())
-    if fold.any():  # each folded face becomes a chart of its own, mirrored
-        fi = np.flatnonzero(fold)
-        new = px[idx[fi]].reshape(-1, 2).copy()
-        new[:, 0] *= -1.0
-        base = len(px)
-        px = np.concatenate([px, new])
-        vmap = np.concatenate([vmap, vmap[idx[fi]].ravel()])
-        idx = idx.copy()
-        idx[fi] = base + np.arange(3 * len(fi)).reshape(-1, 3)
-        log.warning("template: %d UV triangles folded inside their chart; split into own charts", len(fi))
-
-    # Repack into exactly inner^2: largest texel density (texels per metre) that fits.
-    t1 = time.perf_counter()
-    positions = V[vmap]
-    uv_in = (px - px.min(0)) / max(float(np.ptp(px, axis=0).max()), 1e-12)
-    tpu = tpu1 * inner / max(w1, h1)  # pass 1's density scaled to fill the atlas
-    best, lo, hi, tries = None, None, None, 0
-    while tries < pack_search_steps or best is None:
-        if tries >= pack_search_steps + 30:
-            break
-        r = _repack(positions, idx, uv_in, inner, gutter_px, tpu)
-        tries += 1
-        if r is not None:
-            best, lo = r, tpu
-        else:
-            hi = tpu
-        if lo is not None and hi is not None and hi / lo < 1.01:
-            break
-        tpu = 0.92 * tpu if lo is None else 1.08 * tpu if hi is None else 0.5 * (lo + hi)
-    best_tpu = lo
-    if best is None:
+    # xatlas runs in a child process that never destroys its atlas (its destructor can hang for
+    # good, see stex.isolated)
+    lay = call_in_child(_xatlas_layout, V, F, resolution, gutter_px, pack_search_steps)
+    info = lay["info"]
+    vmap, idx = lay["vmap"], lay["idx"]
+    if info["fold_faces"]:
+        log.warning("template: %d UV triangles folded inside their chart; split into own charts",
+                    info["fold_faces"])
+    if lay["best"] is None:
         # every chart takes at least a texel plus its padding, whatever the density
-        raise RuntimeError(f"xatlas could not pack the {n_charts + info['fold_faces']} charts into one {inner}^2 "
+        n_charts = int(uv_charts(idx).max()) + 1  # folded faces included
+        raise RuntimeError(f"xatlas could not pack the {n_charts} charts into one {inner}^2 "
                            f"atlas ({resolution}^2, template.atlas_size, less template.gutter_px {gutter_px} "
-                           f"on each side) even at {hi * scale:.3g} texels per metre; raise template.atlas_size "
-                           f"or lower template.gutter_px")
-    vmap2, idx2, uv2, util = best
+                           f"on each side) even at {lay['hi'] * scale:.3g} texels per metre; raise "
+                           f"template.atlas_size or lower template.gutter_px")
+    best_tpu = lay["best_tpu"]
+    vmap2, idx2, uv2, util = lay["best"]
     if not np.array_equal(vmap[vmap2[idx2]], F):
         raise RuntimeError("xatlas repack changed the faces")
-    info["time_pack_s"] = time.perf_counter() - t1
     texcoords = (uv2 * inner + gutter_px) / resolution  # the inner square, a gutter from each border
     texcoords[:, 1] = 1.0 - texcoords[:, 1]  # xatlas rows -> stex v (front-facing: area < 0)
     texcoords = texcoords.astype(np.float32)

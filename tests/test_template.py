@@ -313,15 +313,17 @@ def test_a_lone_triangle_the_repack_mirrors_is_mirrored_back(monkeypatch):
 
     V = np.array([[0, 0, 1], [0.01, 0, 1], [0, 0.01, 1], [0.05, 0, 1], [0.06, 0, 1], [0.05, 0.01, 1.0]])
     F = np.array([[0, 2, 1], [3, 5, 4]])
-    repack = tm._repack
+    run = tm.call_in_child
 
-    def mirroring(*args):
-        vmap, idx, uv, util = repack(*args)
+    def mirroring(*args):  # xatlas still runs in its child; its best repack is mirrored here
+        lay = run(*args)
+        vmap, idx, uv, util = lay["best"]
         uv = uv.copy()
         c = idx[0]
         uv[c, 0] = uv[c, 0].min() + uv[c, 0].max() - uv[c, 0]
-        return vmap, idx, uv, util
-    monkeypatch.setattr(tm, "_repack", mirroring)
+        lay["best"] = vmap, idx, uv, util
+        return lay
+    monkeypatch.setattr(tm, "call_in_child", mirroring)
     tc, tf, info = build_atlas(V, F, 64, 2, return_info=True)
     assert info["repack_mirrored_charts"] == 1 and not uv_flipped(tc, tf).any()
 
@@ -335,17 +337,19 @@ def test_small_charts_the_repack_mirrors_whole_are_mirrored_back(monkeypatch):
     # two separate charts: a quad of 2 faces, and a triangle
     V = np.array([[0, 0, 1], [0.01, 0, 1], [0.01, 0.01, 1], [0, 0.01, 1], [0.05, 0, 1], [0.06, 0, 1], [0.05, 0.01, 1.0]])
     F = np.array([[0, 2, 1], [0, 3, 2], [4, 6, 5]])
-    repack = tm._repack
+    run = tm.call_in_child
     boxes = {}
 
-    def mirroring(*args):
-        vmap, idx, uv, util = repack(*args)
+    def mirroring(*args):  # xatlas still runs in its child; its best repack is mirrored here
+        lay = run(*args)
+        vmap, idx, uv, util = lay["best"]
         uv = uv.copy()
         c = np.unique(idx[:2])  # the quad's corners
         boxes["before"] = (uv[c].min(0), uv[c].max(0))
         uv[c, 0] = uv[c, 0].min() + uv[c, 0].max() - uv[c, 0]
-        return vmap, idx, uv, util
-    monkeypatch.setattr(tm, "_repack", mirroring)
+        lay["best"] = vmap, idx, uv, util
+        return lay
+    monkeypatch.setattr(tm, "call_in_child", mirroring)
     tc, tf, info = build_atlas(V, F, 64, 2, return_info=True)
     assert info["repack_mirrored_charts"] == 1 and not uv_flipped(tc, tf).any()
     quad = np.unique(tf[:2])
@@ -775,3 +779,16 @@ def test_the_collapsed_uv_warning_names_small_parts_not_needles(caplog):
             and f"{len(eye.faces)} of them are below xatlas' area limit at the working scale x1" in caplog.text
             and "0 are needle-thin" in caplog.text and f"{len(eye.faces)} of the {len(eye.faces)} faces of part 1" in caplog.text)
     assert "hold no texel centre" not in caplog.text
+
+
+def test_build_atlas_never_loads_xatlas_into_the_calling_process():
+    """xatlas runs in a child that never destroys its atlas (xatlas::Destroy can hang joining its
+    threads, see stex.isolated); the caller must not hold an xatlas atlas of its own."""
+    import subprocess
+    import sys
+
+    code = ("import sys, trimesh; from stex.template import build_atlas; "
+            "m = trimesh.creation.icosphere(2); tc, tf = build_atlas(m.vertices, m.faces, 256, 2); "
+            "assert tf.shape == (320, 3), tf.shape; print(sorted(k for k in sys.modules if 'xatlas' in k))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
