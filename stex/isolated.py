@@ -40,11 +40,10 @@ def call_in_child(func, *args, **kwargs):
         RuntimeError when the child died without a result (killed by a signal, out of memory).
     """
     payload = pickle.dumps((func, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (_STEX_PARENT, env.get("PYTHONPATH")) if p)
     # stdout carries the result; the child's stderr (warnings, C-level prints) is the caller's
-    proc = subprocess.run([sys.executable, "-c", "from stex.isolated import _child_main; _child_main()"],
-                          input=payload, stdout=subprocess.PIPE, env=env, check=False)
+    code = "import sys; sys.path.insert(0, sys.argv[1]); from stex.isolated import _child_main; _child_main()"
+    proc = subprocess.run([sys.executable, "-c", code, _STEX_PARENT], input=payload, stdout=subprocess.PIPE,
+                          check=False)
     name = f"{func.__module__}.{func.__qualname__}"
     if proc.returncode != 0 or not proc.stdout:
         rc = proc.returncode
@@ -67,15 +66,20 @@ def _child_main() -> None:
     os.dup2(2, 1)  # anything else printed to stdout (by Python or C) goes to stderr
     try:
         func, args, kwargs = pickle.loads(sys.stdin.buffer.read())
-        reply = ("ok", func(*args, **kwargs), "")
+        value = func(*args, **kwargs)
+        try:
+            data = pickle.dumps(("ok", value, ""), protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as exc:  # noqa: BLE001 - named below, as the caller's error
+            raise TypeError(f"{func.__module__}.{func.__qualname__} returned a {type(value).__name__}, "
+                            f"which cannot be sent back: {exc}") from None
     except BaseException as exc:  # noqa: BLE001 - everything goes back to the caller
         text = traceback.format_exc()
         try:
             pickle.loads(pickle.dumps(exc))
         except Exception:  # noqa: BLE001 - an exception that cannot travel becomes one that can
             exc = RuntimeError(f"{type(exc).__name__}: {exc}")
-        reply = ("error", exc, text)
-    out.write(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
+        data = pickle.dumps(("error", exc, text), protocol=pickle.HIGHEST_PROTOCOL)
+    out.write(data)
     out.flush()
     sys.stderr.flush()
     os._exit(0)

@@ -57,3 +57,25 @@ def test_a_child_exiting_early_is_named():
         call_in_child(os._exit, 3)
     with pytest.raises(RuntimeError, match=r"killed by SIGTERM"):
         call_in_child(signal.raise_signal, signal.SIGTERM)
+
+
+def test_a_result_that_cannot_travel_back_is_named():
+    with pytest.raises(TypeError, match=r"importlib\.import_module returned a module, which cannot be sent back"):
+        call_in_child(__import__("importlib").import_module, "json")
+
+
+def test_the_child_imports_the_callers_stex(tmp_path):
+    """The child runs the stex the caller runs, even one the caller put on sys.path itself (pytest's
+    rootdir, a clone beside an installed copy) and whatever the current directory."""
+    import shutil
+
+    import stex
+
+    copy = tmp_path / "elsewhere"
+    shutil.copytree(Path(stex.__file__).parent, copy / "stex", ignore=shutil.ignore_patterns("__pycache__"))
+    code = ("import sys, importlib.util; sys.path.insert(0, sys.argv[1]); import stex.isolated as m; "
+            "print(m.__file__); print(m.call_in_child(importlib.util.find_spec, 'stex.isolated').origin)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([sys.executable, "-c", code, str(copy)], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == [str(copy / "stex" / "isolated.py")] * 2
