@@ -863,8 +863,8 @@ def _xatlas_layout(V, F, resolution, gutter_px, pack_search_steps):
     area = uv_signed_area(px, idx)
     info["flipped_xatlas"] = int((area < 0).sum())
     # each texcoord's chart, from xatlas (the same partition as uv_charts, without importing
-    # scipy into the child: 0.4 s of its 0.7 s start; faces xatlas ignored share one label, -1,
-    # and have no UV area)
+    # scipy into the child: 0.4 s of its 0.7 s start; faces xatlas ignored share its "no chart"
+    # label and have no UV area, so they are never mirrored either way)
     t_chart = np.unique(np.asarray(a.get_mesh_vertex_assignment(0)[1], np.int64), return_inverse=True)[1]
     t_chart = t_chart.reshape(-1)
     mirrored = np.bincount(t_chart[idx[:, 0]], area, int(t_chart.max()) + 1) < 0
