@@ -1003,7 +1003,7 @@ def build_atlas(vertices, faces, resolution: int = 2048, gutter_px: int = 4, ret
         raise RuntimeError("texcoords outside [0, 1] after packing")
     face_id, bary = texel_map(texcoords, tfaces, resolution)
     collapsed = uv_signed_area(texcoords, tfaces) == 0
-    info.update(charts=int(uv_charts(tfaces, len(texcoords)).max()) + 1, texels_per_unit=best_tpu * scale,
+    info.update(charts=n2, texels_per_unit=best_tpu * scale,  # mirroring back kept every chart
                 utilization=float((face_id >= 0).mean()), xatlas_utilization=float(util),
                 faces_without_texel=int(len(faces_without_texel(face_id, len(F)))),
                 degenerate_uv_faces=int(collapsed.sum()), working_scale=scale)
