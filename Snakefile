@@ -22,6 +22,7 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/scheduling.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/template.smk"

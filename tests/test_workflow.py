@@ -26,8 +26,9 @@ def tiny_run(tmp_path_factory):
            "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10},
            "observations": {"coordinates": "optimised"}}
     (work / "tiny.yaml").write_text(yaml.safe_dump(cfg))
-    run = snakemake(work, "--cores", "2")
+    run = snakemake(work, "--cores", "2", "--verbose")  # --verbose: the scheduler's rounds, for the test below
     assert run.returncode == 0, run.stderr[-3000:]
+    (work / "first_run.log").write_text(run.stdout + run.stderr)
     return work
 
 
@@ -53,6 +54,17 @@ def test_outputs_exist_and_are_complete(tiny_run):
     r = s.render_frame(5)  # block jobs give the same bytes as rendering the frame alone
     assert np.array_equal(frames.read("color", 5), r.color)
     assert np.array_equal(truth.read("appearance", 5), r.appearance)
+
+
+def test_scheduling_rounds_follow_the_jobs_that_finish(tiny_run):
+    """A local run has a scheduling round when it starts and when a job ends, and no more:
+    Snakemake's job rate limiter, which adds a round a second for every job that ended while
+    others waited for a core, is off (workflow/rules/scheduling.smk)."""
+    log = (tiny_run / "first_run.log").read_text()
+    rounds = log.count("Resources before job selection")
+    finished = len(re.findall(r"^Finished jobid", log, flags=re.M))
+    assert finished > 20 and "Job rate limit" not in log
+    assert 1 <= rounds <= finished + 1, (rounds, finished)
 
 
 def test_rerun_does_nothing(tiny_run):

@@ -25,6 +25,9 @@ min_version("9.1")  # module names given by a variable
 report: "report/dataset.rst"
 
 
+include: "rules/scheduling.smk"
+
+
 _WHERE = "the dataset config (scene_files, common, scenes)"
 SCENES = dataset_scene_configs(config, where=_WHERE)  # the chosen ones (`scenes`), in dataset order
 config["scenes"] = list(SCENES)  # the report's description names them
