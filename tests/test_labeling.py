@@ -155,3 +155,32 @@ def test_bcd_couples_a_frame_to_both_neighbours(flip):
     assert res["labels"][:, 0].tolist() == [1, 1]
     assert res["energy"][-1] == pytest.approx(0.1, rel=1e-6)
     assert total_energy(res["labels"], omega_t=1.0, **P) == pytest.approx(0.1, rel=1e-6)
+
+
+def test_bcd_rounds_go_on_until_a_change_has_reached_the_end_of_the_chain():
+    """One face, five frames, candidates the source frames 0, 1, 2 (E_temp 0.4 between 0 and 1,
+    0.6 between either and 2). Alone, the frames pick [0, 1, 2, 2, 1]. Round 1: frame 4 takes 2
+    (its neighbour's) in the even sweep, then frame 1, between 0 and 2, takes 2 in the odd one
+    (1.2 against 1.3 for 0 and 1.5 for 1); frame 0, an even frame, can follow only in round 2
+    (0.4 against 0.6 for keeping 0). The result is the brute-force optimum of Eq. 2 over all
+    3^5 sequences (energy 2.0), which one round does not reach (2.2)."""
+    import itertools
+
+    unary = np.array([[0.0, 0.9, 0.4], [0.7, 0.5, 0.6], [0.8, 0.5, 0.3], [0.7, 0.9, 0.2], [0.4, 0.1, 0.5]],
+                     np.float32)[:, None]                              # (T=5, F=1, K=3)
+    face_samples = np.array([[204, 153], [102, 51], [0, 255], [153, 102], [0, 204]], np.uint8)[:, None]
+    T = 5
+    P = dict(cand=np.array([[[0, 1, 2]]] * T, np.int16), unary=unary, pairs=np.zeros((0, 2), np.int64),
+             pair_weight=np.zeros(0), edge_samples=np.zeros((T, 0, 3), np.uint8), face_samples=face_samples)
+
+    def eq2(L):                                    # written out: Σ unary + ω_t Σ mean|I_a − I_b| / 255
+        temporal = sum(np.abs(face_samples[a, 0].astype(int) - face_samples[b, 0]).mean() / 255
+                       for a, b in zip(L[:-1], L[1:]))
+        return sum(float(unary[t, 0, L[t]]) for t in range(T)) + temporal
+
+    best = min(itertools.product(range(3), repeat=T), key=eq2)
+    assert best == (2, 2, 2, 2, 2) and eq2(best) == pytest.approx(2.0)
+    res = label_sequence(**P, omega_t=1.0, max_rounds=4, rel_tol=1e-3, threads=1)
+    assert res["labels"][:, 0].tolist() == list(best)
+    assert res["energy"].tolist() == pytest.approx([2.7, 2.2, 2.0, 2.0], abs=1e-6)
+    assert [r["changed"] for r in res["rounds"][1:]] == [2, 1, 0]
