@@ -114,6 +114,38 @@ def test_icp_refines_perturbed_start():
     assert rot1 < 1e-2 and trans1 < 1e-4
 
 
+def test_icp_point_to_plane_residuals_get_a_huber_weight_of_a_quarter_of_the_threshold():
+    """Points on a cube's six faces (3 x 3 each, normals along the axes), matched to themselves
+    except the centre of the +z face, displaced by d = 8 mm along z (within θ = 10 mm, so the
+    inlier gate keeps it; at the face centre it exerts no torque). Point-to-plane only, the
+    fixed point of the Huber IRLS balances the 17 other z-facing points at weight 1 against the
+    outlier's bounded pull: 17·t_z = δ = θ/4, t_z = 0.147 mm. Least squares (or δ ≥ d) would
+    give t_z = d/18 = 0.444 mm. x, y and the rotation stay 0 by symmetry."""
+    g = np.array([-0.05, 0.0, 0.05])
+    P, N = [], []
+    for axis in range(3):
+        for side in (-1.0, 1.0):
+            for a in g:
+                for b in g:
+                    p = np.zeros(3)
+                    p[axis] = 0.1 * side
+                    p[[k for k in range(3) if k != axis]] = a, b
+                    n = np.zeros(3)
+                    n[axis] = side
+                    P.append(p)
+                    N.append(n)
+    P, N = np.array(P), np.array(N)
+    Q = P.copy()
+    centre = np.flatnonzero((P == [0.0, 0.0, 0.1]).all(axis=1))
+    assert centre.size == 1
+    Q[centre, 2] += 0.008
+    theta = 0.01
+    T, ratio = poses.icp_point_to_plane(P, Q, N, n_iter=50, inlier_thresh_m=theta, point_weight=0.0)
+    assert ratio == 1.0
+    np.testing.assert_allclose(T[:3, 3], [0.0, 0.0, theta / 4 / 17], atol=1e-6)
+    np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-9)
+
+
 def test_pose_table_consistency_and_determinism():
     rng = np.random.default_rng(4)
     P, F = _body(32, 16)
