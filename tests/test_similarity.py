@@ -396,3 +396,26 @@ def test_strain_similarity_is_the_clipped_l1_difference():
     E = S.strain_similarity(st, 0, clip=0.1)
     np.testing.assert_allclose(E, [[0, 0], [0.6, 1.0], [0.6, 0.4]], atol=1e-6)
     np.testing.assert_allclose(S.strain_similarity(st, 1, clip=0.1)[2], [0.0, 1.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("d_over_r, outer_share", [(0.1, 0.0), (0.35, 0.05), (0.6, 0.925), (0.9, 1.0)])
+def test_shot_splits_a_neighbour_between_the_radial_shells(d_over_r, outer_share):
+    """SHOT's two radial shells meet at R/2, and a neighbour's vote is shared with the other
+    shell by linear interpolation between the shells' middles (R/4, 3R/4; Tombari et al. and
+    PCL): each neighbour casts 4 units (cosine, radial, elevation and azimuth interpolation,
+    one each), of which only the radial unit can cross shells: rd = (d − R/4)/(R/2) of it goes
+    out from the inner shell beyond R/4, |d − 3R/4|/(R/2) in from the outer shell below 3R/4.
+    Eight neighbours in a ring at distance d in the tangent plane: the outer shell's share of the
+    descriptor's sum is 0 (d = 0.1 R: inner, below R/4), 0.2/4 (0.35 R), 1 − 0.3/4 (0.6 R) and 1
+    (0.9 R: outer, beyond 3R/4)."""
+    R = 0.02
+    ring = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    V = np.concatenate([[[0.0, 0.0, 0.0]],
+                        np.stack([np.cos(ring), np.sin(ring), np.zeros(8)], 1) * d_over_r * R])
+    F = np.array([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])      # a fan facing +z
+    nbh = (np.array([0, 8] + [8] * 8), np.arange(1, 9))                  # vertex 0's neighbours only
+    desc = S.shot_descriptors(V, F, nbh, radius_m=R)[0].astype(np.float64)
+    assert desc.sum() > 0
+    volume = np.arange(desc.size) // 11                                   # 32 volumes x 11 cosine bins
+    outer = (volume // 2) % 2 == 1                                        # volume = sector·4 + shell·2 + up
+    assert desc[outer].sum() / desc.sum() == pytest.approx(outer_share, abs=1e-5)
