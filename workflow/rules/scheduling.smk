@@ -2,8 +2,9 @@
 # 100/1s). With it, every scheduling round that leaves a ready job waiting for a core starts a
 # timer for another round 1 s later, and every finished job starts a round of its own: the
 # rounds multiply with the jobs finished while others wait (snakemake 9.27; upstream PR 3744).
-# Four tiny scenes over 2 cores (117 jobs): 14,918 rounds and 50 s of the snakemake process's CPU
-# in a 284 s run (docs/datasets.md, "Scheduling"). Locally a new job can only start when one
+# Four tiny scenes over 2 cores (117 jobs): 14,499 rounds and 71 s of the snakemake process's CPU
+# in a 278 s run, against 115 rounds, 18 s and 235 s without (docs/datasets.md, "Scheduling";
+# benchmarks/bench_scheduling.py). Locally a new job can only start when one
 # ends, and each end starts a round, so the limiter has nothing to do there; a cluster run
 # (the slurm profile) keeps it to pace its submissions. Included by ../../Snakefile and
 # ../dataset.smk; Snakemake runs the onstart of the top-level workflow only.
