@@ -219,7 +219,9 @@ def _ransac_pair(P, Q, sub, samples, thresh, R, t):
             if h + 1 >= n_needed:
                 break
             continue
-        Rh[:, :] = Fq @ Fp.T
+        for k in range(3):
+            for m in range(3):
+                Rh[k, m] = Fq[k, 0] * Fp[m, 0] + Fq[k, 1] * Fp[m, 1] + Fq[k, 2] * Fp[m, 2]
         for k in range(3):
             cp[k] = (P[a, k] + P[b, k] + P[c, k]) / 3.0
         for k in range(3):
@@ -307,16 +309,27 @@ def _inlier_sums(P, Q, R, t, th2, sp, sq, H):
 
 @njit(cache=True, nogil=True)
 def _kabsch_sums(n, sp, sq, S, p0, q0, R, t):
-    """Kabsch from the sums of :func:`_inlier_sums` (n points, relative to p0 / q0)."""
+    """Kabsch from the sums of :func:`_inlier_sums` (n points, relative to p0 / q0).
+
+    The 3 x 3 products and the determinant are written out: numba's np.outer, @ and
+    np.linalg.det cost seconds of compilation each (the SVD stays numba's)."""
     cp = sp / n
     cq = sq / n
-    H = S - n * np.outer(cp, cq)
+    H = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            H[a, b] = S[a, b] - n * cp[a] * cq[b]
     U, _, Vt = np.linalg.svd(H)
-    M = Vt.T @ U.T
-    if np.linalg.det(M) < 0.0:
-        D = np.eye(3)
-        D[2, 2] = -1.0
-        M = Vt.T @ D @ U.T
+    M = np.empty((3, 3))
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = Vt[0, a] * U[b, 0] + Vt[1, a] * U[b, 1] + Vt[2, a] * U[b, 2]
+    det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+           + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+    if det < 0.0:
+        for a in range(3):
+            for b in range(3):
+                M[a, b] = Vt[0, a] * U[b, 0] + Vt[1, a] * U[b, 1] - Vt[2, a] * U[b, 2]
     R[:, :] = M
     for a in range(3):
         t[a] = (cq[a] + q0[a]) - (M[a, 0] * (cp[0] + p0[0]) + M[a, 1] * (cp[1] + p0[1])
