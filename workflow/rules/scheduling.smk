@@ -10,5 +10,5 @@
 # ../dataset.smk; Snakemake runs the onstart of the top-level workflow only.
 onstart:
     _scheduler = getattr(workflow, "scheduler", None)  # set just before onstart (snakemake >= 8)
-    if workflow.local_exec and getattr(_scheduler, "job_rate_limiter", None) is not None:
+    if getattr(workflow, "local_exec", False) and getattr(_scheduler, "job_rate_limiter", None) is not None:
         _scheduler.job_rate_limiter = None
