@@ -32,8 +32,9 @@ import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = {"texture_size": 128, "color": {"width": 200, "height": 150, "fx": 175.0},
-        "depth": {"width": 100, "height": 90, "fx": 79.0}, "procedural": {"n_around": 32, "n_rings": 16}}
+sys.path.insert(0, str(REPO / "tests"))
+from conftest import TINY_SYNTHETIC  # noqa: E402  (the tests' tiny scene; the checkout's tests/)
+
 COMMON = {"frame_block": 6, "template": {"atlas_size": 256}, "tracking": {"mode": "given"},
           "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10}, "sampling_table": {"steps": []}}
 
@@ -44,7 +45,7 @@ def write_dataset(work: Path, n_scenes: int, n_frames: int) -> Path:
     for i in range(n_scenes):
         path = work / f"s{i}.yaml"
         path.write_text(yaml.safe_dump({"scene": f"s{i}", "source": {
-            "kind": "synthetic", "synthetic": {**TINY, "n_frames": n_frames, "seed": i}}}))
+            "kind": "synthetic", "synthetic": {**TINY_SYNTHETIC, "n_frames": n_frames, "seed": i}}}))
         files.append(str(path))
     (work / "config").mkdir(exist_ok=True)
     # the scenes' wall stands at 2.2 m (tests/test_dataset.py)
