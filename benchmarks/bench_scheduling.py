@@ -32,8 +32,7 @@ import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-from conftest import TINY_SYNTHETIC  # noqa: E402  (the tests' tiny scene; the checkout's tests/)
+TINY_SYNTHETIC = yaml.safe_load((REPO / "tests" / "tiny_synthetic.yaml").read_text())  # the tests' tiny scene
 
 COMMON = {"frame_block": 6, "template": {"atlas_size": 256}, "tracking": {"mode": "given"},
           "texcoords": {"levels": 2, "iterations": 10, "refine_iterations": 10}, "sampling_table": {"steps": []}}

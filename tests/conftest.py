@@ -2,6 +2,7 @@ import os
 from pathlib import Path
 
 import pytest
+import yaml
 
 from stex.config import load_config
 
@@ -14,13 +15,8 @@ def data_samples() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data_samples"
 
 
-TINY_SYNTHETIC = {
-    "n_frames": 6,
-    "texture_size": 128,
-    "color": {"width": 200, "height": 150, "fx": 175.0},
-    "depth": {"width": 100, "height": 90, "fx": 79.0},
-    "procedural": {"n_around": 32, "n_rings": 16},
-}
+# the tiny scene's source.synthetic settings, in a file so that benchmarks read them without pytest
+TINY_SYNTHETIC = yaml.safe_load((REPO / "tests" / "tiny_synthetic.yaml").read_text())
 
 
 def grid_atlas(n: int = 9):
