@@ -2,6 +2,7 @@
 what the errors say (stex.readers.images, stex.readers.meshes, the tracking stage's scale check)."""
 
 import os
+import tempfile
 import threading
 
 import cv2
@@ -55,6 +56,30 @@ def test_decode_jpeg_refuses_damaged_data_and_passes_other_libjpeg_text_on(capfd
     assert decode_jpeg(b"\xff\xd8 not a jpeg \xff\xd9", cv2.IMREAD_COLOR, "junk") is None
     os.write(2, b"after\n")  # stderr is back where it was
     assert capfd.readouterr().err == "after\n"
+
+
+def test_extraneous_bytes_can_be_the_only_sign_of_damage():
+    """Why "N extraneous bytes before marker" stays among the warnings that refuse a JPEG,
+    although some webcams' MJPEG encoders cause it on intact frames (docs/datasets.md): with
+    restart markers (RST every 4 MCUs, as MJPEG cameras write them), 200 bytes zeroed in the
+    middle are reported only so, and rows of the image are wrong."""
+    from stex.readers.images import _stderr_into, decode_jpeg
+
+    img = cv2.imdecode(np.frombuffer(_jpeg((320, 240)), np.uint8), cv2.IMREAD_COLOR)
+    enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90, cv2.IMWRITE_JPEG_RST_INTERVAL, 4])[1].ravel()
+    whole = cv2.imdecode(enc, cv2.IMREAD_COLOR)
+    damaged = enc.copy()
+    damaged[len(enc) // 2: len(enc) // 2 + 200] = 0
+    with tempfile.TemporaryFile() as log:
+        with _stderr_into(log):
+            wrong = cv2.imdecode(damaged, cv2.IMREAD_COLOR)
+        log.seek(0)
+        said = log.read().decode().strip().splitlines()
+    assert len(said) == 1 and "extraneous bytes before marker 0xd" in said[0], said
+    assert wrong.shape == whole.shape and (wrong != whole).any(axis=(1, 2)).sum() >= 8
+    with pytest.raises(ValueError, match=r"^frame 7: the JPEG's data is damaged \(libjpeg: 'Corrupt JPEG data: "
+                                         r"\d+ extraneous bytes before marker"):
+        decode_jpeg(damaged, cv2.IMREAD_COLOR, "frame 7")
 
 
 def test_decode_jpeg_from_threads_blames_the_damaged_file_only():
