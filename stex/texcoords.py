@@ -142,6 +142,15 @@ the consensus of the plain-mean gauge, the truth slid by its mean drift over the
 frames, is at 81.2 % on the demo and 94.5 % there). On the demo the wrinkled frames stay the
 limit: their shading is not affine inside a face, so they are down-weighted rather than
 explained.
+
+Those figures are for the synthetic drift, which averages out over time by design. The tracker's
+own error mostly does not: in the workflow's runs (``benchmarks/bench_registration.py RESULTS``,
+every 5th frame, visible vertices) 2.15 of its 2.42 px (paper scene; demo 0.66 of 0.77 px) are
+the per-vertex mean over the frames that see the vertex, which Eq. 1 cannot observe. ξ removes
+about half of the rest (|Φ − consensus| 0.55 → |ξ − consensus| 0.30 px; demo 0.26 → 0.19) and
+ends 2.12 px from the truth (demo 0.72), at that bound. With exact meshes there is nothing to
+remove, and ξ moves 0.12 px off the truth on the demo (``bench_texcoords.py --drift 0``) and
+0.39 px on the Fox (given meshes; its photos have motion blur).
 """
 
 from __future__ import annotations
