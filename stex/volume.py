@@ -529,7 +529,7 @@ def nearest_seen_texels(texel_face, texel_bary, vertices, faces, never_seen, k: 
 
 
 def write_volume(template_path, labels_path, coords_path, frames_paths, positions, params: dict,
-                 out) -> None:
+                 out, projection_path=None) -> None:
     """Volume stage for one block of frames: write a ``volume`` store.
 
     Args:
@@ -538,8 +538,13 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
         coords_path: ``texcoords`` store (ξ) or ``projection`` store (Φ), as the observations.
         frames_paths: ``frames`` block stores (colour images).
         positions: [start, stop) sequence positions of the slices to write.
-        params: the ``volume`` config section (gutter_px, slices_per_pass, interpolation).
+        params: the ``volume`` config section (gutter_px, slices_per_pass, interpolation,
+            own_frame_coordinates).
         out: path of the store.
+        projection_path: ``projection`` store (Φ); needed when ``own_frame_coordinates`` is
+            ``projected`` and ``coords_path`` holds ξ: slice t then reads the texels labelled
+            with its own frame at Φ_t, where the tracked mesh at t puts them, and every other
+            source frame s at ξ_s.
     """
     import logging
     import time
@@ -559,7 +564,18 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     labels = np.asarray(labels_store["labels"][start:stop], np.int32)
     if labels.shape[1] != len(faces):
         raise ValueError(f"{labels_path}: labels for {labels.shape[1]} faces, template has {len(faces)}")
-    coords, _, _ = open_coordinates(coords_path)
+    coords, _, kind = open_coordinates(coords_path)
+    own_at_phi = p["own_frame_coordinates"] == "projected" and kind != "projection"
+    phi = None
+    if own_at_phi:
+        if projection_path is None:
+            raise ValueError("volume.own_frame_coordinates 'projected' reads each slice's own frame "
+                             f"at Φ: give the projection store (the coordinates {coords_path} are ξ)")
+        phi, _, _ = open_coordinates(projection_path)
+        if phi.shape != coords.shape:
+            raise ValueError(f"projection store {projection_path} has Φ of shape {phi.shape}, the "
+                             f"coordinates {coords_path} {coords.shape}")
+    T = len(ids)
     frames = FrameSequence(list(frames_paths), "frames")
     tf = template["texel/face_id"][...]
     tb = template["texel/bary"][...]
@@ -568,11 +584,13 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     dst, src, weight = nearest_seen_texels(tf, tb, template["vertices"][...], faces, never)
     gutter = int(p["gutter_px"])
 
+    # with own_at_phi, label T + t stands for frame t read at Φ_t (the texels of slice t labelled
+    # with its own frame): the sampler reads it as one more source (frame t decoded once more)
     def image(l):
-        return frames.read("color", ids[l])
+        return frames.read("color", ids[l % T])
 
     def xi(l):
-        return np.asarray(coords[l], np.float64)
+        return np.asarray(phi[l - T] if l >= T else coords[l], np.float64)
 
     W = sampler.W
     per_pass = int(p["slices_per_pass"])
@@ -585,7 +603,13 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
         for k0 in range(0, stop - start, per_pass):
             # the slices of one pass read each of their source frames once
             k1 = min(k0 + per_pass, stop - start)
-            for k, (tex, lm) in enumerate(sampler.slices(labels[k0:k1], xi, image, gutter_px=0), k0):
+            rows = labels[k0:k1]
+            if own_at_phi:
+                own_pos = start + np.arange(k0, k1, dtype=np.int32)[:, None]
+                rows = np.where(rows == own_pos, own_pos + T, rows)
+            for k, (tex, lm) in enumerate(sampler.slices(rows, xi, image, gutter_px=0), k0):
+                if own_at_phi:
+                    lm = np.where(lm >= T, lm - T, lm)
                 if dst.size:
                     flat = tex.reshape(-1, 3)
                     flat[dst] = np.round(np.einsum("nk,nkc->nc", weight, flat[src].astype(np.float32)))

@@ -243,3 +243,64 @@ def test_label_colors():
     assert (pic[0, 1] == pic[1, 1]).all()
     cols = {tuple(pic[0, 1]), tuple(pic[0, 2]), tuple(pic[1, 0]), tuple(pic[1, 2])}
     assert len(cols) == 4 and all(max(c) > 0 for c in cols)
+
+
+# -- a slice's own frame read at Φ (volume.own_frame_coordinates) -----------------------------
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from conftest import run_pipeline, tiny_scene_config
+
+    return run_pipeline(tiny_scene_config(template={"atlas_size": 256}), tmp_path_factory.mktemp("tiny"))
+
+
+def _shifted_coordinates(P, out, shift_px):
+    """A ``texcoords`` store whose ξ is the run's Φ moved by ``shift_px`` (x, y): a stand-in for
+    the optimisation's correction that makes ξ and Φ read different colours."""
+    from stex.io import create_store, open_store
+
+    proj = open_store(P["projection"], "projection")
+    phi = np.asarray(proj["phi"][...], np.float32)
+    attrs = {"frame_ids": list(proj.attrs["frame_ids"]), "keyframes": [], "color_size": [0, 0],
+             "energy_rows": [], "stages": [], "seconds": 0.0}
+    with create_store(out, "texcoords", attrs=attrs) as store:
+        store.write("xi", phi + np.float32(shift_px))
+        store.write("valid", np.asarray(proj["vertex_visible"][...], bool))
+        store.write("energy", np.zeros((1, 1)))
+    return out
+
+
+def test_own_frame_texels_are_read_at_phi_and_the_others_at_xi(tiny_run, tmp_path):
+    """With ``own_frame_coordinates: projected`` slice t's texels labelled t equal those of a
+    volume read entirely at Φ, every other labelled texel equals the volume read at ξ, and the
+    label maps are the ones the labels give (the stand-in label T + t never leaks out). ξ here is
+    Φ moved by (0.7, -0.4) px, so ξ and Φ give different colours on the own frame's texels."""
+    from stex.io import open_store
+    from stex.volume import write_volume
+
+    P = tiny_run
+    xi = _shifted_coordinates(P, tmp_path / "xi.zarr", (0.7, -0.4))
+    start, stop = open_store(P["scene"], "scene").attrs["frame_blocks"][0]
+    out = {}
+    for name, coords, own in (("xi", xi, "as_sources"), ("phi", P["projection"], "as_sources"),
+                              ("own_phi", xi, "projected"),
+                              ("projected_at_phi", P["projection"], "projected")):
+        out[name] = tmp_path / f"volume_{name}.zarr"
+        write_volume(P["template"], P["labels"], coords, P["frames"], [start, stop],
+                     {"own_frame_coordinates": own}, out[name], projection_path=P["projection"])
+    vol = {k: open_store(v, "volume") for k, v in out.items()}
+    lm = np.asarray(vol["xi"]["label_map"][...])
+    for k in vol:
+        np.testing.assert_array_equal(np.asarray(vol[k]["label_map"][...]), lm)
+    tex = {k: np.asarray(v["texture"][...]) for k, v in vol.items()}
+    own = lm == (start + np.arange(stop - start))[:, None, None]
+    other = (lm >= 0) & ~own
+    assert own.sum() > 1000 and other.sum() > 1000
+    np.testing.assert_array_equal(tex["own_phi"][own], tex["phi"][own])
+    np.testing.assert_array_equal(tex["own_phi"][other], tex["xi"][other])
+    assert (tex["xi"][own] != tex["phi"][own]).any(axis=-1).mean() > 0.3   # the shift shows
+    np.testing.assert_array_equal(tex["projected_at_phi"], tex["phi"])   # Φ everywhere: no change
+    with pytest.raises(ValueError, match=r"own_frame_coordinates 'projected' .*give the projection store"):
+        write_volume(P["template"], P["labels"], xi, P["frames"], [start, stop],
+                     {"own_frame_coordinates": "projected"}, tmp_path / "x.zarr")
+    assert not (tmp_path / "x.zarr").exists()

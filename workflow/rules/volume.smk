@@ -6,6 +6,7 @@ rule volume:
         template=f"{RESULTS}/template.zarr",
         labels=f"{RESULTS}/labels.zarr",
         coords=COORDS,
+        projection=f"{RESULTS}/projection.zarr",
         frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/volume/block_{{block}}.zarr"),
