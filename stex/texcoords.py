@@ -145,10 +145,11 @@ explained.
 
 Those figures are for the synthetic drift, which averages out over time by design. The tracker's
 own error mostly does not: in the workflow's runs (``benchmarks/bench_registration.py RESULTS``,
-every 5th frame, visible vertices) 2.15 of its 2.42 px (paper scene; demo 0.66 of 0.77 px) are
-the per-vertex mean over the frames that see the vertex, which Eq. 1 cannot observe. ξ removes
-about half of the rest (|Φ − consensus| 0.55 → |ξ − consensus| 0.30 px; demo 0.26 → 0.19) and
-ends 2.12 px from the truth (demo 0.72), at that bound. With exact meshes there is nothing to
+every 5th frame, visible vertices) Φ lies 2.42 px from the truth (paper scene; demo 0.77), and
+the per-vertex mean of the tracker's error over the frames that see the vertex, which Eq. 1
+cannot observe, alone puts it 2.15 px off (demo 0.66: the consensus). ξ removes about half of
+what varies between frames (|Φ − consensus| 0.55 → |ξ − consensus| 0.30 px; demo 0.26 → 0.19)
+and ends 2.12 px from the truth (demo 0.72), at that bound. With exact meshes there is nothing to
 remove, and ξ moves 0.12 px off the truth on the demo (``bench_texcoords.py --drift 0``) and
 0.39 px on the Fox (given meshes; its photos have motion blur).
 """
