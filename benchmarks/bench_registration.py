@@ -50,12 +50,9 @@ def _psnr(a, b, m) -> float:
 
 def _project(cal, X):
     """(N, 3) depth-camera points -> (N, 2) colour pixels (no distortion: synthetic scenes)."""
-    from stex.camera import transform_points
+    from stex.camera import project_points, transform_points
 
-    K = cal.color.K
-    Xc = transform_points(cal.depth_to_color, X)
-    return np.stack([(K[0, 0] * Xc[:, 0] + K[0, 1] * Xc[:, 1]) / Xc[:, 2] + K[0, 2],
-                     K[1, 1] * Xc[:, 1] / Xc[:, 2] + K[1, 2]], -1)
+    return project_points(transform_points(cal.depth_to_color, np.asarray(X, np.float64)), cal.color.K)[0]
 
 
 def main(argv=None):
@@ -101,9 +98,14 @@ def main(argv=None):
     rotations = [synth.object_to_depth(synth.time_of(t))[:3, :3] for t in range(len(ids))]
     error_sum = np.zeros((tracked.shape[1], 3))
     seen_count = np.zeros(tracked.shape[1])
+    sampled = range(0, len(ids), a.every)
+    surfaces = {}                                   # the true surfaces of part 1's frames
     for t in range(len(ids)):
         vis = np.asarray(proj["vertex_visible"][t], bool)
-        err = (np.asarray(tracked[t], np.float64) - true_surface(t)) @ rotations[t]
+        X = true_surface(t)
+        if t in sampled:
+            surfaces[t] = X
+        err = (np.asarray(tracked[t], np.float64) - X) @ rotations[t]
         error_sum[vis] += err[vis]
         seen_count[vis] += 1
     mean_error = error_sum / np.maximum(seen_count, 1)[:, None]
@@ -112,8 +114,8 @@ def main(argv=None):
     pools = {"|Φ − truth| (px)": [], "|ξ − truth| (px)": [], "|ξ − Φ| (px)": [],
              "|consensus − truth| (px)": [], "|Φ − consensus| (px)": [], "|ξ − consensus| (px)": [],
              "|tracked − truth| (mm)": []}
-    for t in range(0, len(ids), a.every):
-        X = true_surface(t)
+    for t in sampled:
+        X = surfaces[t]
         vis = np.asarray(proj["vertex_visible"][t], bool)
         if has_xi:
             vis &= np.asarray(xi_store["valid"][t], bool)
@@ -130,7 +132,7 @@ def main(argv=None):
             pools["|ξ − consensus| (px)"].append(np.linalg.norm(xi - consensus_px, axis=1))
         pools["|tracked − truth| (mm)"].append(
             1000 * np.linalg.norm(np.asarray(tracked[t], np.float64)[vis] - X[vis], axis=1))
-    n = len(range(0, len(ids), a.every))
+    n = len(sampled)
     print(f"{R}: {len(ids)} frames, colour {cal.color.width}x{cal.color.height} fx {cal.color.K[0, 0]:g}; "
           f"registration over every {a.every}th frame ({n} frames, visible vertices)")
     for name, pool in pools.items():
