@@ -553,8 +553,9 @@ def score_frame(texture, vertices, atlas, image, mask, calibration, *, face_has_
         split into surface some source frame saw and surface no frame saw; ``blur_truth``: the
         blur of the true appearance rendered in the input view (inside the mask, the render's and
         the true silhouette); and, when ``truth`` holds
-        ``template_vertices``, the same novel-view keys with prefix ``gt_truegeom`` for the
-        texture rendered on the true surface instead of the tracked one.
+        ``template_vertices``, the same novel-view keys with prefix ``gt_truegeom`` and the
+        input-view ones (``gt_input_*``) with prefix ``gt_truegeom_input`` for the texture
+        rendered on the true surface instead of the tracked one.
     """
     return score_methods({"method": texture}, vertices, atlas, image, mask, calibration,
                          face_has_texture=None if face_has_texture is None else {"method": face_has_texture},
@@ -620,7 +621,7 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
             # precision), and their renders are reused
             same = np.array_equal(np.asarray(surface, np.float32), np.asarray(vertices, np.float32))
             surface_geom = geom if same else frame_views(surface, a, calibration, novel_t, face_visible,
-                                                         seen_faces, input_view=False)
+                                                         seen_faces)
     out = {}
     for name, texture in textures.items():
         views = method_views(texture, vertices, a, calibration, geometry=geom)
@@ -638,6 +639,11 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
                 on_surface = views if same else method_views(texture, surface, a, calibration,
                                                              geometry=surface_geom)
                 s.update(_novel_scores("gt_truegeom", truth, on_surface, surface_geom["novel_ever"]))
+                # the input view too: on the tracked mesh the tracker's error cancels there (a
+                # texel read where the tracked mesh projects is rendered back to that pixel); on
+                # the true surface a texel read from the wrong place counts against the texture
+                s.update(_truth_region_scores("gt_truegeom_input", *truth["input"], *on_surface["input"],
+                                              surface_geom["input_seen"]))
         if return_views:
             s["views"] = views
         out[name] = s
@@ -669,6 +675,8 @@ SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur
                    "gt_input_ssim_all", "gt_novel_iou",
                    "gt_truegeom_psnr_unseen", "gt_truegeom_psnr_borrowed", "gt_truegeom_psnr_never_seen",
                    "gt_truegeom_ssim_unseen",
+                   "gt_truegeom_input_psnr_all", "gt_truegeom_input_psnr_seen",
+                   "gt_truegeom_input_psnr_unseen", "gt_truegeom_input_ssim_all",
                    "flicker", "flicker_excess")
 
 
@@ -798,6 +806,9 @@ def table_rows(summaries: dict) -> dict:
                                   ("gt_truegeom_psnr_unseen", "on the true surface: PSNR, dB, unseen at t", 2),
                                   ("gt_truegeom_psnr_borrowed", "on the true surface: PSNR, dB, unseen at t, seen by another frame", 2),
                                   ("gt_truegeom_psnr_never_seen", "on the true surface: PSNR, dB, never seen", 2),
+                                  ("gt_truegeom_input_psnr_all", "on the true surface: PSNR, dB, input view", 2),
+                                  ("gt_truegeom_input_psnr_seen", "on the true surface: PSNR, dB, input view, seen at t", 2),
+                                  ("gt_truegeom_input_psnr_unseen", "on the true surface: PSNR, dB, input view, unseen at t", 2),
                                   ("flicker", "flicker in borrowed regions, grey levels", 2)):
         for m in methods:
             add(gt, label, m, "all", metric, digits=digits, count=True)

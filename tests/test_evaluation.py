@@ -149,12 +149,19 @@ def test_texture_on_the_true_surface(frame, pipe):
     same = score_frame(frame["ours"], tvv, frame["atlas"], frame["image"], frame["mask"], frame["cal"], **kw)
     for k in ("psnr_unseen", "psnr_borrowed", "psnr_never_seen", "ssim_unseen"):
         assert same[f"gt_truegeom_{k}"] == pytest.approx(same[f"gt_novel_{k}"], abs=1e-9)
+    for k in ("psnr_all", "psnr_seen", "psnr_unseen", "ssim_all", "n_seen", "iou"):
+        assert same[f"gt_truegeom_input_{k}"] == pytest.approx(same[f"gt_input_{k}"], abs=1e-9, nan_ok=True)
+    assert same["gt_truegeom_input_n_seen"] > 1000
     moved = score_frame(frame["ours"], tvv + np.array([0.01, 0.0, 0.0]), frame["atlas"], frame["image"],
                         frame["mask"], frame["cal"], **kw)
-    assert moved["gt_truegeom_psnr_unseen"] == pytest.approx(same["gt_truegeom_psnr_unseen"], abs=1e-9)
-    print("same / moved: gt_novel iou", same["gt_novel_iou"], moved["gt_novel_iou"])
+    for k in ("psnr_unseen", "input_psnr_all", "input_psnr_seen", "input_iou"):
+        assert moved[f"gt_truegeom_{k}"] == pytest.approx(same[f"gt_truegeom_{k}"], abs=1e-9)
+    print("same / moved: gt_novel iou", same["gt_novel_iou"], moved["gt_novel_iou"],
+          "gt_input psnr", same["gt_input_psnr_all"], moved["gt_input_psnr_all"])
     assert moved["gt_novel_iou"] < same["gt_novel_iou"] - 0.05
     assert abs(moved["gt_novel_psnr_unseen"] - same["gt_novel_psnr_unseen"]) > 0.01
+    assert moved["gt_input_iou"] < same["gt_input_iou"] - 0.05
+    assert moved["gt_input_psnr_all"] < same["gt_input_psnr_all"] - 1.0
     # no template vertices in the truth: no such keys
     plain = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
     assert "gt_truegeom_psnr_unseen" not in score_frame(
