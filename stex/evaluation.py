@@ -884,7 +884,10 @@ def rst_tables(summaries: dict, timing: dict | None = None, sampling=None) -> st
                         "on the true mesh, from the opposite side (novel view), split into the "
                         "surface the camera sees at t and the rest. 'On the true surface': the "
                         "same texture rendered on the true geometry (the template carried onto "
-                        "the true mesh), so that only the texture's own error remains.",
+                        "the true mesh), so that only the texture's own error remains; in the "
+                        "input view the tracked mesh forgives a frame's own texels the tracker's "
+                        "error at that frame (they come back to the pixels they were read from), "
+                        "the true surface does not.",
         "timing": "Wall time per stage.",
         "sampling": "The texture-coordinate stage run with key frames every n-th frame (1/n) and "
                     "the displacements interpolated between them, then refined over all frames "
