@@ -84,6 +84,13 @@ def run_stages(cfg: dict, d) -> dict:
             "template": d / "template.zarr", "tracking": d / "tracking.zarr", "projection": d / "projection.zarr"}
 
 
+@pytest.fixture(scope="session")
+def tiny_pipeline(tmp_path_factory) -> dict:
+    """:func:`run_pipeline` of the tiny scene with a 256² atlas, once per test process; tests
+    read its stores and write their own into their own folders."""
+    return run_pipeline(tiny_scene_config(template={"atlas_size": 256}), tmp_path_factory.mktemp("tiny"))
+
+
 def run_pipeline(cfg: dict, d) -> dict:
     """:func:`run_stages` then poses, observations (at Φ), tables, labeling, volume, correction
     and the global texture (at Φ, the tables' source_stride) through the real stage writers.

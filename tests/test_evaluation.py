@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import zarr
 
-from conftest import run_pipeline, tiny_scene_config
 from stex import evaluate as ev
 from stex.camera import Calibration, transform_points
 from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dynamism_regions, image_scores,
@@ -16,12 +15,6 @@ from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dyn
                              write_evaluation)
 from stex.baseline import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
-
-
-@pytest.fixture(scope="module")
-def pipe(tmp_path_factory):
-    cfg = tiny_scene_config(template={"atlas_size": 256})
-    return run_pipeline(cfg, tmp_path_factory.mktemp("tiny"))
 
 
 def _args(P):
@@ -35,32 +28,32 @@ def _evaluate(P, out, **kw):
 
 
 @pytest.fixture(scope="module")
-def evaluation(pipe, tmp_path_factory):
+def evaluation(tiny_pipeline, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
-    res = _evaluate(pipe, out, truth_paths=pipe["truth"],
-                    observations_path=pipe["observations"], tables_paths=pipe["tables"],
+    res = _evaluate(tiny_pipeline, out, truth_paths=tiny_pipeline["truth"],
+                    observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"],
                     timing={"labeling": 90.0, "volume": 30.0})
     return out, res
 
 
 @pytest.fixture(scope="module")
-def frame(pipe):
+def frame(tiny_pipeline):
     """Frame 2 of the tiny scene: photo, mask, calibration, our mesh/atlas/texture, the truth."""
-    scene = open_store(pipe["scene"], "scene")
-    template = open_store(pipe["template"], "template")
+    scene = open_store(tiny_pipeline["scene"], "scene")
+    template = open_store(tiny_pipeline["template"], "template")
     t = 2
     return {
         "cal": Calibration.from_dict(scene.attrs["calibration"]),
-        "image": FrameSequence(pipe["frames"], "frames").read("color", t),
-        "mask": FrameSequence(pipe["masks"], "masks").read("mask", t),
-        "V": open_store(pipe["tracking"], "tracking")["vertices"][t],
+        "image": FrameSequence(tiny_pipeline["frames"], "frames").read("color", t),
+        "mask": FrameSequence(tiny_pipeline["masks"], "masks").read("mask", t),
+        "V": open_store(tiny_pipeline["tracking"], "tracking")["vertices"][t],
         "atlas": Atlas(template["faces"][...], template["texcoords"][...], template["texcoord_faces"][...]),
-        "ours": FrameSequence(pipe["corrected"], "corrected").read("texture", t),
-        "visible": open_store(pipe["projection"], "projection")["face_visible"][t],
+        "ours": FrameSequence(tiny_pipeline["corrected"], "corrected").read("texture", t),
+        "visible": open_store(tiny_pipeline["projection"], "projection")["face_visible"][t],
         "true_V": scene["truth/vertices"][t],
         "true_atlas": Atlas(scene["template/faces"][...], scene["template/texcoords"][...],
                             scene["template/texcoord_faces"][...]),
-        "appearance": FrameSequence(pipe["truth"], "truth").read("appearance", t),
+        "appearance": FrameSequence(tiny_pipeline["truth"], "truth").read("appearance", t),
     }
 
 
@@ -134,12 +127,12 @@ def test_unseen_region_splits_into_borrowed_and_never_seen(frame):
         truth=tv, face_visible=frame["visible"])
 
 
-def test_texture_on_the_true_surface(frame, pipe):
+def test_texture_on_the_true_surface(frame, tiny_pipeline):
     """gt_truegeom: the same texture rendered on the true surface (the truth carried onto the
     template). With the tracked mesh in its place the scores are the gt_novel ones; with the
     tracked mesh moved 1 cm sideways, gt_novel drops and gt_truegeom does not see the move."""
     from stex.template import transfer_vertices
-    template = open_store(pipe["template"], "template")
+    template = open_store(tiny_pipeline["template"], "template")
     tvv = transfer_vertices(frame["true_V"], frame["true_atlas"].faces, template["embedding/face"][...],
                             template["embedding/bary"][...])
     tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"],
@@ -169,12 +162,12 @@ def test_texture_on_the_true_surface(frame, pipe):
         truth=plain, face_visible=frame["visible"])
 
 
-def test_methods_scored_together_score_as_each_alone(frame, pipe):
+def test_methods_scored_together_score_as_each_alone(frame, tiny_pipeline):
     """score_methods shares the rasterised mesh and the photo's and the truth's blur between
     textures: every score equals score_frame's for that texture alone, with the true surface
     apart from the tracked mesh (its own rasters) and with it in the same place (reused)."""
     from stex.template import transfer_vertices
-    template = open_store(pipe["template"], "template")
+    template = open_store(tiny_pipeline["template"], "template")
     surface = transfer_vertices(frame["true_V"], frame["true_atlas"].faces,
                                 template["embedding/face"][...], template["embedding/bary"][...])
     F = len(frame["atlas"].faces)
@@ -262,12 +255,12 @@ def test_outputs_are_written(evaluation):
     assert table[0][:2] == ["Metric", "Method"] and len(table) > 8
 
 
-def test_threads_score_exactly_as_one(pipe, evaluation, tmp_path):
+def test_threads_score_exactly_as_one(tiny_pipeline, evaluation, tmp_path):
     """Runs of frames in 3 threads (the flicker of a run's first frame re-renders its
     predecessor): every score equals the single-thread evaluation's."""
     _, res = evaluation
-    par = _evaluate(pipe, tmp_path / "eval3", truth_paths=pipe["truth"],
-                    observations_path=pipe["observations"], tables_paths=pipe["tables"], threads=3)
+    par = _evaluate(tiny_pipeline, tmp_path / "eval3", truth_paths=tiny_pipeline["truth"],
+                    observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"], threads=3)
     assert [r["frame"] for r in par["frames"]] == list(range(6))
     assert par["frames"] == res["frames"] and par["summary"] == res["summary"]
 
@@ -277,15 +270,15 @@ def _block_stores(P, blocks):
     return {**P, **{k: [P[k][b] for b in blocks] for k in ("frames", "masks", "truth", "volume", "corrected")}}
 
 
-def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tmp_path):
+def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evaluation, tmp_path):
     """Each frame block scored from its own stores (and its predecessor block's, for the
     flicker of its first frame), then merged: the same records, summary and tables."""
     _, res = evaluation
-    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
+    blocks = open_store(tiny_pipeline["scene"], "scene").attrs["frame_blocks"]
     assert len(blocks) == 2
     paths = []
     for b, block in enumerate(blocks):
-        P = _block_stores(pipe, [b - 1, b] if b else [b])
+        P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
         doc = score_frames(*_args(P), paths[-1], global_texture_path=P["global_texture"],
                            truth_paths=P["truth"], tables_paths=P["tables"], block=block)
@@ -293,12 +286,12 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tm
         assert not list(tmp_path.glob(f"block_{b}.json.partial*"))
     # the second block alone lacks frame 3, its first frame's predecessor
     with pytest.raises(ValueError, match=r"frames \[3\] are needed"):
-        P = _block_stores(pipe, [1])
+        P = _block_stores(tiny_pipeline, [1])
         score_frames(*_args(P), tmp_path / "bad.json", global_texture_path=P["global_texture"],
                      truth_paths=P["truth"], block=blocks[1])
     assert not (tmp_path / "bad.json").exists()
-    merged = _evaluate(pipe, tmp_path / "merged", truth_paths=pipe["truth"],
-                       observations_path=pipe["observations"], tables_paths=pipe["tables"],
+    merged = _evaluate(tiny_pipeline, tmp_path / "merged", truth_paths=tiny_pipeline["truth"],
+                       observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"],
                        records_paths=paths[::-1])
     assert merged["frames"] == res["frames"] and merged["summary"] == res["summary"]
     assert merged["tables"] == res["tables"]
@@ -306,37 +299,40 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(pipe, evaluation, tm
 
     # records that do not make up the evaluation are refused, naming what is wrong
     with pytest.raises(ValueError, match=r"\[4, 5\] missing"):
-        _evaluate(pipe, tmp_path / "m1", truth_paths=pipe["truth"], records_paths=paths[:1])
+        _evaluate(tiny_pipeline, tmp_path / "m1", truth_paths=tiny_pipeline["truth"], records_paths=paths[:1])
     with pytest.raises(ValueError, match="twice"):
-        _evaluate(pipe, tmp_path / "m2", truth_paths=pipe["truth"], records_paths=paths + paths[1:])
+        _evaluate(tiny_pipeline, tmp_path / "m2", truth_paths=tiny_pipeline["truth"],
+                  records_paths=paths + paths[1:])
     with pytest.raises(ValueError, match="other evaluation settings .*radius"):
-        _evaluate(pipe, tmp_path / "m3", params={"radius": 2}, truth_paths=pipe["truth"], records_paths=paths)
+        _evaluate(tiny_pipeline, tmp_path / "m3", params={"radius": 2}, truth_paths=tiny_pipeline["truth"],
+                  records_paths=paths)
     # the figures' settings are the merge's own: other ones re-draw from the same records
-    fig = _evaluate(pipe, tmp_path / "m5", params={"figure_frame": 1, "dynamism_regions": 2},
-                    truth_paths=pipe["truth"], observations_path=pipe["observations"],
-                    tables_paths=pipe["tables"], records_paths=paths)
+    fig = _evaluate(tiny_pipeline, tmp_path / "m5", params={"figure_frame": 1, "dynamism_regions": 2},
+                    truth_paths=tiny_pipeline["truth"], observations_path=tiny_pipeline["observations"],
+                    tables_paths=tiny_pipeline["tables"], records_paths=paths)
     assert fig["frames"] == res["frames"] and fig["summary"] == res["summary"]
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(StoreError, match="junk.json"):
-        _evaluate(pipe, tmp_path / "m4", truth_paths=pipe["truth"], records_paths=[tmp_path / "junk.json"])
+        _evaluate(tiny_pipeline, tmp_path / "m4", truth_paths=tiny_pipeline["truth"],
+                  records_paths=[tmp_path / "junk.json"])
     assert not any((tmp_path / f"m{k}").exists() for k in range(1, 5))
     assert not list(tmp_path.glob("m*.partial*"))
 
 
-def _results_folder(pipe, root):
+def _results_folder(tiny_pipeline, root):
     """The tiny pipeline's stores laid out as a workflow run's ``results/<scene>`` (symlinks)."""
     root.mkdir(parents=True)
     for name in ("scene", "template", "tracking", "projection", "labels", "observations",
                  "global_texture"):
-        (root / f"{name}.zarr").symlink_to(pipe[name])
+        (root / f"{name}.zarr").symlink_to(tiny_pipeline[name])
     for kind in ("frames", "masks", "truth", "tables", "volume", "corrected"):
         (root / kind).mkdir()
-        for b, path in enumerate(pipe[kind]):
+        for b, path in enumerate(tiny_pipeline[kind]):
             (root / kind / f"block_{b:04d}.zarr").symlink_to(path)
     return root
 
 
-def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
+def test_other_methods_score_beside_ours(tiny_pipeline, evaluation, tmp_path):
     """Other methods' slices (PNG files as `stex export` writes them, or a texture store) are
     scored by the same code as ours: ours exported to PNG and ours_uncorrected's own stores score
     exactly as ours and ours_uncorrected, and appear in the tables under their names; bad
@@ -348,10 +344,10 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     from stex.export import write_png_slices
 
     _, res = evaluation
-    ours = FrameSequence(pipe["corrected"], "corrected")
+    ours = FrameSequence(tiny_pipeline["corrected"], "corrected")
     ids = ours.frame_ids
     write_png_slices((ours.read("texture", i) for i in ids), ids, tmp_path / "mine")
-    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     # the run's sampling table (texcoords_sampling.json) goes into the new folder's tables too
     steps = [{"step": 1, "keyframes": 6, "energy": 2.0, "seconds": 4.0, "error_ratio": 1.0, "speedup": 1.0},
              {"step": 2, "keyframes": 3, "energy": 2.5, "seconds": 2.0, "error_ratio": 1.25, "speedup": 2.0}]
@@ -414,7 +410,7 @@ def test_other_methods_score_beside_ours(pipe, evaluation, tmp_path):
     assert not (tmp_path / "cli2").exists()
 
 
-def test_other_methods_in_another_uv_layout(pipe, tmp_path, capsys):
+def test_other_methods_in_another_uv_layout(tiny_pipeline, tmp_path, capsys):
     """Slices in another UV layout (here the scene's own mesh and atlas) are carried into the
     run's atlas through that mesh: ours carried out into it and scored from there score like
     ours. A mesh elsewhere is refused naming it, and so are such slices read as the run's atlas."""
@@ -427,14 +423,14 @@ def test_other_methods_in_another_uv_layout(pipe, tmp_path, capsys):
     from stex.resample import atlas_transfer
     from stex.template import texel_map
 
-    scene = open_store(pipe["scene"], "scene")
-    template = open_store(pipe["template"], "template")
+    scene = open_store(tiny_pipeline["scene"], "scene")
+    template = open_store(tiny_pipeline["template"], "template")
     V0, F0, T0, TF0 = (np.asarray(scene[f"template/{k}"][...]) for k in
                        ("vertices", "faces", "texcoords", "texcoord_faces"))
     out_of_ours = atlas_transfer(*texel_map(T0, TF0, 512), V0, F0, template["vertices"][...],
                                  template["faces"][...], template["texcoords"][...],
                                  template["texcoord_faces"][...], gutter_px=4)
-    ours = FrameSequence(pipe["corrected"], "corrected")
+    ours = FrameSequence(tiny_pipeline["corrected"], "corrected")
     ids = ours.frame_ids
     theirs = tmp_path / "theirs"
     write_png_slices((out_of_ours.apply(ours.read("texture", i)) for i in ids), ids, theirs)
@@ -449,7 +445,7 @@ def test_other_methods_in_another_uv_layout(pipe, tmp_path, capsys):
     by_hand = tmp_path / "by_hand"
     write_png_slices((back.apply(np.asarray(Image.open(theirs / f"texture_{i:05d}.png"))) for i in ids),
                      ids, by_hand)
-    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     got = evaluate_results(R, tmp_path / "eval", {"theirs": {"slices": str(theirs),
                                                             "uv_mesh": str(tmp_path / "theirs.obj")},
                                                  "by_hand": by_hand})
@@ -496,25 +492,25 @@ def test_other_methods_in_another_uv_layout(pipe, tmp_path, capsys):
     assert not (tmp_path / "cli2").exists()
 
 
-def test_other_methods_from_the_settings_scored_in_blocks(pipe, tmp_path):
+def test_other_methods_from_the_settings_scored_in_blocks(tiny_pipeline, tmp_path):
     """evaluation.other_methods (the workflow's way): block jobs score them too, and their
     merge equals the in-process evaluation with the same methods given as ``others``."""
     from stex.export import write_png_slices
 
-    ours = FrameSequence(pipe["volume"], "volume")
+    ours = FrameSequence(tiny_pipeline["volume"], "volume")
     write_png_slices((ours.read("texture", i) for i in ours.frame_ids), ours.frame_ids, tmp_path / "unc")
     params = {"other_methods": {"unc": str(tmp_path / "unc")}}
-    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
+    blocks = open_store(tiny_pipeline["scene"], "scene").attrs["frame_blocks"]
     paths = []
     for b, block in enumerate(blocks):
-        P = _block_stores(pipe, [b - 1, b] if b else [b])
+        P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
         score_frames(*_args(P), paths[-1], params, global_texture_path=P["global_texture"],
                      truth_paths=P["truth"], tables_paths=P["tables"], block=block)
-    merged = _evaluate(pipe, tmp_path / "merged", params=params, truth_paths=pipe["truth"],
-                       tables_paths=pipe["tables"], records_paths=paths)
-    direct = _evaluate(pipe, tmp_path / "direct", truth_paths=pipe["truth"],
-                       tables_paths=pipe["tables"], others={"unc": tmp_path / "unc"})
+    merged = _evaluate(tiny_pipeline, tmp_path / "merged", params=params, truth_paths=tiny_pipeline["truth"],
+                       tables_paths=tiny_pipeline["tables"], records_paths=paths)
+    direct = _evaluate(tiny_pipeline, tmp_path / "direct", truth_paths=tiny_pipeline["truth"],
+                       tables_paths=tiny_pipeline["tables"], others={"unc": tmp_path / "unc"})
     assert merged["methods"] == direct["methods"] == list(METHODS) + ["unc"]
     assert merged["params"]["other_methods"] == direct["params"]["other_methods"]
     assert merged["frames"] == direct["frames"] and merged["tables"] == direct["tables"]
@@ -522,45 +518,47 @@ def test_other_methods_from_the_settings_scored_in_blocks(pipe, tmp_path):
         assert f["methods"]["unc"]["psnr"] == f["methods"]["ours_uncorrected"]["psnr"]
     # records scored without the other method do not make up this evaluation
     with pytest.raises(ValueError, match="other evaluation settings .*other_methods"):
-        _evaluate(pipe, tmp_path / "m", truth_paths=pipe["truth"], tables_paths=pipe["tables"],
+        _evaluate(tiny_pipeline, tmp_path / "m", truth_paths=tiny_pipeline["truth"],
+                  tables_paths=tiny_pipeline["tables"],
                   records_paths=paths, others={"x": tmp_path / "unc"})
 
 
-def test_blocks_score_every_stride_th_frame_of_the_scene(pipe, tmp_path):
+def test_blocks_score_every_stride_th_frame_of_the_scene(tiny_pipeline, tmp_path):
     """With evaluation.stride the frames to score are every k-th of the whole scene, whichever
     block holds them; a block with none of them writes an empty record list."""
-    blocks = open_store(pipe["scene"], "scene").attrs["frame_blocks"]
-    docs = [score_frames(*_args(pipe), tmp_path / f"b{b}.json", {"stride": 5},
-                         global_texture_path=pipe["global_texture"], block=block)
+    blocks = open_store(tiny_pipeline["scene"], "scene").attrs["frame_blocks"]
+    docs = [score_frames(*_args(tiny_pipeline), tmp_path / f"b{b}.json", {"stride": 5},
+                         global_texture_path=tiny_pipeline["global_texture"], block=block)
             for b, block in enumerate(blocks)]
     assert [d["scored_frames"] for d in docs] == [[0], [5]]
     assert [[r["frame"] for r in d["frames"]] for d in docs] == [[0], [5]]
-    empty = score_frames(*_args(pipe), tmp_path / "none.json", {"stride": 5},
-                         global_texture_path=pipe["global_texture"], block=[1, 4])
+    empty = score_frames(*_args(tiny_pipeline), tmp_path / "none.json", {"stride": 5},
+                         global_texture_path=tiny_pipeline["global_texture"], block=[1, 4])
     assert empty["frames"] == [] and json.loads((tmp_path / "none.json").read_text())["frames"] == []
-    res = _evaluate(pipe, tmp_path / "eval", params={"stride": 5},
+    res = _evaluate(tiny_pipeline, tmp_path / "eval", params={"stride": 5},
                     records_paths=[tmp_path / "b0.json", tmp_path / "none.json", tmp_path / "b1.json"])
     assert res["scored_frames"] == [0, 5] and [r["frame"] for r in res["frames"]] == [0, 5]
     with pytest.raises(ValueError, match="outside the scene"):
-        score_frames(*_args(pipe), tmp_path / "x.json", global_texture_path=pipe["global_texture"],
+        score_frames(*_args(tiny_pipeline), tmp_path / "x.json", global_texture_path=tiny_pipeline["global_texture"],
                      block=[4, 9])
 
 
-def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
+def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_path):
     tables = []
-    for k, p in enumerate(pipe["tables"]):
+    for k, p in enumerate(tiny_pipeline["tables"]):
         q = tmp_path / f"tables_{k}.zarr"
         shutil.copytree(p, q)
         zarr.open_group(str(q), mode="r+").attrs.update(source_frames=[0, 2, 4])
         tables.append(q)
     # the global baseline of the same source frames (what the workflow builds with stride 2)
     glob2 = tmp_path / "global_2.zarr"
-    write_global_texture(pipe["scene"], pipe["frames"], pipe["template"], pipe["projection"],
-                         pipe["projection"], glob2, {"source_stride": 2})
+    P = tiny_pipeline
+    write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], P["projection"], glob2,
+                         {"source_stride": 2})
     with pytest.raises(ValueError, match="source_stride"):   # stride-1 global vs stride-2 tables
-        _evaluate(pipe, tmp_path / "bad", tables_paths=tables, frames=[1, 2])
+        _evaluate(tiny_pipeline, tmp_path / "bad", tables_paths=tables, frames=[1, 2])
     assert not (tmp_path / "bad").exists()
-    res = _evaluate({**pipe, "global_texture": glob2}, tmp_path / "eval",
+    res = _evaluate({**tiny_pipeline, "global_texture": glob2}, tmp_path / "eval",
                     tables_paths=tables, frames=[1, 2])
     assert [r["held_out"] for r in res["frames"]] == [True, False]
     assert res["source_frames"] == [0, 2, 4]
@@ -572,23 +570,23 @@ def test_held_out_frames_are_labelled_and_summarised_apart(pipe, tmp_path):
     assert any("held-out" in r[0] for r in res["tables"]["reconstruction"])
 
 
-def test_bad_input_names_the_store(pipe, tmp_path):
+def test_bad_input_names_the_store(tiny_pipeline, tmp_path):
     with pytest.raises(ValueError, match="volume"):          # mismatched frame counts
-        _evaluate({**pipe, "volume": pipe["volume"][:1]}, tmp_path / "a")
+        _evaluate({**tiny_pipeline, "volume": tiny_pipeline["volume"][:1]}, tmp_path / "a")
     with pytest.raises(StoreError, match="nothing.zarr"):   # missing store
-        _evaluate({**pipe, "labels": tmp_path / "nothing.zarr"}, tmp_path / "b")
+        _evaluate({**tiny_pipeline, "labels": tmp_path / "nothing.zarr"}, tmp_path / "b")
     with pytest.raises(ValueError, match="frames to score"):
-        _evaluate(pipe, tmp_path / "c", frames=[99])
+        _evaluate(tiny_pipeline, tmp_path / "c", frames=[99])
     with pytest.raises(ValueError, match="strides"):
-        _evaluate(pipe, tmp_path / "d", params={"strides": 2})
+        _evaluate(tiny_pipeline, tmp_path / "d", params={"strides": 2})
     with pytest.raises(ValueError, match="global_min_weight"):   # moved to global_texture.min_weight
-        _evaluate(pipe, tmp_path / "e", params={"global_min_weight": 0.3})
+        _evaluate(tiny_pipeline, tmp_path / "e", params={"global_min_weight": 0.3})
     with pytest.raises(StoreError, match="global_texture"):      # another kind of store
-        _evaluate({**pipe, "global_texture": pipe["labels"]}, tmp_path / "f")
+        _evaluate({**tiny_pipeline, "global_texture": tiny_pipeline["labels"]}, tmp_path / "f")
     assert not (tmp_path / "a").exists()
 
 
-def test_textures_of_another_atlas_of_the_same_side_are_refused(pipe, tmp_path):
+def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, tmp_path):
     """The texture stores record their template's atlas; a store of another atlas of the same
     side (which would score as noise in this one) is refused, naming it, wherever it is read:
     as another method, as the run's own slices, by the correction and by the export."""
@@ -601,31 +599,31 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(pipe, tmp_path):
     from stex.export import _Results
     from stex.template import atlas_digest, template_atlas_digest
 
-    template = open_store(pipe["template"], "template")
+    template = open_store(tiny_pipeline["template"], "template")
     mine = template_atlas_digest(template)
     for kind in ("volume", "corrected"):
-        assert {open_store(b, kind).attrs["atlas_digest"] for b in pipe[kind]} == {mine}
-    assert open_store(pipe["global_texture"], "global_texture").attrs["atlas_digest"] == mine
+        assert {open_store(b, kind).attrs["atlas_digest"] for b in tiny_pipeline[kind]} == {mine}
+    assert open_store(tiny_pipeline["global_texture"], "global_texture").attrs["atlas_digest"] == mine
     # another layout of the same side: the scene's own mesh and atlas
-    scene = open_store(pipe["scene"], "scene")
+    scene = open_store(tiny_pipeline["scene"], "scene")
     W = int(template.attrs["atlas_size"])
     other = atlas_digest(scene["template/texcoords"][...], scene["template/texcoord_faces"][...], W)
     assert other != mine
     assert atlas_digest(template["texcoords"][...].astype(np.float64), template["texcoord_faces"][...], W) == mine
     assert atlas_digest(template["texcoords"][...], template["texcoord_faces"][...], W * 2) != mine
 
-    R = _results_folder(pipe, tmp_path / "results" / "tiny")
+    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     moved = tmp_path / "moved"
     moved.mkdir()
-    for b, path in enumerate(pipe["corrected"]):
+    for b, path in enumerate(tiny_pipeline["corrected"]):
         shutil.copytree(path, moved / f"block_{b:04d}.zarr")
         zarr.open_group(str(moved / f"block_{b:04d}.zarr"), mode="r+").attrs["atlas_digest"] = other
     with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas .*--uv-mesh"):
         evaluate_results(R, tmp_path / "e1", {"mine": moved})
     with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas than the template"):
-        _evaluate({**pipe, "corrected": sorted(moved.glob("block_*.zarr"))}, tmp_path / "e2")
+        _evaluate({**tiny_pipeline, "corrected": sorted(moved.glob("block_*.zarr"))}, tmp_path / "e2")
     with pytest.raises(ValueError, match=r"moved/block_0000\.zarr holds textures of another UV atlas"):
-        write_corrected(pipe["template"], pipe["volume"][1], {"temporal": True}, tmp_path / "c.zarr",
+        write_corrected(tiny_pipeline["template"], tiny_pipeline["volume"][1], {"temporal": True}, tmp_path / "c.zarr",
                         previous_path=moved / "block_0000.zarr")
     (R / "corrected").rename(R / "corrected_ours")
     (R / "corrected").symlink_to(moved)
@@ -633,9 +631,9 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(pipe, tmp_path):
         _Results(R)
     assert not any((tmp_path / x).exists() for x in ("e1", "e2", "c.zarr"))
     # stores written before the attr existed are read as before
-    for b in range(len(pipe["corrected"])):
+    for b in range(len(tiny_pipeline["corrected"])):
         del zarr.open_group(str(moved / f"block_{b:04d}.zarr"), mode="r+").attrs["atlas_digest"]
-    assert _Results(R).frame_ids == FrameSequence(pipe["corrected"], "corrected").frame_ids
+    assert _Results(R).frame_ids == FrameSequence(tiny_pipeline["corrected"], "corrected").frame_ids
 
 
 def test_vertex_motion_and_dynamism_regions():
@@ -659,19 +657,19 @@ def test_rst_tables_over_two_scenes():
     assert "2.00" in rst and "Coverage" in rst and "Ground truth" not in rst
 
 
-def test_pipeline_tables_rank_with_the_observed_strain(pipe):
+def test_pipeline_tables_rank_with_the_observed_strain(tiny_pipeline):
     """The observations stage stores the tracked meshes' strain once (E_str), and every tables
     block ranks with it: the stored e_str of each kept candidate is E_str(t, f, l) of that strain."""
     from stex.similarity import face_strain, strain_similarity
 
-    obs = open_store(pipe["observations"], "observations")
-    template = open_store(pipe["template"], "template")
+    obs = open_store(tiny_pipeline["observations"], "observations")
+    template = open_store(tiny_pipeline["template"], "template")
     strain = np.asarray(obs["strain"][...])
-    expected = face_strain(open_store(pipe["tracking"], "tracking")["vertices"][...],
+    expected = face_strain(open_store(tiny_pipeline["tracking"], "tracking")["vertices"][...],
                            template["vertices"][...], template["faces"][...],
                            obs.attrs["params"]["strain_rings"])
     np.testing.assert_allclose(strain, expected, atol=1e-6)
-    tables = open_store(pipe["tables"][0], "tables")
+    tables = open_store(tiny_pipeline["tables"][0], "tables")
     assert tables.attrs["params"]["omega_str"] > 0
     t = 0
     cand = np.asarray(tables["candidates"][t], np.int64)
@@ -681,17 +679,17 @@ def test_pipeline_tables_rank_with_the_observed_strain(pipe):
     np.testing.assert_allclose(tables["e_str"][t][ok], E[cand[ok], f], atol=1e-6)
 
 
-def test_labeling_reads_the_tables_a_frame_at_a_time(pipe):
+def test_labeling_reads_the_tables_a_frame_at_a_time(tiny_pipeline):
     """The labeling reads each frame's candidates and data term from the tables blocks when it
     solves that frame (TableRows), instead of holding every frame's (T, F, K) rows; the rows and
     the labels are those of the whole arrays read at once."""
     from stex.labeling import TableRows, label_sequence, labeling_inputs
     from stex.tables import unary_terms
 
-    args = labeling_inputs(pipe["observations"], pipe["tables"], pipe["template"], {})
+    args = labeling_inputs(tiny_pipeline["observations"], tiny_pipeline["tables"], tiny_pipeline["template"], {})
     args.pop("frame_ids"), args.pop("never_seen")
     assert isinstance(args["cand"], TableRows) and isinstance(args["unary"], TableRows)
-    blocks = [open_store(p, "tables") for p in pipe["tables"]]
+    blocks = [open_store(p, "tables") for p in tiny_pipeline["tables"]]
     tp = blocks[0].attrs["params"]
     cand = np.concatenate([b["candidates"][...] for b in blocks])
     unary = np.concatenate([unary_terms(b["e_qual"][...], b["e_glo"][...], b["e_loc"][...],
@@ -707,8 +705,8 @@ def test_labeling_reads_the_tables_a_frame_at_a_time(pipe):
     whole = label_sequence(**dict(args, cand=cand, unary=unary), threads=2)
     assert np.array_equal(lazy["labels"], whole["labels"])
     assert np.array_equal(lazy["energy"], whole["energy"])
-    stored = open_store(pipe["labels"], "labels")["labels"][...]
-    glimpsed = open_store(pipe["labels"], "labels")["glimpse_source"][...] >= 0
+    stored = open_store(tiny_pipeline["labels"], "labels")["labels"][...]
+    glimpsed = open_store(tiny_pipeline["labels"], "labels")["glimpse_source"][...] >= 0
     assert np.array_equal(stored[:, ~glimpsed], lazy["labels"][:, ~glimpsed])
 
 

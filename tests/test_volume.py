@@ -247,13 +247,6 @@ def test_label_colors():
 
 # -- a slice's own frame read at Φ (volume.own_frame_coordinates) -----------------------------
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    from conftest import run_pipeline, tiny_scene_config
-
-    return run_pipeline(tiny_scene_config(template={"atlas_size": 256}), tmp_path_factory.mktemp("tiny"))
-
-
 def _shifted_coordinates(P, out, shift_px):
     """A ``texcoords`` store whose ξ is the run's Φ moved by ``shift_px`` (x, y): a stand-in for
     the optimisation's correction that makes ξ and Φ read different colours."""
@@ -270,7 +263,7 @@ def _shifted_coordinates(P, out, shift_px):
     return out
 
 
-def test_own_frame_texels_are_read_at_phi_and_the_others_at_xi(tiny_run, tmp_path):
+def test_own_frame_texels_are_read_at_phi_and_the_others_at_xi(tiny_pipeline, tmp_path):
     """With ``own_frame_coordinates: projected`` slice t's texels labelled t equal those of a
     volume read entirely at Φ, every other labelled texel equals the volume read at ξ, and the
     label maps are the ones the labels give (the stand-in label T + t never leaks out). ξ here is
@@ -278,7 +271,7 @@ def test_own_frame_texels_are_read_at_phi_and_the_others_at_xi(tiny_run, tmp_pat
     from stex.io import open_store
     from stex.volume import write_volume
 
-    P = tiny_run
+    P = tiny_pipeline
     xi = _shifted_coordinates(P, tmp_path / "xi.zarr", (0.7, -0.4))
     start, stop = open_store(P["scene"], "scene").attrs["frame_blocks"][0]
     out = {}
