@@ -21,7 +21,7 @@ Reported per variant:
   change: low error) while static regions do not flicker (few switches).
 
     python benchmarks/bench_ablations.py results/demo [--stride 6] [--scratch /tmp/stex_ablations]
-        [--only "temporal off,..."]
+        [--only "temporal off" --only "spatial selective on" ...]
 """
 
 from __future__ import annotations
@@ -127,7 +127,9 @@ def main(argv=None):
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/stex_ablations"))
     ap.add_argument("--dynamic-std", type=float, default=4.0,
                     help="a face is dynamic when its true colour's temporal std exceeds this (grey levels)")
-    ap.add_argument("--only", default=None, help="comma-separated variant names (default: all)")
+    # repeated rather than comma-separated: the main variant's name holds a comma
+    ap.add_argument("--only", action="append", default=None,
+                    help="a variant's name; repeat for several (default: all)")
     args = ap.parse_args(argv)
     R = args.results
     if not (R / "truth").is_dir():
@@ -140,7 +142,7 @@ def main(argv=None):
     res = {"results": str(R), "stride": args.stride, "dynamic_std": args.dynamic_std,
            "dynamic_faces": int(dynamic.sum()), "faces": int(dynamic.size), "variants": {}}
     print(f"{dynamic.sum()} of {dynamic.size} faces dynamic (true colour std > {args.dynamic_std})", flush=True)
-    names = list(VARIANTS) if args.only is None else [n.strip() for n in args.only.split(",")]
+    names = list(VARIANTS) if args.only is None else [n.strip() for n in args.only]
     for k, name in enumerate(names):
         if name not in VARIANTS:
             sys.exit(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
