@@ -26,8 +26,8 @@ other terms (E_qual, E_glo, E_str), and the ``candidates`` best of those by the 
 E_loc ≥ −1, so a frame left out by the prefilter (pre-score ≥ P, the worst pre-score kept) scores
 at least P − (1 − ω_g); when the K-th best full score is below that, the pruning is provably exact
 for the face. The stage records the fraction of (target, face) pairs where this holds (attr
-``prefilter_exact``), and ``tests/test_labeling.py`` checks on a small scene that the pruned
-tables give the same labeling as unpruned ones.
+``prefilter_exact``), and ``tests/test_tables.py`` checks that wherever it holds the pruned
+candidates equal those of the full ranking (``test_pruned_candidates_equal_full_ranking_where_exact``).
 
 ``similarity: global | local`` keeps only one geometric term (the paper's ablation): U = E_qual
 + E_glo, or U = E_qual + (1 + E_loc) (shifted to [0, 1] so its scale matches E_glo's). E_str is a

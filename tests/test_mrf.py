@@ -314,6 +314,70 @@ def test_nodes_with_empty_subsets_are_ignored():
     assert en[-1] >= e_opt - 1e-9
 
 
+def _chain(subsets, costs, edges=(), weights=(), feat=None):
+    """A problem from per-node label lists and unary costs; every edge carries the 1-D feature
+    ``feat[label]`` for every label of the problem."""
+    labels = sorted({l for sub in subsets for l in sub})
+    cand_ptr = np.r_[0, np.cumsum([len(x) for x in subsets])].astype(np.int64)
+    edges = np.array(edges, np.int32).reshape(-1, 2)
+    feat_label = np.tile(labels, len(edges)).astype(np.int32)
+    feat_rows = (np.array([[feat[l]] for l in labels] * len(edges), np.float32) if len(edges)
+                 else np.zeros((0, 1), np.float32))
+    return (cand_ptr, np.concatenate(subsets).astype(np.int32), np.concatenate(costs).astype(float), edges,
+            np.array(weights, float), np.arange(len(edges) + 1) * len(labels), feat_label, feat_rows)
+
+
+def test_ties_keep_the_lowest_label_at_start_and_the_current_one_after():
+    """No edges. Node 0: labels 2, 5, 7 at unary 1, 0.5, 0.5; node 1: labels 1, 3 at 0.2 both. The
+    start is the unary argmin with the lowest label on ties, [5, 1]; from [7, 3] nothing moves
+    (ICM changes only on a strict decrease, an expansion only when the energy drops)."""
+    prob = _chain([[2, 5, 7], [1, 3]], [[1.0, 0.5, 0.5], [0.2, 0.2]])
+    assert mrf.alpha_expansion(*prob, max_cycles=0)[0].tolist() == [5, 1]
+    assert mrf.alpha_expansion(*prob)[0].tolist() == [5, 1]
+    assert mrf.icm(*prob).tolist() == [5, 1]
+    assert mrf.icm(*prob, labels0=[7, 3]).tolist() == [7, 3]
+    labels, en = mrf.alpha_expansion(*prob, labels0=[7, 3], tol=0.0)
+    assert labels.tolist() == [7, 3] and en.tolist() == [0.7, 0.7]
+
+
+def test_icm_sweeps_until_a_sweep_changes_nothing():
+    """A chain 0 - 1 - 2 (weights 1, 2), labels {0, 1} with features 0 and 1 (a change costs the
+    weight), unaries node 0: 0, 0.5; node 1: 0, 0.2; node 2: 5, 0. From [0, 0, 0] each sweep (in
+    node order) changes one node: node 2 takes 1 (2 < 5), then node 1 (1.2 < 2), then node 0
+    (0.5 < 1); [1, 1, 1] (energy 0.7) is the brute-force optimum."""
+    prob = _chain([[0, 1]] * 3, [[0.0, 0.5], [0.0, 0.2], [5.0, 0.0]], [(0, 1), (1, 2)], [1.0, 2.0],
+                  feat={0: 0.0, 1: 1.0})
+    best, e_best = brute_force(prob)
+    assert best.tolist() == [1, 1, 1] and e_best == pytest.approx(0.7)
+    assert mrf.icm(*prob, labels0=[0, 0, 0]).tolist() == [1, 1, 1]
+    assert mrf.icm(*prob, labels0=[0, 0, 0], max_sweeps=1).tolist() == [0, 0, 1]
+
+
+def test_expansion_label_order_cycles_and_stopping_rule():
+    """Node 0 holds labels 0, 1 (unaries 0, 1), node 1 labels 2, 3 (unaries 3, 0); one edge,
+    features 0, 2, 0, 2 (a mismatch costs 2). From [0, 2] (energy 3) expanding label 1 does not
+    pay (6) until node 1 has taken label 3 (energy 2); then it does (energy 1, the optimum).
+    A cycle tries the labels in a seeded random order: label 3 first gives energies 3 -> 1 in one
+    cycle, label 1 first 3 -> 2 and label 1 must be tried again in the next cycle, as node 0's
+    neighbour changed. Both orders occur over ten seeds. With tol = 0.4 the run stops after a
+    cycle that lowers the energy by less than 0.4 x its energy before (1 < 1.2, not 2)."""
+    prob = _chain([[0, 1], [2, 3]], [[0.0, 1.0], [3.0, 0.0]], [(0, 1)], [1.0],
+                  feat={0: 0.0, 1: 2.0, 2: 0.0, 3: 2.0})
+    assert brute_force(prob)[0].tolist() == [1, 3]
+    firsts = set()
+    for seed in range(10):
+        one = mrf.alpha_expansion(*prob, labels0=[0, 2], max_cycles=1, tol=0.0, seed=seed)
+        label1_first = one[1].tolist() == [3.0, 2.0]
+        assert one[1].tolist() == ([3.0, 2.0] if label1_first else [3.0, 1.0])
+        firsts.add(label1_first)
+        labels, en = mrf.alpha_expansion(*prob, labels0=[0, 2], tol=0.0, seed=seed)
+        assert labels.tolist() == [1, 3]
+        assert en.tolist() == ([3.0, 2.0, 1.0, 1.0] if label1_first else [3.0, 1.0, 1.0])
+        labels, en = mrf.alpha_expansion(*prob, labels0=[0, 2], tol=0.4, seed=seed)
+        assert en.tolist() == ([3.0, 2.0] if label1_first else [3.0, 1.0, 1.0])
+    assert firsts == {True, False}
+
+
 # --------------------------------------------------------------------------------------------
 # input checks
 # --------------------------------------------------------------------------------------------

@@ -2,8 +2,12 @@
 import numpy as np
 import pytest
 
+from stex.camera import Calibration, Intrinsics
+from stex.io import create_store, open_store
+
 from stex.similarity import face_strain, local_similarity_faces, strain_similarity
-from stex.tables import block_candidates, select_candidates, unary_terms
+from stex.tables import (block_candidates, finish_candidates, prefilter_candidates, select_candidates,
+                         unary_terms, write_tables)
 
 
 def test_select_candidates_lowest_ascending_padded():
@@ -12,6 +16,20 @@ def test_select_candidates_lowest_ascending_padded():
     c = select_candidates(s, 3)
     assert c.tolist() == [[1, 3, 4], [2, -1, -1]]
     assert select_candidates(s, 9)[0].tolist() == [0, 1, 3, 4, -1, -1, -1, -1, -1]
+
+
+def test_select_candidates_match_a_full_sort():
+    """Against a stable full sort of every row: the k smallest finite scores (distinct here), as
+    ascending column indices, -1 padding; also for k equal to and above the row length."""
+    rng = np.random.default_rng(12)
+    s = rng.random((40, 30))
+    s[rng.random(s.shape) < 0.3] = np.inf
+    for k in (1, 2, 5, 9, 30, 33):
+        want = np.full((40, k), -1)
+        for r, row in enumerate(s):
+            best = [c for c in np.argsort(row, kind="stable")[:k] if np.isfinite(row[c])]
+            want[r, :len(best)] = sorted(best)
+        assert np.array_equal(select_candidates(s, k), want), k
 
 
 def _random_case(rng, T=12, F=30, V=25, D=8):
@@ -65,6 +83,62 @@ def test_target_groups_do_not_change_the_candidates():
     for a, b in zip(one, together):
         for name in ("candidates", "e_loc", "e_glo", "e_qual"):
             assert np.array_equal(a[name], b[name])
+
+
+@pytest.mark.parametrize("similarity, str_row, want", [
+    # U = E_qual + 0.9 E_glo + 0.1 E_loc: frame 0 scores 0.9 - 0.1, frame 1 0.97 - 0.1 (E_loc -1 both)
+    ("both", None, 0),
+    # U = E_qual + E_glo: 1.0 against 0.97 (0.9 against 0.97 were E_glo weighted by ω_g)
+    ("global", None, 1),
+    # U = E_qual + (1 + E_loc) + 0.5 E_str: 0 + 0 + 0.5 against 0.97 (1.0 were E_str unweighted)
+    ("local", np.array([[1.0], [0.0]]), 0),
+])
+def test_prefilter_weights_the_terms_as_the_data_term(similarity, str_row, want):
+    """With room for one frame, the prefilter must keep the frame the full data term ranks first
+    (E_loc = -1 for both frames, so it cannot change their order): it weights E_glo and E_str as
+    U does. Frame 0: E_qual 0, E_glo 1 (E_str 1); frame 1: E_qual 0.97, E_glo 0 (E_str 0)."""
+    vis = np.ones((2, 1), bool)
+    qual = np.array([[0.0], [0.97]], np.float32)
+    glo = np.array([1.0, 0.0], np.float32)
+    pre_c, pre = prefilter_candidates(glo, vis, qual, 0.9, similarity, 1, str_row, 0.5)
+    assert pre_c.tolist() == [[want]]
+    res = finish_candidates(pre_c, pre, glo, vis, qual, np.full((1, 1), -1.0), 0.9, similarity, 1,
+                            str_row, 0.5)
+    assert res["candidates"].tolist() == [[want]]
+    assert res["e_qual"][0, 0] == qual[want, 0] and res["e_glo"][0, 0] == glo[want]
+
+
+def test_prefilter_exact_flag_is_the_pruning_bound():
+    """``exact`` holds where no frame left out by the prefilter could beat the K-th kept one:
+    its pre-score is at least the worst kept one, P, and E_loc lowers it by at most 1 - ω_g = 0.1
+    (E_glo = 0 here, so pre-score = E_qual). Prefilter 2 of 3 frames, K = 1, E_loc of the first
+    kept frame as given, 0 for the second.
+    Face 0: kept 0.2 and 0.9 (E_loc 0): 0.2 <= 0.9 - 0.1, exact (not with the best kept, 0.2).
+    Face 1: kept 0.5 (E_loc -0.5: U = 0.45) and 0.52; the frame left out (0.53) could reach 0.43.
+    Face 2: seen in 2 frames only, both kept: nothing left out, exact although 0.45 > 0.42.
+    'global' has no E_loc (U = pre-score): with K < prefilter the bound always holds."""
+    qual = np.array([[0.2, 0.5, 0.5], [0.9, 0.52, 0.52], [1.0, 0.53, 0.0]], np.float32)
+    vis = np.ones((3, 3), bool)
+    vis[2, 2] = False
+    glo = np.zeros(3, np.float32)
+    loc = np.array([[0.0, 0.0], [-0.5, 0.0], [-0.5, 0.0]])
+    for similarity, want in (("both", [True, False, True]), ("global", [True, True, True])):
+        pre_c, pre = prefilter_candidates(glo, vis, qual, 0.9, similarity, 2)
+        assert pre_c.tolist() == [[0, 1]] * 3
+        res = finish_candidates(pre_c, pre, glo, vis, qual, loc, 0.9, similarity, 1)
+        assert res["candidates"].tolist() == [[0]] * 3
+        assert res["exact"].tolist() == want, similarity
+
+
+def test_faces_seen_in_few_frames_keep_only_those():
+    """A face seen in fewer frames than the prefilter keeps exactly those, even when an unseen
+    frame (here frame 0, of E_qual 0) would score best: the prefilter's padding is no candidate."""
+    vis = np.array([[False], [True], [True]])
+    qual = np.array([[0.0], [0.5], [0.7]], np.float32)
+    res = block_candidates([0], np.zeros((1, 3), np.float32), vis, qual, None, np.array([[0, 1, 2]]),
+                           0.9, "global", 2, prefilter=3)[0]
+    assert res["candidates"].tolist() == [[1, 2]]
+    assert np.array_equal(res["e_qual"], qual[1:].T)
 
 
 def test_unary_modes():
@@ -136,3 +210,64 @@ def test_strain_term_prefers_the_source_with_the_targets_compression():
     assert (paper["candidates"][:, 0] == 1).all()                 # ties go to the lower index
     assert (ours["candidates"][:, 0] == 2).all()
     assert (ours["e_str"][:, 0] < 0.2).all()
+
+
+def _stores(d, blur, slanted, vis):
+    """The input stores of :func:`write_tables` for a static square (2 faces) seen from 1 m, with
+    identity poses (E_glo = 0) and the given blur_cost, slanted and face_visible (T, 2)."""
+    T = len(blur)
+    ids = list(range(10, 10 + T))
+    V = np.array([[-0.1, -0.1, 1.0], [0.1, -0.1, 1.0], [0.1, 0.1, 1.0], [-0.1, 0.1, 1.0]], np.float32)
+    F = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    cam = Intrinsics.from_focal(40.0, 40.0, 15.5, 15.5, 32, 32)
+    with create_store(d / "scene.zarr", "scene", attrs={
+            "calibration": Calibration(cam, cam, np.eye(4)).to_dict(), "frame_ids": ids,
+            "frame_blocks": [[0, T]], "has_template": False}):
+        pass
+    with create_store(d / "template.zarr", "template", attrs={"atlas_size": 4}) as s:
+        for name, a in (("vertices", V), ("faces", F), ("texcoords", V[:, :2]), ("texcoord_faces", F),
+                        ("face_chart", np.zeros(2)), ("adjacency/pairs", [[0, 1]]),
+                        ("adjacency/edges", [[0, 2]]), ("texel/face_id", -np.ones((4, 4))),
+                        ("texel/bary", np.zeros((4, 4, 3))), ("embedding/face", np.zeros(4)),
+                        ("embedding/bary", np.zeros((4, 3)))):
+            s.write(name, np.asarray(a))
+    with create_store(d / "tracking.zarr", "tracking", attrs={"frame_ids": ids, "mode": "given"}) as s:
+        s.write("vertices", np.repeat(V[None], T, axis=0))
+        for name in ("residual_m", "n_correspondences", "seconds", "silhouette_iou", "depth_fit_m"):
+            s.write(name, np.zeros(T))
+    with create_store(d / "poses.zarr", "poses", attrs={"frame_ids": ids}) as s:
+        s.write("poses", np.broadcast_to(np.eye(4), (T, T, 4, 4)).copy())
+        s.write("inlier_ratio", np.ones((T, T)))
+    with create_store(d / "observations.zarr", "observations", attrs={"frame_ids": ids}) as s:
+        s.write("face_samples", np.zeros((T, 2, 15)))
+        s.write("edge_samples", np.zeros((T, 1, 9)))
+        s.write("face_visible", np.asarray(vis, bool))
+        s.write("motion", np.zeros((T, 2)))
+        s.write("blur_cost", np.asarray(blur, np.float32))
+        s.write("slanted", np.asarray(slanted, bool))
+    return [d / f"{n}.zarr" for n in ("scene", "template", "tracking", "poses", "observations")]
+
+
+def test_write_tables_quality_term_and_source_stride(tmp_path):
+    """The stage ranks by E_qual = blur_cost + slanted ('global' similarity, E_glo = 0 for the
+    static mesh), among the visible frames at the source positions 0, k, 2k, ... only; prefilter
+    may equal candidates.
+    Face 0: E_qual 0.5, 0, 0.1 + 1, 0.9, 0.3, 0.2 -> best two [1, 5]; sources 0, 2, 4: [0, 4].
+    Face 1: E_qual 0.4, 0.3, 0.2, 0.1, (unseen), 0.6 -> [2, 3]; sources 0, 2: [0, 2]."""
+    blur = np.array([[0.5, 0.4], [0.0, 0.3], [0.1, 0.2], [0.9, 0.1], [0.3, 0.0], [0.2, 0.6]])
+    slanted = np.zeros((6, 2), bool)
+    slanted[2, 0] = True
+    vis = np.ones((6, 2), bool)
+    vis[4, 1] = False
+    paths = _stores(tmp_path, blur, slanted, vis)
+    for stride, want in ((1, [[1, 5], [2, 3]]), (2, [[0, 4], [0, 2]])):
+        out = tmp_path / f"tables_{stride}.zarr"
+        write_tables(*paths, [0, 6], {"similarity": "global", "candidates": 2, "prefilter": 2,
+                                      "omega_str": 0.0, "source_stride": stride}, out)
+        tab = open_store(out, "tables")
+        assert tab.attrs["source_frames"] == [10, 11, 12, 13, 14, 15][::stride]
+        assert (tab["glo"][...] == 0).all()
+        for t in range(6):                      # E_glo = 0: the same candidates for every target
+            assert tab["candidates"][t].tolist() == want, (stride, t)
+        e_qual = blur + slanted
+        np.testing.assert_allclose(tab["e_qual"][0], [e_qual[want[0], 0], e_qual[want[1], 1]], rtol=1e-6)
