@@ -53,6 +53,9 @@ def inspect_store(path: str) -> str:
     group = open_store(path, kind)
     lines = [f"{path}: artifact '{kind}' (stex {group.attrs.get('stex_version')})",
              f"  {ARTIFACTS[kind].description}"]
+    libs = group.attrs.get("libraries")
+    if libs:
+        lines.append("  written with " + ", ".join(f"{k} {v}" for k, v in libs.items()))
     ids = group.attrs.get("frame_ids")
     if ids:
         lines.append(f"  frames: {len(ids)} ({ids[0]}..{ids[-1]})")

@@ -74,7 +74,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stex import evaluate as ev
-from stex.io import move_into_place, partial_path, short_ids, write_json
+from stex.io import library_versions, move_into_place, partial_path, short_ids, write_json
 from stex.camera import Calibration, transform_points
 from stex.config import RESERVED_METHOD_NAMES, scoring_settings
 from stex.preview import pyplot
@@ -1449,6 +1449,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         "tables": tabs,
         "sampling": sampling,
         "seconds": {"global_texture": inp.seconds_global, "scoring": seconds_scoring},
+        "libraries": library_versions(),
     }
 
     # built in this writer's <out_dir>.partial-<host>-<pid> and moved into place: a folder at

@@ -10,7 +10,9 @@ Writing is atomic: :func:`create_store` builds the store in ``<path>.partial-<ho
 shapes, and marks it ``complete``. A crash leaves no store that looks complete, and
 :func:`open_store` refuses incomplete stores and stores of another artifact kind.
 
-Every store carries attrs: ``stex_artifact`` (its kind), ``stex_version``, ``complete``,
+Every store carries attrs: ``stex_artifact`` (its kind), ``stex_version``, ``libraries`` (the
+versions of Python and of the libraries whose arithmetic enters the results, :func:`library_versions`:
+a fresh install can take newer ones, which move the figures a little), ``complete``,
 ``frame_ids`` (global frame indices, where the store is per-frame), ``params`` (the settings that
 produced it), ``units`` (per array), ``conventions`` and ``chunk_files`` (per array, the chunk
 files written: zarr reads a missing chunk as zeros, so :func:`open_store` refuses a store that
@@ -28,7 +30,9 @@ as one sequence through :class:`FrameSequence`.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
+import platform
 import shutil
 import warnings
 from dataclasses import dataclass, field
@@ -636,6 +640,27 @@ def write_json(path: str | os.PathLike, doc) -> None:
     os.replace(tmp, path)
 
 
+# distributions whose arithmetic enters stex's results (a newer numba, scipy or pyamg can move a
+# figure in its last digits: docs/metrics.md, "Reproducing the figures")
+LIBRARIES = ("numpy", "scipy", "numba", "llvmlite", "opencv-python-headless", "opencv-python",
+             "scikit-image", "pyamg", "trimesh", "xatlas", "pymeshlab", "zarr", "av", "pillow")
+
+
+@functools.lru_cache(maxsize=1)
+def library_versions() -> dict:
+    """``{"python": "3.11.2", "numpy": "2.4.6", ...}``: Python's version and that of every
+    installed distribution of :data:`LIBRARIES` (those not installed are left out)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": platform.python_version()}
+    for name in LIBRARIES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
 @contextlib.contextmanager
 def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = None,
                  params: dict | None = None) -> Iterator[StoreWriter]:
@@ -654,7 +679,8 @@ def create_store(path: str | os.PathLike, artifact: str, attrs: dict | None = No
     group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
     writer = StoreWriter(group, artifact)
     try:
-        group.attrs.update({"stex_artifact": artifact, "stex_version": __version__, "complete": False})
+        group.attrs.update({"stex_artifact": artifact, "stex_version": __version__,
+                            "libraries": library_versions(), "complete": False})
         if attrs:
             group.attrs.update(_jsonable(attrs))
         yield writer
@@ -880,7 +906,8 @@ def artifacts_markdown() -> str:
         "",
         "Every stage writes zarr v3 stores under `results/<scene>/`. Writes are atomic (built in "
         "`<path>.partial-<host>-<pid>`, one folder per writer, moved into place when complete). Every store has the attrs "
-        "`stex_artifact`, `stex_version`, `complete`, `params`, `units`, `conventions` and "
+        "`stex_artifact`, `stex_version`, `libraries` (the versions of Python and of the libraries "
+        "whose arithmetic enters the results), `complete`, `params`, `units`, `conventions` and "
         "`chunk_files` (per array, the chunk files it was written with: a reader refuses a store "
         "missing some, e.g. a partial copy, which zarr would read as zeros). Chunks are zstd "
         "with a content checksum: a reader names the store, array and chunk file of a chunk "

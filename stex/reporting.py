@@ -65,7 +65,7 @@ def runs_tables(run_dirs) -> str:
     """
     from stex.evaluation import nan_for_none, rst_tables
 
-    summaries, timing, sampling = {}, {}, {}
+    summaries, timing, sampling, libraries = {}, {}, {}, {}
     for d in map(Path, run_dirs):
         # a run's folder, or an evaluation folder itself (as ``stex evaluate --out`` writes)
         path = d / "evaluation.json" if (d / "evaluation.json").is_file() else d / "evaluation" / "evaluation.json"
@@ -84,9 +84,39 @@ def runs_tables(run_dirs) -> str:
         if name in summaries:
             raise ValueError(f"{path}: a second run of scene {name!r}; give each scene once")
         summaries[name] = nan_for_none(summary)
+        libraries[name] = doc.get("libraries")
         timing[name] = stage_timings(d / "benchmarks", _block_count(d / "scene.zarr"))
         if doc.get("sampling"):
             sampling[name] = nan_for_none(doc["sampling"])
     if not summaries:
         raise ValueError("no runs given")
-    return rst_tables(summaries, timing if any(timing.values()) else None, sampling or None)
+    rst = rst_tables(summaries, timing if any(timing.values()) else None, sampling or None)
+    note = library_differences(libraries)
+    return rst + ("\n" + note + "\n" if note else "")
+
+
+def library_differences(libraries: dict) -> str:
+    """A sentence naming the libraries whose versions differ between runs, or "" when they agree.
+
+    Args:
+        libraries: run name -> its ``evaluation.json`` ``libraries`` (None for a run scored
+            before they were recorded).
+
+    A newer numba, scipy or pyamg moves a figure in its last digits, so figures compared across
+    runs made on different installs are read with that in mind.
+    """
+    if len(libraries) < 2:
+        return ""
+    unknown = sorted(n for n, v in libraries.items() if not v)
+    known = {n: v for n, v in libraries.items() if v}
+    parts = []
+    for lib in sorted({k for v in known.values() for k in v}):
+        got = {n: v.get(lib, "not installed") for n, v in known.items()}
+        if len(set(got.values())) > 1:
+            parts.append(f"{lib} " + ", ".join(f"{ver} ({n})" for n, ver in got.items()))
+    if unknown:
+        parts.append("not recorded for " + ", ".join(unknown))
+    if not parts:
+        return ""
+    return ("The runs were scored with different library versions, which can move a figure in "
+            "its last digits: " + "; ".join(parts) + ".")

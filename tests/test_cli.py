@@ -15,6 +15,8 @@ def test_inspect_prints_arrays_and_fails_on_bad_store(tmp_path, capsys):
     assert main(["inspect", str(p)]) == 0
     out = capsys.readouterr().out
     assert "artifact 'masks'" in out and "frames: 2 (4..5)" in out and "(2, 3, 4)" in out
+    # the versions the store was written with, for figures compared across installs
+    assert "written with python " in out and f"numpy {np.__version__}" in out
     assert main(["inspect", str(tmp_path / "missing.zarr")]) == 1
     assert "missing.zarr" in capsys.readouterr().err
 

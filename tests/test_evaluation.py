@@ -726,3 +726,27 @@ def test_ground_truth_table_says_over_how_many_frames_a_rare_region_was_scored()
     rows = {(r[0], r[1]): r[2] for r in table_rows({"s": summary})["ground_truth"][1:]}
     assert rows[("PSNR, dB, seen at t", "Ours")] == "32.00 (1 of 4 frames)"
     assert rows[("PSNR, dB, whole object", "Ours")] == "20.00"
+
+
+def test_evaluation_records_the_library_versions_and_tables_name_differences(evaluation, tmp_path):
+    """evaluation.json holds the versions it was scored with; `stex tables` over two evaluations
+    whose scipy differs says so under the tables (a newer scipy or numba moves figures a little),
+    and says nothing when they agree."""
+    import json
+    import shutil
+
+    from stex.io import library_versions
+    from stex.reporting import runs_tables
+
+    out, res = evaluation
+    assert res["libraries"] == library_versions() and "numpy" in res["libraries"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(out, a)
+    shutil.copytree(out, b)
+    assert "different library versions" not in runs_tables([a, b])
+    doc = json.loads((b / "evaluation.json").read_text())
+    doc["libraries"]["scipy"] = "0.0.1"
+    (b / "evaluation.json").write_text(json.dumps(doc))
+    note = runs_tables([a, b]).splitlines()[-1]
+    assert note.startswith("The runs were scored with different library versions")
+    assert f"scipy {library_versions()['scipy']} (a), 0.0.1 (b)" in note

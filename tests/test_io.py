@@ -23,6 +23,11 @@ def test_round_trip_attrs_and_chunks(tmp_path):
     assert g.attrs["complete"] and g.attrs["frame_ids"] == [3, 4]
     assert g.attrs["units"]["depth"] == "mm" and g.attrs["params"] == {"x": 1}
     assert "OpenCV" in g.attrs["conventions"]
+    import platform
+
+    import scipy
+    assert g.attrs["libraries"]["numpy"] == np.__version__ and g.attrs["libraries"]["scipy"] == scipy.__version__
+    assert g.attrs["libraries"]["python"] == platform.python_version()
     assert g["color"].chunks == (1, 4, 5, 3)
     assert g["color"].dtype == np.uint8 and g["color"][1, 0, 0, 0] == 4
 

@@ -1,5 +1,5 @@
 """Report helpers: stage timings from Snakemake benchmark files, RST tables to HTML."""
-from stex.reporting import stage_timings, tables_html
+from stex.reporting import library_differences, stage_timings, tables_html
 
 
 def _bench(path, seconds):
@@ -22,3 +22,14 @@ def test_tables_html(tmp_path):
     rst = "Title\n-----\n\n+---+---+\n| a | b |\n+===+===+\n| 1 | 2 |\n+---+---+\n"
     html = tables_html(rst).decode()
     assert "<table" in html and "<td>1</td>" in html.replace("<td><p>1</p></td>", "<td>1</td>")
+
+
+def test_library_differences_names_what_differs():
+    same = {"python": "3.11.2", "numpy": "2.4.6", "scipy": "1.17.1"}
+    assert library_differences({"a": same}) == ""
+    assert library_differences({"a": same, "b": dict(same)}) == ""
+    note = library_differences({"a": same, "b": {**same, "scipy": "1.16.3"}, "c": None})
+    assert "scipy 1.17.1 (a), 1.16.3 (b)" in note and "not recorded for c" in note
+    assert "numpy" not in note and "python" not in note
+    note = library_differences({"a": same, "b": {k: v for k, v in same.items() if k != "scipy"}})
+    assert "scipy 1.17.1 (a), not installed (b)" in note
