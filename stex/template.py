@@ -1058,17 +1058,43 @@ def layout_from_corners(corner_uv):
 
 
 def uv_overlaps(texcoords, texcoord_faces, size: int, face_id=None) -> tuple[int, tuple[int, int] | None]:
-    """Texel centres that lie in two or more UV triangles: (their number, (row, col) of one of
-    them or None). The layout is rasterised (:func:`texel_map`) with the faces in order (or
-    ``face_id``, that raster if already made) and in reverse; where the two disagree, a centre has
-    two owners. The rasteriser's fill rule gives a centre on a shared edge, or on the touching
-    borders of two charts, to one triangle either way, so that is not counted."""
+    """Texel centres that lie inside two or more UV triangles: (their number, (row, col) of one
+    of them or None). The layout is rasterised (:func:`texel_map`) with the faces in order (or
+    ``face_id``, that raster if already made) and in reverse; where the two disagree, a centre
+    has two owners. The rasteriser counts a centre on an edge as inside every triangle that edge
+    bounds, so a centre on a shared edge, or on the touching borders of two charts, has two owners
+    too: such a centre counts only when it lies strictly inside both (more than 1e-6 texel from
+    their edges)."""
     tf = np.asarray(texcoord_faces, np.int64)
     forward = texel_map(texcoords, tf, size)[0] if face_id is None else np.asarray(face_id)
     backward, _ = texel_map(texcoords, tf[::-1], size)
     backward = np.where(backward >= 0, len(tf) - 1 - backward, -1)
     rows, cols = np.nonzero(forward != backward)
+    if len(rows):
+        tc = np.asarray(texcoords, np.float64) * size - 0.5        # texel units, centres at integers
+        centre = np.column_stack([cols, rows]).astype(np.float64)
+        inside = np.ones(len(rows), bool)
+        for owner in (forward, backward):
+            f = owner[rows, cols]
+            ok = f >= 0
+            inside &= ok
+            inside[ok] &= _strictly_inside(centre[ok], tc[tf[f[ok]]], 1e-6)
+        rows, cols = rows[inside], cols[inside]
     return int(len(rows)), ((int(rows[0]), int(cols[0])) if len(rows) else None)
+
+
+def _strictly_inside(p, tri, eps: float) -> np.ndarray:
+    """(n, 2) points, (n, 3, 2) triangles -> (n,) bool: the point lies more than ``eps`` inside
+    every edge (either winding; a triangle of zero area contains nothing)."""
+    twice_area = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    sign = np.sign(twice_area)
+    out = sign != 0
+    for i in range(3):
+        a, b = tri[:, i], tri[:, (i + 1) % 3]
+        edge = b - a
+        dist = sign * np.cross(edge, p - a) / np.maximum(np.linalg.norm(edge, axis=1), 1e-300)
+        out &= dist > eps
+    return out
 
 
 def outside_unit_square(uv) -> np.ndarray:

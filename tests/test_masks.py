@@ -37,6 +37,75 @@ def test_seeds_layers():
     assert s[30, 30] == 1 and s[21, 30] == 3 and s[17, 30] == 2 and s[5, 5] == 0
 
 
+
+def test_seed_bands_have_the_widths_asked_for_and_holes_are_filled():
+    """Down the middle column of a 20 x 20 px region (rows 20-39): sure background, 5 px of
+    probable background (the bg_margin_px band), 3 px of probable foreground (what the 3 px
+    erosion takes), sure foreground, and the same mirrored. A hole in the region is filled
+    first: a ring gives the same seeds as the full square."""
+    region = np.zeros((60, 60), bool)
+    region[20:40, 20:40] = True
+    s = grabcut_seeds(region, sure_erode_px=3, bg_margin_px=5)
+    want = np.repeat([0, 2, 3, 1, 3, 2, 0], [15, 5, 3, 14, 3, 5, 15])
+    np.testing.assert_array_equal(s[:, 30], want)
+    np.testing.assert_array_equal(s[30, :], want)
+    ring = region.copy()
+    ring[27:33, 27:33] = False
+    np.testing.assert_array_equal(grabcut_seeds(ring, sure_erode_px=3, bg_margin_px=5), s)
+
+
+def _two_squares(size, a, b):
+    """(size, size, 3) uint8 black image with white squares at slices ``a`` and ``b``."""
+    img = np.zeros((size, size, 3), np.uint8)
+    img[a] = img[b] = 255
+    return img
+
+
+def test_grabcut_keeps_the_parts_with_sure_foreground_and_fills_their_holes():
+    """Two white squares on black, both probable foreground, only the first with sure foreground
+    inside: the mask is the first square alone, with the sure-background hole in its middle
+    filled (the object's own holes are the object's)."""
+    from stex.masks import GC_BGD, GC_FGD, GC_PR_FGD, grabcut_mask
+    a, b = np.s_[10:30, 10:30], np.s_[40:55, 40:55]
+    seeds = np.full((60, 60), GC_BGD, np.uint8)
+    seeds[a] = seeds[b] = GC_PR_FGD
+    seeds[14:26, 14:26] = GC_FGD
+    seeds[18:22, 18:22] = GC_BGD
+    img = _two_squares(60, a, b)
+    img[18:22, 18:22] = 0
+    want = np.zeros((60, 60), bool)
+    want[a] = True
+    np.testing.assert_array_equal(grabcut_mask(img, seeds), want)
+
+
+def test_grabcut_keeps_a_region_without_sure_foreground():
+    """A region too small to survive the sure-foreground erosion (10 px across, sure_erode_px 5)
+    is still segmented from its probable labels: the white square is the mask."""
+    from stex.masks import GC_FGD, grabcut_mask
+    sq = np.s_[15:25, 15:25]
+    region = np.zeros((40, 40), bool)
+    region[sq] = True
+    seeds = grabcut_seeds(region, sure_erode_px=5, bg_margin_px=3)
+    assert not (seeds == GC_FGD).any()
+    np.testing.assert_array_equal(grabcut_mask(_two_squares(40, sq, sq), seeds), region)
+
+
+def test_sure_labels_hold_when_grabcut_runs_at_a_reduced_size():
+    """Above max_pixels GrabCut runs on a half-size image (nearest-neighbour labels keep even rows
+    and columns): sure labels on odd ones, a lone sure-foreground pixel and a 1 px sure-background
+    cut into the object, are lost there, and must hold again in the full-size mask."""
+    from stex.masks import GC_BGD, GC_FGD, GC_PR_FGD, grabcut_mask
+    sq = np.s_[50:150, 50:150]
+    seeds = np.full((200, 200), GC_BGD, np.uint8)
+    seeds[sq] = GC_PR_FGD
+    seeds[70:130, 70:130] = GC_FGD
+    seeds[11, 11] = GC_FGD
+    seeds[40:100, 101] = GC_BGD
+    mask = grabcut_mask(_two_squares(200, sq, sq), seeds, max_pixels=10_000)
+    assert mask[seeds == GC_FGD].all() and not mask[seeds == GC_BGD].any()
+    assert mask[sq].mean() > 0.99  # the square itself
+
+
 def test_masks_block_rejects_empty_depth_range(tmp_path, tiny_config):
     from stex.ingest import write_frames_block, write_scene
     from stex.masks import write_masks_block
@@ -111,6 +180,36 @@ def test_support_plane_is_not_a_flat_object_with_something_behind_it():
     np.testing.assert_allclose(n, [0, -1, 0], atol=0.01)
     assert off == pytest.approx(0.9, abs=0.003) and fraction == pytest.approx(700 / 5200, abs=0.01)
     assert support_plane(np.concatenate([panel, body]), 0.01) is None
+
+
+
+def test_the_depth_range_includes_both_ends():
+    """[near_m, far_m] is closed: millimetre depths land on its ends exactly (300 and 1600 mm for
+    0.3-1.6 m); 0 is no depth."""
+    K = np.array([[100.0, 0, 2], [0, 100.0, 0], [0, 0, 1]])
+    depth = np.array([[0, 299, 300, 1600, 1601]], np.uint16)
+    np.testing.assert_array_equal(object_depth_pixels(depth, K, 0.3, 1.6), [[False, False, True, True, False]])
+
+
+def test_object_depth_pixels_remove_what_lies_beyond_the_support_plane():
+    """A floor 0.3 m below the camera (y down) fills the lower rows of the image; two columns of
+    it are seen 0.5 m farther (past the floor's edge: beyond its plane by 5-25 cm), and an upright
+    patch at 1 m stands in front. Only the patch is the object: the floor and what lies beyond it
+    go."""
+    f, cy = 60.0, 29.5
+    K = np.array([[f, 0, 39.5], [0, f, cy], [0, 0, 1]])
+    z = np.zeros((60, 80))
+    rows = np.arange(35, 60)
+    z[35:] = (0.3 * f / (rows - cy))[:, None]  # y = z (row - cy) / f = 0.3 on the floor
+    z[35:, :2] += 0.5
+    obj = np.zeros((60, 80), bool)
+    obj[20:35, 30:50] = True                    # y <= 0.075 m: 22+ cm above the floor
+    z[obj] = 1.0
+    depth_mm = np.rint(z * 1000).astype(np.uint16)
+    info = {}
+    kept = object_depth_pixels(depth_mm, K, 0.3, 4.0, plane_tolerance_m=0.01, info=info)
+    np.testing.assert_allclose(info["support_plane"][:4], [0, -1, 0, 0.3], atol=1e-3)
+    np.testing.assert_array_equal(kept, obj)
 
 
 def test_object_depth_pixels_remove_the_table_the_object_stands_on():

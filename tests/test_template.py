@@ -68,6 +68,49 @@ def test_nonmanifold_vertices_are_the_bowties():
     assert len(nonmanifold_vertices(F2)) == 0
 
 
+
+def test_edge_defects_of_meshes_small_enough_to_count_by_hand():
+    """A quad of two triangles has its 4 sides as boundary edges (the diagonal is shared by both).
+    A fin on an edge of a closed tetrahedron makes that edge non-manifold and each of its two ends
+    two fans (the tetrahedron's and the fin's), whichever face comes first: a non-manifold edge
+    joins no faces."""
+    from stex.template import nonmanifold_edges
+    nm, boundary = nonmanifold_edges([[0, 1, 2], [0, 2, 3]])
+    assert len(nm) == 0
+    np.testing.assert_array_equal(boundary, [[0, 1], [0, 3], [1, 2], [2, 3]])
+    tet = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    for F in ([[0, 1, 4]] + tet, tet + [[0, 1, 4]]):
+        nm, boundary = nonmanifold_edges(F)
+        np.testing.assert_array_equal(nm, [[0, 1]])
+        np.testing.assert_array_equal(boundary, [[0, 4], [1, 4]])
+        np.testing.assert_array_equal(nonmanifold_vertices(F), [0, 1])
+
+
+def test_degenerate_faces_are_measured_against_the_bounding_box_diagonal_squared():
+    """A face is degenerate below area_tol x (bounding-box diagonal)^2: here the diagonal^2 is
+    0.06^2 + 0.08^2 = 0.01 m^2, so at the default 1e-12 the limit is 1e-14 m^2; a sliver of
+    2e-14 m^2 stays, one of 5e-15 m^2 goes."""
+    V = np.array([[0, 0, 1], [0.06, 0, 1], [0, 0.08, 1],                        # sets the box
+                  [0.02, 0.01, 1], [0.04, 0.01, 1], [0.03, 0.01 + 2e-12, 1],   # 0.5 * 0.02 * 2e-12
+                  [0.02, 0.03, 1], [0.04, 0.03, 1], [0.03, 0.03 + 5e-13, 1]])  # 0.5 * 0.02 * 5e-13
+    F = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    V2, F2, rep = clean_mesh(V, F)
+    assert rep["degenerate_faces"] == 1 and rep["faces_out"] == 2
+    assert {tuple(p) for p in V2} == {tuple(p) for p in V[:6]}
+
+
+def test_inconsistent_winding_edges_are_counted_once_per_edge():
+    """One face of a closed icosphere turned round: each of its three edges joins two faces of
+    opposite winding (3 edges, not 6 face sides), and the part, whose facing is then undefined,
+    is left as it is."""
+    s = trimesh.creation.icosphere(1)
+    F = np.array(s.faces)
+    F[0] = F[0, ::-1]
+    _, F1, r = clean_mesh(s.vertices + [0, 0, 3.0], F)
+    assert r["inconsistent_winding_edges"] == 3 and r["inverted_parts_flipped"] == 0
+    np.testing.assert_array_equal(F1, F)
+
+
 def test_decimate_hits_target_and_stays_closed():
     m = trimesh.creation.icosphere(subdivisions=5)  # 20,480 faces
     V, F = decimate(m.vertices, m.faces, 5000)
@@ -125,6 +168,24 @@ def test_charts_keep_the_gutter(sphere_atlas):
     touching = face_id.copy()
     touching[-1, 100] = 0
     assert border_gap(touching) == 0
+
+
+
+def test_gutter_and_border_checks_on_hand_made_texel_maps():
+    """gutter_conflicts measures Chebyshev distance in texels: two one-texel charts 4 texels apart
+    (3 empty texels between) both conflict at a 4-texel gutter, not at 3, whether side by side or
+    diagonal; texels of one chart never conflict. border_gap looks at all four borders."""
+    for other in ((5, 9), (9, 8)):
+        fid = np.full((20, 20), -1, np.int32)
+        fid[5, 5], fid[other] = 0, 1
+        assert gutter_conflicts(fid, np.array([0, 1]), 4) == 2
+        assert gutter_conflicts(fid, np.array([0, 1]), 3) == 0
+        assert gutter_conflicts(fid, np.array([0, 0]), 10) == 0
+    assert border_gap(fid) == 5  # rows 5..9, columns 5..8 of 0..19
+    for (r, c), gap in [((19, 7), 0), ((7, 19), 0), ((0, 7), 0), ((7, 0), 0), ((7, 17), 2), ((16, 7), 3)]:
+        fid = np.full((20, 20), -1, np.int32)
+        fid[r, c] = 0
+        assert border_gap(fid) == gap, (r, c)
 
 
 def test_face_adjacency_on_icosphere(sphere):
@@ -282,6 +343,23 @@ def test_template_from_the_first_frames_depth(tmp_path):
     assert not (tmp_path / "tracking.zarr").exists()
 
 
+
+def test_a_template_from_depth_leaves_depth_jumps_open():
+    """template_from_depth makes no triangle across a depth jump of max_jump_m (a nose in front of
+    a chest): a 4 x 4 depth image at 1 m on its left half and 1.5 m on its right has 3 x 3 grid
+    squares, of which the 3 across the step are left out: 12 triangles, each on one side. A step
+    of 1 cm (under 2 cm) is bridged: all 18."""
+    from stex.template import template_from_depth
+    K = np.array([[100.0, 0, 1.5], [0, 100.0, 1.5], [0, 0, 1]])
+    d = np.ones((4, 4))
+    d[:, 2:] = 1.5
+    V, F = template_from_depth(d, K, stride=1, max_jump_m=0.02)
+    assert len(F) == 12 and len(V) == 16
+    assert (np.ptp(V[F][:, :, 2], axis=1) == 0).all()
+    d[:, 2:] = 1.01
+    assert len(template_from_depth(d, K, stride=1, max_jump_m=0.02)[1]) == 18
+
+
 def test_low_poly_meshes_are_subdivided_without_changing_shape():
     import trimesh as _tm
 
@@ -374,6 +452,19 @@ def test_a_small_object_gets_an_atlas():
     _, _, big = build_atlas(s.vertices * 200 + [0, 0, 0.5], s.faces, 256, 2, return_info=True)
     assert big["working_scale"] == 1.0
     assert info["texels_per_unit"] == pytest.approx(200 * big["texels_per_unit"], rel=0.1)
+
+
+
+def test_the_working_scale_brings_the_median_face_area_to_1e_4():
+    """A mesh whose median face area is under 1e-6 m^2 is scaled by the factor k that makes it
+    1e-4 (areas grow with k^2), measured here by trimesh on the scaled mesh; a mesh of larger
+    faces is not scaled."""
+    from stex.template import working_scale
+    s = trimesh.creation.icosphere(3, radius=0.002)  # 1280 faces of ~4e-8 m^2
+    k = working_scale(s.vertices, s.faces)
+    area = trimesh.Trimesh(s.vertices * k, s.faces, process=False).area_faces
+    assert np.median(area) == pytest.approx(1e-4, rel=1e-9)
+    assert working_scale(s.vertices * 10, s.faces) == 1.0  # ~4e-6 m^2
 
 
 def test_faces_turned_inwards_are_turned_round_and_mixed_winding_is_counted(caplog):
@@ -743,6 +834,23 @@ def test_template_params_are_validated(tmp_path, params, match):
     assert out["attrs"]["uv"] == "xatlas" and len(out["faces"]) >= 4000 // 4  # schema min_faces 4000
 
 
+
+def test_a_layout_with_exactly_the_allowed_fraction_of_collapsed_faces_is_kept():
+    """keep_layout refuses more than MAX_COLLAPSED_UV_FRACTION of the faces with zero UV area, not
+    that fraction itself: 4 of 8 collapsed faces are kept (and counted), 5 are refused."""
+    from conftest import grid_atlas
+    from stex.template import MAX_COLLAPSED_UV_FRACTION, keep_layout
+    tc, tf = grid_atlas(3)  # 8 faces
+    assert MAX_COLLAPSED_UV_FRACTION * len(tf) == 4
+    corners = tc[tf].copy()
+    corners[:4] = corners[:4, :1]  # all three corners on the first one
+    _, _, info = keep_layout(corners, 64)
+    assert info["degenerate_uv_faces"] == 4
+    corners[4] = corners[4, :1]
+    with pytest.raises(ValueError, match="5 of the 8 faces have zero area"):
+        keep_layout(corners, 64)
+
+
 def test_a_millimetre_mesh_embeds_like_the_same_mesh_scaled_up():
     """trimesh's closest point compares with an absolute tolerance: with ~1 mm faces (in metres)
     points snapped to edges that were not the closest (0.18 mm off). The same fine, bumpy mesh in
@@ -792,3 +900,20 @@ def test_build_atlas_never_loads_xatlas_into_the_calling_process():
             "assert tf.shape == (320, 3), tf.shape; print(sorted(k for k in sys.modules if 'xatlas' in k))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_an_edge_through_texel_centres_is_no_overlap():
+    """The rasteriser counts a texel centre on an edge as inside both triangles, so a square chart
+    split along its diagonal with corners on the texel grid (a box's usual layout) had 32 texels
+    counted as overlapping and keep_layout refused it; centres on a shared edge are not overlaps.
+    Two triangles that do cover each other still are: (0, 1, 2) and (0, 1, 3) share the triangle
+    of corners 0, 1 and the square's centre; in texel units (centres at integers) its base lies at
+    v = 15.5 from u = 15.5 to 47.5 and its apex at (31.5, 31.5), so row v = 16..30 holds the
+    62 - 2v centres u = v + 1 .. 62 - v strictly inside: 30 + 28 + ... + 2 = 240."""
+    from stex.template import keep_layout, uv_overlaps
+    tc = np.array([[.25, .25], [.75, .25], [.75, .75], [.25, .75]])
+    tf = np.array([[0, 1, 2], [0, 2, 3]])
+    assert uv_overlaps(tc, tf, 64) == (0, None)
+    assert keep_layout(tc[tf], 64)[2]["overlap_texels"] == 0
+    n, where = uv_overlaps(tc, np.array([[0, 1, 2], [0, 1, 3]]), 64)
+    assert n == sum(62 - 2 * v for v in range(16, 31)) == 240 and where is not None
