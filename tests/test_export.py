@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
+from fractions import Fraction
 
 import av
 import numpy as np
@@ -295,6 +296,57 @@ def test_gltf_frame_loads_with_texture(tmp_path):
     assert "NORMAL" in gl["meshes"][0]["primitives"][0]["attributes"]
     outward = np.asarray(m.vertices) - opencv_to_viewer(CENTER)
     assert (np.sum(np.asarray(m.vertex_normals) * outward, axis=1) > 0.5 * np.linalg.norm(outward, axis=1)).all()
+
+
+def _glb_attribute(path, name, width):
+    """A float32 vertex attribute of the first primitive, parsed from the .glb bytes (no trimesh)."""
+    data = path.read_bytes()
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    gl = json.loads(data[20:20 + jlen])
+    acc = gl["accessors"][gl["meshes"][0]["primitives"][0]["attributes"][name]]
+    view = gl["bufferViews"][acc["bufferView"]]
+    assert acc["componentType"] == 5126 and "byteStride" not in view
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    return np.frombuffer(data[20 + jlen + 8:], np.float32, acc["count"] * width, start).reshape(-1, width), gl
+
+
+def test_gltf_normals_smooth_across_seams_and_material_double_sided(tmp_path):
+    """Every side of the cube is its own chart, so each corner is three .glb vertices: they carry
+    one normal, the area-weighted normal of the unsplit mesh (sum of the incident faces'
+    (v1 - v0) x (v2 - v0), here in viewer axes), not their side's face normal (shading would show
+    the seams). The material is double-sided (open templates show their inside), metallic 0,
+    roughness 1."""
+    V, F, tc, tf = cube()
+    path = tmp_path / "f.glb"
+    write_gltf_frame(path, V, F, tc, tf, gradient_texture(0))
+    pos, gl = _glb_attribute(path, "POSITION", 3)
+    nrm, _ = _glb_attribute(path, "NORMAL", 3)
+    assert len(pos) == 24
+    v = opencv_to_viewer(V)
+    cross = np.cross(v[F[:, 1]] - v[F[:, 0]], v[F[:, 2]] - v[F[:, 0]])
+    want = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(want, F[:, k], cross)
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    corner = np.argmin(np.linalg.norm(pos[:, None] - v[None], axis=2), axis=1)
+    assert np.abs(pos - v[corner]).max() < 1e-6 and np.bincount(corner).tolist() == [3] * 8
+    np.testing.assert_allclose(nrm, want[corner], atol=1e-6)
+    mat = gl["materials"][0]
+    assert mat["doubleSided"] is True
+    assert mat["pbrMetallicRoughness"]["metallicFactor"] == 0
+    assert mat["pbrMetallicRoughness"]["roughnessFactor"] == 1
+
+
+def test_video_keeps_a_fractional_frame_rate(tmp_path):
+    """29.97 fps is written as 2997/100 (not rounded to 30: a 10-minute video would drift by 0.6 s);
+    NTSC's 30000/1001 as a float keeps its exact rate."""
+    tex = gradient_texture(0, 16)
+    for fps, want in ((29.97, Fraction(2997, 100)), (30000 / 1001, Fraction(30000, 1001))):
+        write_texture_video([tex] * 3, tmp_path / "v.mp4", fps=fps)
+        with av.open(str(tmp_path / "v.mp4")) as c:
+            assert c.streams.video[0].average_rate == want
+            times = [float(f.time) for f in c.decode(video=0)]
+        np.testing.assert_allclose(times, np.arange(3) / float(want), atol=1e-9)
 
 
 def test_frame_range_parsing_and_selection():

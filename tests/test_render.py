@@ -164,6 +164,63 @@ def test_watertight_grid_and_tie_rule():
         assert x.tobytes() == y.tobytes()
 
 
+def test_shared_edges_through_pixel_centres_leave_no_crack():
+    """Two triangles share an edge whose endpoints are not representable exactly but whose line
+    passes through pixel centres (K = I, z = 1: pixel coordinates are x, y). Evaluated from each
+    triangle's own first vertex, rounding put some of those centres outside both (a crack); in the
+    canonical vertex order the two edge values are exact opposites, so every centre on the shared
+    edge belongs to at least one of the triangles."""
+    rng = np.random.default_rng(0)
+    n_points = 0
+    for _ in range(200):
+        d = rng.integers(-6, 7, 2)
+        if not d.any():
+            continue
+        p1 = rng.integers(16, 48, 2)
+        # the shared edge A-B extends past the integer points p1 .. p1 + d on both sides
+        A = p1 + rng.uniform(-0.9, -0.1) * d
+        B = p1 + rng.uniform(1.1, 1.9) * d
+        side = np.array([-d[1], d[0]]) / np.hypot(*d) * 7.3
+        V = np.c_[np.array([A, B, (A + B) / 2 + side, (A + B) / 2 - side]), np.ones(4)]
+        ras = render.rasterize(V, [[0, 1, 2], [1, 0, 3]], np.eye(3), 64, 64)
+        g = np.gcd(abs(d[0]), abs(d[1]))
+        on_edge = p1 + np.arange(g + 1)[:, None] * (d // g)
+        assert (ras.face_id[on_edge[:, 1], on_edge[:, 0]] >= 0).all(), (A, B, on_edge)
+        n_points += len(on_edge)
+    assert n_points > 400
+
+
+def test_skewed_camera_matrix_is_honoured():
+    """A skew K[0, 1] moves u by K[0, 1] * y / z (up to 3 px here): coverage and barycentrics of
+    a fronto-parallel triangle against rays through K^-1 at every pixel centre."""
+    W, H = 40, 30
+    K = np.array([[50.0, 12.0, 19.5], [0.0, 50.0, 14.5], [0.0, 0.0, 1.0]])
+    z = 2.0
+    V = np.array([[-0.5, -0.4, z], [0.6, -0.3, z], [0.0, 0.5, z]])
+    ras = render.rasterize(V, [[0, 1, 2]], K, W, H)
+    r, c = np.mgrid[0:H, 0:W]
+    xy = (np.stack([c, r, np.ones_like(c)], -1) @ np.linalg.inv(K).T)[..., :2] * z  # on the plane
+    # 2-D barycentrics of each pixel's point w.r.t. the triangle (affine = perspective-correct here)
+    M = np.linalg.inv(np.c_[V[:, :2], np.ones(3)].T)
+    b = np.c_[xy.reshape(-1, 2), np.ones(H * W)] @ M.T
+    b = b.reshape(H, W, 3)
+    inside, outside = (b > 1e-9).all(-1), (b < -1e-9).any(-1)
+    assert inside.sum() > 100
+    assert (ras.face_id[inside] == 0).all() and (ras.face_id[outside] == -1).all()
+    assert np.abs(ras.bary[inside] - b[inside]).max() < 1e-5
+    assert np.allclose(ras.depth[inside], z)
+
+
+def test_near_plane_skips_triangles_with_a_vertex_at_or_before_it():
+    """``near`` (z of the nearest vertex 0.8 m here): a triangle is drawn only when every vertex is
+    beyond it, z > near."""
+    K = camera(50.0, 40, 30)
+    V = np.array([[-0.5, -0.5, 0.8], [0.5, -0.5, 1.0], [0.0, 0.5, 1.2]])
+    assert (render.rasterize(V, [[0, 1, 2]], K, 40, 30, near=0.79).face_id == 0).sum() > 100
+    for near in (0.8, 0.9):
+        assert (render.rasterize(V, [[0, 1, 2]], K, 40, 30, near=near).face_id == -1).all()
+
+
 def test_normals(blob):
     V, F = blob
     mesh = trimesh.Trimesh(V, F, process=False)
@@ -284,6 +341,50 @@ def test_vertex_visibility(depth_view):
     # with window=0 and an empty depth map nothing is visible
     vis3, _ = render.vertex_visibility(V, F, K, np.zeros_like(ras.depth), window=0)
     assert not vis3.any()
+
+
+def test_a_surface_seen_from_behind_is_not_visible():
+    """The rasteriser draws back faces (no culling), so an open surface seen from behind is in the
+    depth map and passes every depth test: the normal alone must reject it (vertices and faces),
+    or the inside of an open template would take the colours of what the camera sees."""
+    W, H = 40, 30
+    K = camera(50.0, W, H)
+    V = np.array([[-0.3, -0.2, 1.0], [0.3, -0.2, 1.0], [0.3, 0.2, 1.0], [-0.3, 0.2, 1.0]])
+    toward = np.array([[0, 2, 1], [0, 3, 2]])  # normal (v1 - v0) x (v2 - v0) along -z: to the camera
+    assert (render.face_normals(V, toward)[:, 2] < 0).all()
+    for F, seen in ((toward, True), (toward[:, ::-1], False)):
+        depth = render.rasterize(V, F, K, W, H).depth
+        assert (depth > 0).sum() > 300
+        vvis, vcos = render.vertex_visibility(V, F, K, depth)
+        fvis, fcos = render.face_visibility(V, F, K, depth)
+        assert vvis.all() == seen and vvis.any() == seen and fvis.all() == seen and fvis.any() == seen
+        assert (vcos > 0).all() == seen and (fcos > 0).all() == seen
+
+
+def test_visibility_takes_the_nearest_pixel_up_to_half_a_pixel_outside():
+    """A vertex projecting at u = -0.4 (or W - 0.6) has its nearest pixel centre in the image,
+    column 0 (W - 1): it is tested there and visible; at u = -0.6 (W - 0.4) its nearest pixel is
+    outside: not visible. Likewise for rows. The depth map is a plane at z = 1 filling the image."""
+    W, H = 40, 30
+    K = camera(50.0, W, H)
+    depth = np.ones((H, W), np.float32)
+    uv = np.array([[-0.4, 10], [-0.6, 10], [W - 0.6, 10], [W - 0.4, 10],
+                   [20, -0.4], [20, -0.6], [20, H - 0.6], [20, H - 0.4]])
+    want = np.array([True, False, True, False, True, False, True, False])
+    # each test vertex in its own triangle with two vertices near the image centre, all on z = 1,
+    # wound so that the normal points at the camera (-z)
+    V, F = [], []
+    for u, v in uv:
+        tri = [[u, v], [19.0, 14.0], [21.0, 15.0]]
+        P = np.c_[(np.array(tri) - K[:2, 2]) / K[0, 0], np.ones(3)]
+        if np.cross(P[1] - P[0], P[2] - P[0])[2] > 0:
+            P = P[[0, 2, 1]]
+        F.append([len(V), len(V) + 1, len(V) + 2])
+        V.extend(P)
+    V, F = np.array(V), np.array(F)
+    vis, cos = render.vertex_visibility(V, F, K, depth)
+    assert (cos > 0).all()
+    assert np.array_equal(vis[F[:, 0]], want)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -47,6 +47,31 @@ def test_closest_points_are_exact_on_and_off_the_surface(blob):
     assert (bary >= -1e-12).all()
 
 
+def test_closest_points_by_hand_on_an_open_mesh():
+    """One triangle A (0, 0, 0), B (1, 0, 0), C (0, 1, 0): a point over its inside, beyond each
+    edge and beyond each corner, worked by hand. On a boundary no neighbour answers for an edge
+    (on a closed mesh the face across it does). A zero-area face comes first: it is skipped, and
+    the face index still counts it."""
+    V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    F = np.array([[0, 0, 1], [0, 1, 2]])
+    cases = [  # point, weights of (A, B, C) at its closest point
+        ((0.2, 0.3, 0.1), (0.5, 0.2, 0.3)),       # inside: the foot (0.2, 0.3, 0)
+        ((0.3, -0.2, 0.1), (0.7, 0.3, 0.0)),      # beyond AB: (0.3, 0, 0)
+        ((0.7, 0.5, 0.1), (0.0, 0.6, 0.4)),       # beyond BC (x + y = 1): (0.6, 0.4, 0)
+        ((-0.2, 0.6, 0.1), (0.4, 0.0, 0.6)),      # beyond CA: (0, 0.6, 0)
+        ((-0.1, -0.2, 0.1), (1.0, 0.0, 0.0)),     # beyond A
+        ((1.2, -0.1, 0.0), (0.0, 1.0, 0.0)),      # beyond B
+        ((-0.1, 1.2, 0.1), (0.0, 0.0, 1.0)),      # beyond C
+    ]
+    P = np.array([p for p, _ in cases])
+    want = np.array([w for _, w in cases])
+    foot = want @ V
+    face, bary, dist = closest_surface_points(P, V, F)
+    assert face.tolist() == [1] * len(cases)
+    np.testing.assert_allclose(bary, want, atol=1e-12)
+    np.testing.assert_allclose(dist, np.linalg.norm(P - foot, axis=1), atol=1e-12)
+
+
 def _paint(texel_face, texel_bary, V, F):
     """A smooth colour field of the 3-D position, painted into an atlas (0 outside charts)."""
     W = texel_face.shape[0]
@@ -100,6 +125,38 @@ def test_a_texture_carried_into_another_layout_reads_the_same_surface(blob, capl
     with caplog.at_level(logging.WARNING, logger="stex.resample"):
         atlas_transfer(face_b, bary_b, V, F, V, F[::2], uv_a, tf_a[::2], where="half.obj")
     assert "half.obj" in caplog.text and "boundary edges" in caplog.text
+
+
+def test_a_transposed_layout_gives_the_transposed_texture_exactly():
+    """A 10 cm square in two UV layouts, the run's (u, v) = (x, y) / 0.1 and the other's (y, x) /
+    0.1: the centre of the run's texel (r, c) is the other layout's texel centre (c, r), so the
+    transfer is the texture transposed, to the grey level. At 30^2 the texel centres are not
+    representable in float32: the reads land a hair off them and must round, not truncate."""
+    S = 30
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]) * 0.1
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    face, bary = texel_map(V[:, :2] / 0.1, F, S)
+    assert (face >= 0).all()
+    tr = atlas_transfer(face, bary, V, F, V, F, V[:, 1::-1] / 0.1, F)
+    tex = np.random.default_rng(0).integers(0, 256, (S, S, 3), dtype=np.uint8)
+    np.testing.assert_array_equal(tr.apply(tex), tex.transpose(1, 0, 2))
+
+
+def test_texels_beyond_max_distance_read_nothing():
+    """The other mesh is the square tilted to z = 0.04 x: the run's texel at x (column c, x = (c +
+    0.5) / 300 m) is 0.04 x / sqrt(1 + 0.04^2) from it (its foot is inside), so with
+    max_distance_m = 3 mm columns 0..22 read (x <= 75.06 mm) and 23..29 read nothing (black)."""
+    S, k = 30, 0.04
+    V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]]) * 0.1
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    tilted = V + np.c_[np.zeros((4, 2)), k * V[:, 0]]
+    face, bary = texel_map(V[:, :2] / 0.1, F, S)
+    tr = atlas_transfer(face, bary, V, F, tilted, F, V[:, :2] / 0.1, F, max_distance_m=0.003)
+    x = (np.arange(S) + 0.5) / S * 0.1
+    np.testing.assert_allclose(tr.distance_m, np.broadcast_to(k * x / np.hypot(1, k), (S, S)), atol=1e-7)
+    assert np.array_equal(tr.reads, np.broadcast_to(np.arange(S) <= 22, (S, S)))
+    out = tr.apply(np.full((S, S, 3), 200, np.uint8))
+    assert (out[:, :23] == 200).all() and (out[:, 23:] == 0).all()
 
 
 def test_closest_surface_points_checks_its_arguments():
