@@ -796,7 +796,8 @@ class _Photometric:
         (all samples inside the foreground mask) of Σ_s P_fs / Σ_s C_k(p) with the face sums
         Σ_s P_fs recomputed from the new gains (weighted mean of g_k Σ_s C_k over those pairs),
         normalised to geometric mean 1 over the frames (frames with fewer than 10 such faces
-        keep 1), until no gain moves by more than ``tol``. An exposure /
+        take 1 before that normalisation, so they share its factor), until no gain moves by more
+        than ``tol``. An exposure /
         white-balance change of the whole frame then stops looking like motion, while a local
         change of appearance (a wrinkle, a tint: a minority of the faces) does not move the mode.
         Starts from ``stack.gain`` when it holds one per frame and stores the result there.

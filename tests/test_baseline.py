@@ -106,6 +106,28 @@ def test_weights_are_normalised(atlas):
     assert np.all(wsum4[only_a] == 1) and np.all(wsum4[cov & ~only_a] == 2)
 
 
+def test_min_weight_drops_pairs_at_or_below_it_per_face(atlas):
+    """min_weight acts per (frame, face) pair, and a weight equal to it is left out (``<=``):
+    frame 0 (colour 40, weight 3 everywhere) is always kept; frame 1 (colour 200) is kept only on
+    the faces where its weight 3 is above min_weight 2, not where it is 1 or exactly 2. The
+    dropped faces take frame 0 alone (40, weight sum 3), not a blend with frame 1's black
+    uncovered texels; the others (3·40 + 3·200) / 6 = 120, weight sum 6."""
+    F = atlas["F"]
+    xi = (atlas["tc"] * W - 0.5).astype(np.float32)
+    vis = np.ones(F, bool)
+    A = np.full((HC, HC, 3), 40, np.uint8)
+    B = np.full((HC, HC, 3), 200, np.uint8)
+    w = np.full((2, F), 3.0, np.float32)
+    w[1, :10] = 1.0                                    # below min_weight
+    w[1, 10:20] = 2.0                                  # exactly min_weight
+    tex, wsum = global_texture(lambda t: ((A, B)[t], xi, vis), 2, atlas["sampler"], face_weight=w,
+                               min_weight=2.0, gutter_px=0)
+    cov = atlas["tf"] >= 0
+    dropped = np.isin(atlas["tf"], np.arange(20))
+    assert np.all(tex[dropped] == 40) and np.all(wsum[dropped] == 3.0)
+    assert np.all(tex[cov & ~dropped] == 120) and np.all(wsum[cov & ~dropped] == 6.0)
+
+
 def test_unseen_faces_are_filled_and_marked(atlas):
     F = atlas["F"]
     xi = (atlas["tc"] * W - 0.5).astype(np.float32)
@@ -268,3 +290,32 @@ def test_write_global_texture_bad_inputs_name_the_store(stages, tmp_path):
         write_global_texture(P["scene"], P["frames"], P["template"], P["projection"],
                              P["projection"], tmp_path / "e.zarr", {"min_weights": 0.1})
     assert not any((tmp_path / n).exists() for n in ("a.zarr", "b.zarr", "c.zarr", "d.zarr", "e.zarr"))
+
+
+def test_face_textured_leaves_out_weights_at_min_weight(stages, tmp_path):
+    """A face whose weight (face_cos) is exactly min_weight in every frame is left out of the
+    blend (``<=``), so it is not ``face_textured`` and its texels have weight sum 0, as the faces
+    never seen."""
+    import shutil
+
+    import zarr
+
+    from stex.io import open_store
+
+    P = stages
+    proj = tmp_path / "projection.zarr"
+    shutil.copytree(P["projection"], proj)
+    g = zarr.open_group(str(proj), mode="r+")
+    seen = np.flatnonzero(g["face_visible"][...].any(0))
+    at = seen[::3]                                     # a third of the seen faces
+    cos = g["face_cos"][...]
+    cos[:, at] = 0.5
+    cos[:, np.setdiff1d(seen, at)] = np.maximum(cos[:, np.setdiff1d(seen, at)], 0.75)
+    g["face_cos"][...] = cos
+    write_global_texture(P["scene"], P["frames"], P["template"], proj, proj, tmp_path / "g.zarr",
+                         {"min_weight": 0.5})
+    out = open_store(tmp_path / "g.zarr", "global_texture")
+    textured = out["face_textured"][...]
+    assert not textured[at].any() and textured[np.setdiff1d(seen, at)].all()
+    tf = open_store(P["template"], "template")["texel/face_id"][...]
+    assert not out["weight_sum"][...][np.isin(tf, at)].any()

@@ -463,3 +463,372 @@ def test_displacement_picture():
         displacement_picture(color[..., 0], phi, xi, valid)
     with pytest.raises(ValueError, match="xi"):
         displacement_picture(color, phi, xi[:2], valid)
+
+
+def _reference_evaluate(imgs, masks, phi, F, fw, gain, bg, c, model):
+    """The documented energy (module docstring, :class:`_Photometric`) computed directly: samples
+    by scipy's bilinear ``map_coordinates``, the proxy as the weighted mean (weight face cosine ×
+    (1 inside the mask, ``bg`` outside) × robust weight), one reweighting pass, the face model's
+    (a, m), ρ and ω. Returns (P (F, S), E, omega (K, F))."""
+    from scipy.ndimage import map_coordinates
+    from stex.texcoords import SAMPLE_BARY
+
+    K, S = len(imgs), len(SAMPLE_BARY)
+    pos = np.einsum("sj,kfjc->kfsc", SAMPLE_BARY, phi[:, F])                      # (K, F, S, 2)
+
+    def bil(img, p):
+        return map_coordinates(np.asarray(img, np.float64), [p[..., 1].ravel(), p[..., 0].ravel()],
+                               order=1, mode="nearest").reshape(p.shape[:-1])
+
+    C = np.stack([gain[k] * bil(imgs[k], pos[k]) for k in range(K)])              # g·C (K, F, S)
+    m_in = np.stack([bil(masks[k], pos[k]) >= 0.999 for k in range(K)])
+    mw = np.where(m_in, 1.0, bg)
+
+    def proxy(om):
+        w = (fw * om)[..., None] * mw
+        return (w * C).sum(0) / w.sum(0)
+
+    def errors(P):
+        e = np.zeros((K, len(F)))
+        for k in range(K):
+            for f in range(len(F)):
+                x, y = C[k, f], P[f]
+                a = 1.0
+                if model == "affine" and ((x - x.mean()) ** 2).sum() > 1e-9:
+                    a = float(np.clip(np.polyfit(x, y, 1)[0], 0.5, 2.0))
+                m = (a * x - y).mean() if model != "none" else 0.0
+                e[k, f] = ((a * x - y - m) ** 2).sum()
+        return e
+
+    def omega(e):
+        return np.ones_like(e) if c == 0 else (1 + e / (S * c * c)) ** -2
+
+    P = proxy(np.ones((K, len(F))))
+    if c > 0:
+        P = proxy(omega(errors(P)))
+    e = errors(P)
+    rho = e if c == 0 else S * c * c * e / (S * c * c + e)
+    return P, rho.sum() / 255.0**2, omega(e)
+
+
+@pytest.mark.parametrize("robust_grey, model", [(0.0, "none"), (4.0, "none"), (4.0, "affine")])
+def test_energy_matches_the_documented_formulas(robust_grey, model):
+    """Proxy, energy and robust weights of one evaluation against a direct computation of the
+    documented formulas (:func:`_reference_evaluate`): frame 1 has a lower contrast (so the affine
+    fit's contrast is above 1), noise and a changed patch (small robust weights there), a blocky
+    foreground mask whose borders put samples at fractional mask values (background weight),
+    and the frames have different gains and face cosines."""
+    import stex.texcoords as tc
+    load, phi, valid, fvis, _, F = _toy((0.0, 0.0))
+    g0 = load(0)[0]
+    rng = np.random.default_rng(3)
+    g1 = g0.astype(np.float64) * 0.7 + 40 + rng.normal(0, 3, g0.shape)
+    g1[40:60, 60:90] = 255 - g1[40:60, 60:90]
+    g1 = np.clip(np.rint(g1), 0, 255).astype(np.uint8)
+    m0 = np.ones((120, 160), bool)
+    m1 = np.kron(rng.random((18, 23)) < 0.7, np.ones((7, 7), bool))[:120, :160]
+    fw = rng.uniform(0.2, 1.0, fvis.shape)
+    gain = np.array([0.9, 1.1])
+    st = build_stack(lambda t: ((g0, g1)[t], (m0, m1)[t]), [0, 1], phi, valid, 8, 160, 120)
+    p = texcoords_params({"gain": "none", "robust_grey": robust_grey, "face_photometric": model})
+    ph = tc._Photometric(st, np.ascontiguousarray(F, np.int64), fvis, fw, np.ascontiguousarray(tc.SAMPLE_BARY), p)
+    ph.gain = gain
+    P, E, om, _ = ph.evaluate(phi)
+    P_ref, E_ref, om_ref = _reference_evaluate((g0, g1), (m0, m1), phi, F, fw, gain,
+                                               p["background_weight"], robust_grey, model)
+    np.testing.assert_allclose(P, P_ref, atol=2e-3)
+    assert E == pytest.approx(E_ref, rel=1e-5)
+    np.testing.assert_allclose(om, om_ref, rtol=1e-4, atol=1e-9)
+    if robust_grey > 0:
+        assert om.min() < 0.05 and om.max() > 0.5        # both regimes of the weight are exercised
+
+
+def _reference_gn_step(img, xi, F, P, g, model):
+    """The documented 2×2 Gauss-Newton step of every vertex of one frame (photometric term only,
+    ω = 1, neighbours fixed), in numpy: ∇C the central difference of bilinear lookups 1 px apart
+    (scipy ``map_coordinates``), residuals r_s = a g C_s − P_s − m; 'none': each residual enters
+    with weight β and Jacobian g∇C; 'offset' / 'affine': Jacobian a g β ∇C_s − its mean over the
+    samples. Returns (step (V, 2), C (F, S) the samples)."""
+    from scipy.ndimage import map_coordinates
+    from stex.texcoords import SAMPLE_BARY as B
+
+    def bil(p):
+        return map_coordinates(np.asarray(img, np.float64), [p[..., 1].ravel(), p[..., 0].ravel()],
+                               order=1, mode="nearest").reshape(p.shape[:-1])
+
+    pos = np.einsum("sj,fjc->fsc", B, xi[F])                                      # (F, S, 2)
+    C = bil(pos).astype(np.float32).astype(np.float64)                            # stored as float32
+    ex, ey = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    grad = 0.5 * np.stack([bil(pos + ex) - bil(pos - ex), bil(pos + ey) - bil(pos - ey)], -1)
+    A = np.zeros((len(xi), 2, 2))
+    b = np.zeros((len(xi), 2))
+    for f in range(len(F)):
+        x = g * C[f]
+        a = 1.0
+        if model == "affine":
+            a = float(np.clip(np.polyfit(x, P[f], 1)[0], 0.5, 2.0))
+        m = (a * x - P[f]).mean() if model != "none" else 0.0
+        r = a * x - P[f] - m
+        for j in range(3):
+            if model == "none":
+                A[F[f, j]] += np.einsum("s,si,sk->ik", B[:, j], g * grad[f], g * grad[f])
+                b[F[f, j]] += np.einsum("s,si,s->i", B[:, j], g * grad[f], r)
+            else:
+                J = a * g * B[:, j, None] * grad[f]                               # (S, 2)
+                J -= J.mean(0)
+                A[F[f, j]] += J.T @ J
+                b[F[f, j]] += J.T @ r
+    return -np.linalg.solve(A, b[..., None])[..., 0], C
+
+
+@pytest.mark.parametrize("model", ["none", "offset", "affine"])
+def test_jacobi_step_is_the_documented_gauss_newton_step(model):
+    """One Jacobi step of the photometric term (edge weight 0) equals the 2×2 Gauss-Newton step
+    written out from the documented residuals and Jacobians (:func:`_reference_gn_step`), for
+    each face model; the image is textured and the proxy differs from the samples, so every
+    vertex has a full-rank block and a non-zero step."""
+    import stex.texcoords as tc
+    load, phi, valid, _, _, F = _toy((0.0, 0.0))
+    img = load(0)[0]
+    rng = np.random.default_rng(5)
+    xi = phi[:1] + rng.normal(0, 0.6, phi[:1].shape)
+    F = np.ascontiguousarray(F, np.int64)
+    g = 1.2
+    P = rng.uniform(60, 200, (len(F), 15))
+    step_ref, C = _reference_gn_step(img, xi[0], F, P, g, model)
+    st = build_stack(lambda t: (img, np.ones((120, 160), bool)), [0], xi, valid[:1], 8, 160, 120)
+    fv = np.ones((1, len(F)), bool)
+    step = np.zeros_like(xi)
+    tc._gn_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, xi.copy(), F, fv, np.ones(fv.shape),
+                  np.array([g]), np.ascontiguousarray(tc.SAMPLE_BARY), P, C.astype(np.float32),
+                  np.array([0, len(F)], np.int64), 0.0, True, 1e3, tc.FACE_PHOTOMETRIC.index(model), step)
+    assert np.abs(step_ref).max() > 0.1
+    np.testing.assert_allclose(step[0], step_ref, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("edge_mode", ["vector", "length"])
+def test_jacobi_edge_step_is_the_gauss_newton_step_and_clamped(edge_mode):
+    """On a uniform image only the edge term acts: each vertex's Jacobi step (neighbours fixed)
+    is the Gauss-Newton step of its edge residuals, two per visible face around it, with the
+    Jacobian taken by finite differences here ('vector': edge_weight · ((ξ_v − ξ_k) − (Φ_v − Φ_k)),
+    'length': edge_weight · (|ξ_v − ξ_k| − |Φ_v − Φ_k|)), each component clamped to
+    ± step_clamp_px."""
+    import stex.texcoords as tc
+    _, phi, valid, _, _, F = _toy((0.0, 0.0))
+    F = np.ascontiguousarray(F, np.int64)
+    rng = np.random.default_rng(2)
+    phi = phi[:1].copy()
+    xi = phi + rng.normal(0, 0.7, phi.shape)
+    w, clamp = 3.0, 0.4
+
+    def residuals(v, x):
+        r = []
+        for f in np.flatnonzero((F == v).any(1)):
+            for k in F[f][F[f] != v]:
+                if edge_mode == "vector":
+                    r += list(w * ((x - xi[0, k]) - (phi[0, v] - phi[0, k])))
+                else:
+                    r.append(w * (np.linalg.norm(x - xi[0, k]) - np.linalg.norm(phi[0, v] - phi[0, k])))
+        return np.array(r)
+
+    ref = np.zeros(xi.shape[1:])
+    for v in range(xi.shape[1]):
+        x0, h = xi[0, v], 1e-6
+        J = np.stack([(residuals(v, x0 + d) - residuals(v, x0 - d)) / (2 * h)
+                      for d in (np.array([h, 0.0]), np.array([0.0, h]))], 1)
+        ref[v] = -np.linalg.solve(J.T @ J, J.T @ residuals(v, x0))
+    img = np.full((120, 160), 128, np.uint8)
+    st = build_stack(lambda t: (img, np.ones((120, 160), bool)), [0], xi, valid[:1], 8, 160, 120)
+    fv = np.ones((1, len(F)), bool)
+    bary = np.ascontiguousarray(tc.SAMPLE_BARY)
+    step = np.zeros_like(xi)
+    tc._gn_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, fv, np.ones(fv.shape), np.ones(1),
+                  bary, np.full((len(F), 15), 128.0), np.full((len(F), 15), 128.0, np.float32),
+                  np.array([0, len(F)], np.int64), w, edge_mode == "vector", clamp, 0, step)
+    clipped = np.abs(ref) > clamp
+    assert clipped.any() and (~clipped).any()
+    np.testing.assert_allclose(step[0], np.clip(ref, -clamp, clamp), atol=1e-6)
+
+
+def test_half_sample_mode_by_hand():
+    """The half-sample mode worked by hand on 7 values: the shortest window of ⌈7/2⌉ = 4 is
+    [2, 4, 4.25, 4.75] (width 2.75), the shortest of 2 in it [4, 4.25]: 4.125."""
+    import stex.texcoords as tc
+    x = [9.0, 4.25, 0.0, 4.75, 1.0, 4.0, 2.0]
+    assert tc._half_sample_mode(x) == pytest.approx(4.125)
+    assert tc._half_sample_mode([3.0, 1.0]) == pytest.approx(2.0)
+
+
+def test_gauge_weights_by_hand():
+    """Two faces (0, 1, 2), (1, 3, 2); frame 0 sees both (cosines 0.8, 0.4), frame 1 only face 0
+    (0.6; face 1's cosine there is not used). 'weighted': the mean cosine of the vertex's visible
+    faces, 0 where it is on none; 'mean': 1 where it is on one."""
+    import stex.texcoords as tc
+    F = np.array([[0, 1, 2], [1, 3, 2]])
+    fvis = np.array([[True, True], [True, False]])
+    fw = np.array([[0.8, 0.4], [0.6, 0.9]])
+    used = tc._vertex_used(fvis, F, 4)
+    np.testing.assert_array_equal(used, [[1, 1, 1, 1], [1, 1, 1, 0]])
+    np.testing.assert_allclose(tc._gauge_weights(fvis, fw, F, used, "weighted"),
+                               [[0.8, 0.6, 0.6, 0.4], [0.6, 0.6, 0.6, 0.0]])
+    np.testing.assert_array_equal(tc._gauge_weights(fvis, fw, F, used, "mean"), used)
+
+
+def test_gain_needs_ten_faces_per_frame():
+    """gain 'frame': a frame 10 % brighter than the other gets its gain from the mode over its
+    usable faces when it has at least 10 of them (gain ratio 1.1), and keeps 1 with 9 (both
+    gains 1: the other frame's faces, mostly seen by it alone, agree with its gain)."""
+    import stex.texcoords as tc
+    load, phi, valid, _, _, F = _toy((0.0, 0.0))
+    g0 = np.clip(np.rint(load(0)[0] * 0.75 + 20), 0, 255).astype(np.uint8)
+    g1 = np.clip(np.rint(g0 * 1.1), 0, 255).astype(np.uint8)
+    m = np.ones((120, 160), bool)
+    st = build_stack(lambda t: ((g0, g1)[t], m), [0, 1], phi, valid, 8, 160, 120)
+    F = np.ascontiguousarray(F, np.int64)
+    for n_faces, ratio in ((10, 1.1), (9, 1.0)):
+        fvis = np.ones((2, len(F)), bool)
+        fvis[1, n_faces:] = False
+        st.gain = None
+        ph = tc._Photometric(st, F, fvis, np.ones(fvis.shape), np.ascontiguousarray(tc.SAMPLE_BARY),
+                             texcoords_params({"gain": "frame"}))
+        ph.set_gain(phi)
+        assert ph.gain[0] / ph.gain[1] == pytest.approx(ratio, abs=0.01)
+
+
+def test_blur_schedule():
+    """Level l of ``levels`` L uses L − l blurs (the coarsest the most), the refinement 1."""
+    load, phi, valid, fvis, fcos, F = _toy((1.0, 0.0))
+    r = optimize_texcoords(load, phi, valid, fvis, fcos, F, (160, 120),
+                           dict(FAST, keyframe_step=1, iterations=1, refine_iterations=1), progress=False)
+    assert [s["blurs"] for s in r["stages"]] == [3, 2, 1, 1]
+
+
+def test_jacobi_line_search_halves_then_doubles(monkeypatch):
+    """The step length of solver 'jacobi': halved while E rises, doubled (up to 1) after an
+    accepted step. With a stand-in energy E = mean_v (d_v − 0.3)² of the x displacement d and
+    stand-in steps (first 2.5× the distance to 0.3, then 0.8×), worked by hand: d 0 → 0.75
+    (E 0.2025 > 0.09, rejected) → 0.375 (α 0.5, E 0.005625); then α back to 1: 0.375 − 0.06 =
+    0.315 (E 0.000225)."""
+    import stex.texcoords as tc
+    load, phi, valid, fvis, fcos, F = _toy((0.0, 0.0))
+    phi, fvis, fcos = phi[:1], fvis[:1], fcos[:1]
+    st = build_stack(load, [0], phi, valid[:1], 8, 160, 120)
+    calls = []
+
+    def fake_kernel(*args):
+        xi, step = args[6], args[-1]
+        factor = 2.5 if not calls else 0.8
+        calls.append(factor)
+        step[...] = 0.0
+        step[..., 0] = factor * (0.3 - (xi[..., 0] - phi[..., 0]))
+
+    def fake_evaluate(self, x):
+        return None, float(np.mean((x[..., 0] - phi[..., 0] - 0.3) ** 2 + (x[..., 1] - phi[..., 1]) ** 2)), None, None
+
+    monkeypatch.setattr(tc, "_gn_kernel", fake_kernel)
+    monkeypatch.setattr(tc._Photometric, "evaluate", fake_evaluate)
+    p = texcoords_params(dict(FAST, gauge="none", edge_weight=0.0, gain="none", rel_tol=0.0))
+    xi, en, _ = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 2, 160, 120)
+    np.testing.assert_allclose(en, [0.09, 0.005625, 0.000225], rtol=1e-9)
+    np.testing.assert_allclose(xi[..., 0] - phi[..., 0], 0.315, rtol=1e-9)
+
+
+def test_sparse_solve_matches_a_dense_solve():
+    """One damped solve of solver 'sparse' against the dense normal equations assembled here
+    from the same (frame, face) blocks: (H + λ (diag H + mean(diag H) I) + 1e-4 I) δ = −g,
+    unknowns (u, v) of the vertices in vertex order; random positive semi-definite blocks."""
+    import stex.texcoords as tc
+    _, phi, valid, fvis, _, F = _toy((0.0, 0.0))
+    F = np.ascontiguousarray(F, np.int64)
+    fvis = fvis.copy()
+    fvis[1, 40:] = False                                  # frame 1: only some faces
+    pk, pf = (a.astype(np.int64) for a in np.nonzero(fvis))
+    qs = np.searchsorted(pk, np.arange(3)).astype(np.int64)
+    used = tc._vertex_used(fvis, F, phi.shape[1])
+    sy = tc._SparseSystems(F, pk, pf, qs, used)
+    rng = np.random.default_rng(4)
+    Jq = rng.normal(0, 1, (len(pk), 4, 6))
+    Hq = np.einsum("qri,qrj->qij", Jq, Jq)
+    gq = rng.normal(0, 1, (len(pk), 6))
+    lam = 0.5
+    out = np.zeros(phi.shape)
+    sy.solve(Hq, gq, lam, out)
+    for k in range(2):
+        V = phi.shape[1]
+        H, g = np.zeros((2 * V, 2 * V)), np.zeros(2 * V)
+        for q in np.flatnonzero(pk == k):
+            idx = (2 * F[pf[q]][:, None] + np.arange(2)).ravel()
+            H[np.ix_(idx, idx)] += Hq[q]
+            g[idx] += gq[q]
+        u = np.repeat(used[k], 2)
+        H, g = H[np.ix_(u, u)], g[u]
+        d = np.diag(H)
+        A = H + np.diag(lam * (d + d.mean()) + 1e-4)
+        expect = np.zeros((V, 2))
+        expect[used[k]] = np.linalg.solve(A, -g).reshape(-1, 2)
+        np.testing.assert_allclose(out[k], expect, rtol=1e-7, atol=1e-10)
+
+
+def test_xi_stays_inside_the_crop():
+    """ξ is kept inside each frame's working crop: with no crop margin, frame 1's shift pushes the
+    vertices of the right column (u = 120, the crop's last column) outwards, and they stop there."""
+    import stex.texcoords as tc
+    load, phi, valid, fvis, fcos, F = _toy((2.5, 0.0))
+    st = build_stack(load, [0, 1], phi, valid, 0, 160, 120)
+    st.set_blur(1)
+    assert (st.x0 + st.w - 1).tolist() == [120, 120]
+    p = texcoords_params(dict(FAST, gauge="none", edge_weight=3.0, gain="none"))
+    xi, _, _ = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 20, 160, 120)
+    assert xi[1, :, 0].max() == 120.0 and xi[..., 0].max() <= 120.0
+
+
+def test_gauge_leaves_vertices_without_a_visible_face():
+    """The gauge mean is removed only at the frames where the vertex is a corner of a visible
+    face: vertex 0 sees no face at frame 2 (its two faces hidden there), so it has no residual
+    and no step there and keeps its start ξ = Φ exactly, while frames 0 and 1 move it."""
+    import stex.texcoords as tc
+    load, phi2, _, fvis2, fcos2, F = _toy((2.5, -1.5))
+    imgs = [load(0), load(1), load(0)]
+    phi = np.concatenate([phi2, phi2[:1]])
+    valid = np.ones(phi.shape[:2], bool)
+    fvis = np.concatenate([fvis2, fvis2[:1]])
+    fvis[2, :2] = False                                   # the faces around vertex 0
+    fcos = np.ones(fvis.shape)
+    st = build_stack(lambda t: imgs[t], [0, 1, 2], phi, valid, 8, 160, 120)
+    st.set_blur(1)
+    p = texcoords_params(dict(FAST, gauge="mean", gain="none"))
+    xi, _, _ = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 10, 160, 120)
+    assert np.abs(xi[:2, 0] - phi[:2, 0]).max() > 0.1
+    np.testing.assert_array_equal(xi[2, 0], phi[2, 0])
+
+
+def test_sparse_damping_follows_nielsens_rule(monkeypatch):
+    """solver 'sparse': λ starts at lm_lambda and, after each accepted step, is multiplied by
+    max(1/3, 1 − (2ρ − 1)³), ρ = (actual decrease of the objective) / (model decrease), so it
+    shrinks while the Gauss-Newton model predicts well. The toy shift takes 4 accepted steps
+    without a rejection; λ of each solve and the model decreases are recorded."""
+    import stex.texcoords as tc
+    load, phi, valid, fvis, fcos, F = _toy((2.5, -1.5))
+    st = build_stack(load, [0, 1], phi, valid, 8, 160, 120)
+    st.set_blur(2)
+    lams, preds = [], []
+    solve, decrease = tc._SparseSystems.solve, tc._SparseSystems.model_decrease
+
+    def rec_solve(self, Hq, gq, lam, out):
+        lams.append(lam)
+        return solve(self, Hq, gq, lam, out)
+
+    def rec_decrease(self, *args):
+        preds.append(decrease(self, *args))
+        return preds[-1]
+
+    monkeypatch.setattr(tc._SparseSystems, "solve", rec_solve)
+    monkeypatch.setattr(tc._SparseSystems, "model_decrease", rec_decrease)
+    p = texcoords_params(dict(FAST, solver="sparse", face_photometric="none", gain="none",
+                              robust_grey=0.0, rel_tol=0.0, lm_lambda=0.01))
+    _, _, ob = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 4, 160, 120)
+    assert len(ob) == 5 and len(lams) == 4                 # 4 steps, each accepted at once
+    rho = -np.diff(ob) / np.array(preds)
+    expect = 0.01 * np.cumprod(np.maximum(1 / 3, 1 - (2 * rho - 1) ** 3))
+    np.testing.assert_allclose(lams, np.concatenate([[0.01], expect[:-1]]), rtol=1e-12)
+    assert lams[-1] < 0.01
