@@ -548,3 +548,424 @@ def test_tracking_stage_refuses_a_mesh_in_millimetres_and_names_frames_without_d
         write_tracking(P["scene"], P["template"], dropped, P["masks"], dict(cfg["tracking"], mode="given"),
                        tmp_path / "dropped.zarr")
     assert f"no depth of the object to fit at 1 of {len(ids)} frames ({ids[1]})" in caplog.text
+
+
+def _path_mesh(n, h=0.01, offset=0.0):
+    """n collinear vertices h apart along x (at z = 1), joined by degenerate triangles (i, i+1, i+2):
+    the edges are h and 2h long, so the geodesic distance between vertices i and j is |i - j| h."""
+    V = np.zeros((n, 3))
+    V[:, 0] = offset + h * np.arange(n)
+    V[:, 2] = 1.0
+    return V, np.array([[i, i + 1, i + 2] for i in range(n - 2)])
+
+
+def test_graph_sampling_binding_and_links_worked_by_hand():
+    """On a path (geodesic distance |i - j| h, h = 1 cm) the greedy covering, the binding weights
+    (1 - d/d_max)^2 with d_max the (k+1)-th nearest node's distance, normalised, and the links
+    (nearest nodes within 2.5 spacings, never across to another piece) all follow by hand."""
+    V, F = _path_mesh(10)
+    g = build_graph(V, F, 0.025, k=2)
+    # a vertex within 2.5 cm of a node is covered: nodes at 0, 3, 6, 9 (3 cm apart, not 2)
+    np.testing.assert_array_equal(g.nodes, [0, 3, 6, 9])
+    # vertex 1: nodes 0, 3, 6 at 1, 2, 5 cm -> (1 - 1/5)^2 = 0.64, (1 - 2/5)^2 = 0.36 (sum 1)
+    np.testing.assert_array_equal(g.vertex_nodes[1], [0, 1])
+    np.testing.assert_allclose(g.vertex_weights[1], [0.64, 0.36])
+    # vertex 4: nodes 3, 6, 0 at 1, 2, 4 cm -> 9/16 and 1/4, normalised
+    np.testing.assert_array_equal(g.vertex_nodes[4], [1, 2])
+    np.testing.assert_allclose(g.vertex_weights[4], np.array([9 / 16, 1 / 4]) / (9 / 16 + 1 / 4))
+    # the same path twice, 1 m apart: links within 6.25 cm (3 and 6 cm), none between the pieces
+    V2, F2 = _path_mesh(10, offset=1.0)
+    two = build_graph(np.concatenate([V, V2]), np.concatenate([F, F2 + 10]), 0.025, k=2)
+    np.testing.assert_array_equal(two.nodes, [0, 3, 6, 9, 10, 13, 16, 19])
+    one = [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    assert two.edges.tolist() == one + [[a + 4, b + 4] for a, b in one]
+    # k = 1, nodes 2 cm apart: vertex 1 lies midway, (1 - d/d_max)^2 = 0 for both: it is bound
+    # wholly to a nearest node instead of to nothing (0/0)
+    g1 = build_graph(V, F, 0.015, k=1)
+    np.testing.assert_array_equal(g1.nodes, [0, 2, 4, 6, 8])
+    assert g1.vertex_weights[1, 0] == 1.0
+    assert np.linalg.norm(V[g1.nodes[g1.vertex_nodes[1, 0]]] - V[1]) == pytest.approx(0.01)
+
+
+def test_depth_target_drops_depth_edges_and_background():
+    """Pixels whose neighbours jump by more than max_jump_m (3 cm) and pixels outside the
+    foreground get no point; a 1 cm step keeps them. A flat depth's normal faces the camera."""
+    Ks = np.array([[200.0, 0, 14.5], [0, 200.0, 9.5], [0, 0, 1]])
+    d = np.ones((20, 30))
+    d[:, 15:] = 1.05
+    t = depth_target(d, Ks)
+    inner = np.zeros((20, 30), bool)
+    inner[1:-1, 1:-1] = True          # central differences need both neighbours
+    edge = inner.copy()
+    edge[:, 14:16] = False            # the columns whose left/right neighbours straddle the 5 cm step
+    np.testing.assert_array_equal(t.valid, edge)
+    np.testing.assert_allclose(t.normals[5, 5], [0, 0, -1])
+    d[:, 15:] = 1.01
+    np.testing.assert_array_equal(depth_target(d, Ks).valid, inner)
+    fg = np.zeros((20, 30), bool)
+    fg[:, :10] = True
+    t = depth_target(d, Ks, fg)
+    np.testing.assert_array_equal(t.valid, inner & fg)
+    assert (t.points[~fg] == 0).all()
+
+
+def _grid_mesh(n=11, size=0.2, z=1.0):
+    """A square grid of n x n vertices at depth z, facing the camera (normals (0, 0, -1))."""
+    u = np.linspace(-size / 2, size / 2, n)
+    X, Y = np.meshgrid(u, u)
+    V = np.stack([X.ravel(), Y.ravel(), np.full(n * n, z)], 1)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    F = np.concatenate([np.stack([a, a + n, a + 1], 1), np.stack([a + 1, a + n, a + n + 1], 1)])
+    return V, F
+
+
+def test_correspondences_need_a_near_point_and_an_agreeing_normal():
+    """Projective association of a plane facing the camera with a parallel depth plane: every
+    vertex pairs 2 cm away, none 10 cm away (max_distance 5 cm), and none where the depth
+    normals are flipped or tilted 70 degrees (cos 0.34 below min_normal_dot 0.5)."""
+    from stex.tracking import DepthTarget, _correspondences
+    V, F = _grid_mesh()
+    p = TrackParams()
+    near = depth_target(np.full((180, 240), 1.02), K)
+    ids, q, nq, vis, _ = _correspondences(V, F, near, p, 0.05)
+    assert vis.all() and len(ids) == len(V)
+    np.testing.assert_allclose(q[:, 2], 1.02)
+    assert len(_correspondences(V, F, depth_target(np.full((180, 240), 1.1), K), p, 0.05)[0]) == 0
+    a = np.deg2rad(70)
+    for n in ([0.0, 0.0, 1.0], [np.sin(a), 0.0, -np.cos(a)]):
+        bad = DepthTarget(near.points, np.where(near.valid[..., None], np.array(n), 0.0), near.valid, K)
+        assert len(_correspondences(V, F, bad, p, 0.05)[0]) == 0
+
+
+def test_data_rows_huber_and_the_fixed_pixel_scale_by_hand():
+    """Point-to-plane residuals 2 cm and -3 mm with the Huber threshold 5 mm: the outlier costs
+    2 delta |r| - delta^2 and its row is scaled by sqrt(delta / |r|) = 0.5, the inlier costs r^2.
+    The silhouette residual is the signed distance in pixels times the metres per pixel given
+    for the solve (px_scale), not the vertex's current z / fx."""
+    from stex.tracking import _data_rows
+    Vd = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.05, 0.0, 1.5]])
+    n = np.array([[0.0, 0.0, -1.0]] * 2)
+    q = np.array([[0.0, 0.0, 1.02], [0.01, 0.0, 0.997]])
+    cost, vids, Dws, rws = _data_rows(Vd, TrackParams(), depth=(np.array([0, 1]), q, n))
+    assert cost == pytest.approx((2 * 0.005 * 0.02 - 0.005**2) + 0.003**2, rel=1e-12)
+    np.testing.assert_allclose(rws[0], [0.02 * 0.5, -0.003], rtol=1e-12)
+    np.testing.assert_allclose(Dws[0], [[0, 0, -0.5], [0, 0, -1.0]], rtol=1e-12)
+    # signed distance u - 120 px; vertex 2 projects to u = 200 * 0.05 / 1.5 + 119.5
+    sdf = np.arange(240, dtype=np.float32)[None].repeat(180, 0) - 120
+    grad = np.stack([np.ones_like(sdf), np.zeros_like(sdf)], -1)
+    r = (200 * 0.05 / 1.5 + 119.5 - 120) * 0.005       # px_scale 5 mm/px (z = 1), not 7.5 (z = 1.5)
+    cost, *_ = _data_rows(Vd, TrackParams(w_silhouette=2.0), silhouette=(np.array([2]), sdf, grad, K, np.eye(4)),
+                          px_scale=np.full(3, 0.005))
+    assert cost == pytest.approx(2.0 * (2 * 0.005 * r - 0.005**2), rel=1e-6)
+
+
+def test_data_rows_gradient_matches_finite_differences():
+    """For every data-like term (point-to-plane, point-to-point, flow, silhouette) the rows and
+    weighted residuals give the cost's gradient: 2 sum rw Dw = d cost / d x', by central
+    differences (a linear signed-distance field, so that its sampled gradient is exact)."""
+    from stex.tracking import _data_rows
+    rng = np.random.default_rng(0)
+    V = np.array([0, 0, 1.0]) + rng.normal(0, 0.05, (6, 3))
+    ids = np.arange(6)
+    nq = rng.normal(size=(6, 3))
+    nq /= np.linalg.norm(nq, axis=1, keepdims=True)
+    Tdc = np.eye(4)
+    Tdc[:3, :3] = Rotation.from_euler("xyz", [3, -5, 2], degrees=True).as_matrix()
+    Tdc[:3, 3] = [-0.05, 0.01, 0.02]
+    yy, xx = np.mgrid[0:180, 0:240].astype(np.float32)
+    sdf = 0.6 * (xx - 120) + 0.8 * (yy - 90)
+    grad = np.stack([np.full_like(sdf, 0.6), np.full_like(sdf, 0.8)], -1)
+    p = TrackParams(w_point=0.3, w_flow=0.7, w_silhouette=2.0)
+    args = dict(depth=(ids, V + rng.normal(0, 0.01, (6, 3)), nq),
+                flow=(ids, rng.normal([120, 90], 8, (6, 2)), K, Tdc, np.linspace(0.5, 1.5, 6)),
+                silhouette=(ids, sdf, grad, K, Tdc), px_scale=np.full(6, 0.004))
+    _, vids, Dws, rws = _data_rows(V, p, **args)
+    G = np.zeros((6, 3))
+    for i, D, r in zip(vids, Dws, rws):
+        np.add.at(G, i, 2 * r[:, None] * D)
+    eps = 1e-4
+    FD = np.zeros((6, 3))
+    for v in range(6):
+        for a in range(3):
+            Vp, Vm = V.copy(), V.copy()
+            Vp[v, a] += eps
+            Vm[v, a] -= eps
+            FD[v, a] = (_data_rows(Vp, p, rows=False, **args)[0] - _data_rows(Vm, p, rows=False, **args)[0]) / (2 * eps)
+    assert np.abs(G - FD).max() < 1e-4 * np.abs(FD).max()
+
+
+def test_silhouette_rim_takes_rim_vertices_and_visible_ones_outside_the_mask():
+    """Vertices on pixel row 89.5 of a rectangular mask (boundary at u = 179.5): 5.5 px outside
+    (facing the camera): taken; 9.5 px inside: only if on the rim (cos below silhouette_rim_cos);
+    30.5 px outside (beyond SILHOUETTE_MAX_PX), unseen, or behind the camera: not taken."""
+    from stex.tracking import _silhouette_rim, silhouette_field
+    mask = np.zeros((180, 240), bool)
+    mask[30:150, 60:180] = True
+    sdf, grad = silhouette_field(mask)
+    u = np.array([185.0, 170.0, 170.0, 210.0, 170.0, 170.0])
+    V = np.stack([(u - 119.5) / 200, np.zeros(6), np.ones(6)], 1)
+    V[5] *= -1                                          # behind the camera
+    vis = np.array([True, True, True, True, False, True])
+    cos = np.array([1.0, 1.0, 0.01, 1.0, 0.01, 0.01])
+    ids = _silhouette_rim(V, vis, cos, (sdf, grad, K, np.eye(4)), TrackParams())
+    np.testing.assert_array_equal(ids, [0, 2])
+
+
+def test_l0_step_keeps_exactly_the_links_whose_weighted_difference_pays():
+    """The s-step alone (no Gauss-Newton steps): s_jk = r_jk where w_jk |r_jk|^2 > lambda / beta,
+    with w_jk = w_reg max(1, length / spacing)^link_length_power and beta growing per round.
+    Links 10 cm (w = 2^1.5) and 2.5 cm (w = 1) long, both |r| = 1 cm; lambda 4e-4, beta 2 then 8:
+    round 1 keeps the long link only (2.83e-4 > 2e-4 > 1e-4), round 2 both (> 5e-5)."""
+    from stex.tracking import DeformationGraph
+    V = np.array([[0.0, 0, 1], [0.1, 0, 1], [0.025, 0, 1]])
+    g = DeformationGraph(np.arange(3, dtype=np.int32), np.arange(3, dtype=np.int32)[:, None], np.ones((3, 1)),
+                         np.array([[0, 1], [0, 2]], np.int32))
+    x = identity_params(3)
+    x[1, 9:] = [0.01, 0, 0]
+    x[2, 9:] = [0, 0.01, 0]
+    empty = depth_target(np.zeros((180, 240)), K)
+    active = []
+    for rounds in (1, 2):
+        p = TrackParams(gn_iterations=0, l0_rounds=rounds, l0_lambda=4e-4, l0_beta0=2.0, l0_beta_growth=4.0)
+        out, st = _solve_frame(V, np.array([[0, 1, 2]]), V, g, empty, p, x)
+        np.testing.assert_array_equal(out, x)
+        active.append(st["l0_active"])
+    assert active == [1, 2]
+
+
+def test_solve_reaches_the_least_squares_minimum_of_its_energy():
+    """A dome (5 mm high) pressed onto a flat depth plane, every residual within the Huber
+    threshold: the Gauss-Newton solve ends at the minimum of sum (n . (x'_i - q_i))^2 + w_rot
+    ||A^T A - I||^2 + beta w_jk ||r_jk||^2 (w_jk = w_reg max(1, |g_k - g_j| / spacing)^1.5,
+    beta = l0_beta0 in the first round, s = 0), found independently with scipy's least_squares.
+    (On a flat target the residual is 1 - z'_i whichever pixel a vertex pairs with.)"""
+    from scipy.optimize import least_squares
+
+    from stex.tracking import _rot_terms
+    n = 9
+    u = np.linspace(-0.12, 0.12, n)
+    X, Y = np.meshgrid(u, u)
+    V = np.stack([X.ravel(), Y.ravel(), (1.0 - 0.005 * (1 - (X**2 + Y**2) / 0.12**2 / 2)).ravel()], 1)
+    _, F = _grid_mesh(n)
+    g = build_graph(V, F, 0.08)
+    N, nodes = len(g.nodes), V[g.nodes]
+    p = TrackParams(l0_rounds=1, gn_iterations=10, l0_beta0=5.0, w_rot=0.01)
+    x, st = _solve_frame(V, F, nodes, g, depth_target(np.full((180, 240), 1.0), K), p, identity_params(N))
+    assert st["n_corr"] == len(V)
+    j_, k_ = g.edges.T
+    d_jk = nodes[k_] - nodes[j_]
+    w = p.w_reg * np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** 1.5
+
+    def residuals(xf):
+        x = xf.reshape(N, 12)
+        A, t = x[:, :9].reshape(N, 3, 3), x[:, 9:]
+        r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
+        return np.concatenate([1.0 - deform(V, nodes, g, x)[:, 2], np.sqrt(p.w_rot) * _rot_terms(x)[0].ravel(),
+                               (np.sqrt(p.l0_beta0 * w)[:, None] * r_jk).ravel()])
+
+    def energy(x):
+        return float((residuals(np.ravel(x)) ** 2).sum())
+
+    ref = least_squares(residuals, identity_params(N).ravel(), method="lm")
+    assert energy(identity_params(N)) > 3 * energy(ref.x)             # the solve has work to do
+    assert energy(x) <= energy(ref.x) * (1 + 1e-4), (energy(x), energy(ref.x))
+
+
+def test_depth_residual_clips_and_counts_the_union_by_hand():
+    """A mesh 2 cm in front of the observed depth on the pixels both cover: mean 2 cm; 20 cm in
+    front: clipped at 5 cm; as many observed pixels again that the mesh misses count 5 cm each
+    with union (so (2 + 5) / 2 cm), and not without."""
+    from stex.tracking import DepthTarget
+    V, F = _grid_mesh(size=0.3)
+    d = rasterize(V, F, K, 240, 180).depth.astype(np.float64)
+    cover = d > 0
+    assert cover.sum() > 1000 and not cover[:, :60].any()
+
+    def target(offset, extra=False):
+        valid = cover.copy()
+        if extra:  # as many pixels again, in columns the mesh does not reach
+            rows, cols = np.nonzero(cover)
+            valid[rows, cols - cols.min()] = True
+        pts = np.zeros((180, 240, 3))
+        pts[..., 2] = np.where(valid, 1.0 + offset, 0.0)
+        return DepthTarget(pts, np.zeros_like(pts), valid, K)
+
+    assert depth_residual(V, F, target(0.02)) == pytest.approx(0.02, abs=1e-6)
+    assert depth_residual(V, F, target(0.2)) == pytest.approx(0.05)
+    assert depth_residual(V, F, target(0.02, extra=True)) == pytest.approx(0.035, abs=1e-6)
+    assert depth_residual(V, F, target(0.02, extra=True), union=False) == pytest.approx(0.02, abs=1e-6)
+
+
+def test_depth_scale_check_refuses_a_mesh_twice_as_far():
+    """Scaling a mesh about the camera centre keeps its silhouette and scales its depth: the
+    ratio is the scale, and the check refuses 2 (outside 1/1.5 .. 1.5) but passes 1.3 and 1/1.3."""
+    from stex.tracking import _check_depth_scale, depth_scale_ratio
+    V, F = _sphere()
+    t = _target(V, F)
+    assert depth_scale_ratio(2.0 * V, F, t) == pytest.approx(2.0, rel=1e-3)
+    for s in (1.3, 1 / 1.3):
+        _check_depth_scale(s * V, F, t, 0, "t.zarr")
+    with pytest.raises(ValueError, match="2.00 times as far"):
+        _check_depth_scale(2.0 * V, F, t, 0, "t.zarr")
+
+
+def test_rigid_stage_catches_a_motion_beyond_the_non_rigid_radius():
+    """The rigid stage associates within twice max_distance_m (5 cm): a sphere 7 cm farther
+    than the template is caught (each vertex's depth pixel is about 7 cm away along its ray)."""
+    V, F = _sphere()
+    V1 = V + [0.0, 0.0, 0.07]
+    (_, out, st), = track_sequence(V, F, [Observation(_target(V1, F))], TrackParams(rigid_only=True, w_flow=0.0),
+                                   progress=False)
+    assert st["n_corr"] > 50 and st["frame_fallback"] == 0
+    assert np.linalg.norm(out - V1, axis=1).max() < 0.002
+    # the non-rigid solve alone pairs within max_distance_m only: nothing to pull on, nothing moves
+    g = build_graph(V, F, 0.08)
+    x, st = _solve_frame(V, F, V[g.nodes], g, _target(V1, F), TrackParams(), identity_params(len(g.nodes)))
+    assert st["n_corr"] == 0 and np.allclose(x, identity_params(len(g.nodes)), rtol=0, atol=1e-12)
+
+
+def test_constant_velocity_predicts_the_last_motion_once_more(monkeypatch):
+    """With constant_velocity, frame 2 starts from frame 1's mesh moved again by the motion from
+    frame 0 to 1 (here 2 cm along x); without it, from frame 1's mesh."""
+    import stex.tracking as tracking
+    V, F = _sphere()
+    step = np.array([0.02, 0.0, 0.0])
+    solve = tracking._solve_frame
+    for cv in (False, True):
+        starts = []
+
+        def spy(V0, faces, node_pos, *args, **kwargs):
+            if len(node_pos) == 1:   # the rigid stage: it starts from the prediction
+                starts.append(V0.copy())
+            return solve(V0, faces, node_pos, *args, **kwargs)
+
+        monkeypatch.setattr(tracking, "_solve_frame", spy)
+        out = [Vb for _, Vb, _ in track_sequence(V, F, [Observation(_target(V + i * step, F)) for i in range(3)],
+                                                 TrackParams(rigid_only=True, w_flow=0.0, constant_velocity=cv),
+                                                 progress=False)]
+        assert np.abs(out[1] - out[0] - step).max() < 1e-3      # the tracker did follow the motion
+        assert np.abs(starts[2] - (out[1] + step if cv else out[1])).max() < 2e-3
+
+
+def test_flow_constraints_keep_only_forward_backward_consistent_flow(tiny_config, monkeypatch):
+    """With DIS replaced by known fields (forward +3 px in u everywhere; backward -3 px, or -1 px
+    from column 100 on), a vertex's target is its pixel + (3, 0), and it is kept only where the
+    backward flow at the target returns within consistency_px (1 px): u < 99.5 (bilinear between
+    columns 99 and 100, the round-trip error grows from 0 to 2 px)."""
+    import cv2
+
+    from stex.camera import project_points, transform_points
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import AppearanceModel, flow_constraints
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    r0 = s.render_frame(0)
+    g0 = cv2.cvtColor(r0.color, cv2.COLOR_RGB2GRAY)
+    V0 = s.true_vertices(0)
+    model = AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256)
+    model.capture(V0, g0, cal, 0.3)
+    H, W = g0.shape
+
+    class KnownFlow:
+        def __init__(self, backward):
+            self.backward, self.calls = backward, 0
+
+        def calc(self, a, b, _):   # forward (model -> image) first, then backward
+            self.calls += 1
+            f = np.zeros((H, W, 2), np.float32)
+            f[..., 0] = 3.0 if self.calls == 1 else self.backward
+            return f
+
+    out = {}
+    for name in ("consistent", "split"):
+        bw = np.full((H, W), -3.0, np.float32)
+        if name == "split":
+            bw[:, 100:] = -1.0
+        monkeypatch.setattr(cv2, "DISOpticalFlow_create", lambda preset, bw=bw: KnownFlow(bw))
+        out[name] = flow_constraints(V0, s.faces, model, g0, r0.true_mask, cal, crop_margin_px=10**6)
+    ids, u1 = out["consistent"]
+    uv = project_points(transform_points(cal.depth_to_color, V0), cal.color.K)[0]
+    np.testing.assert_allclose(u1, uv[ids] + [3.0, 0.0], atol=1e-9)
+    keep = u1[:, 0] < 99.5
+    assert 10 < keep.sum() < len(ids) - 10       # the split runs through the object
+    np.testing.assert_array_equal(out["split"][0], ids[keep])
+    np.testing.assert_allclose(out["split"][1], u1[keep])
+
+
+def test_frame_guard_keeps_the_best_fit_beyond_a_5_percent_margin(monkeypatch):
+    """The frame keeps the solve unless it explains the depth more than FRAME_GUARD_MARGIN (5 %)
+    worse than the rigid fit or the prediction; then the best of those two, with its fit in the
+    stats. The fits (solve, rigid, prediction; in the order the guard measures them) are given."""
+    import stex.tracking as tracking
+    V, F = _sphere()
+    target = _target(V + [0.0, 0.0, 0.01], F)
+    for fits, keep in [((1.04, 1.0, 2.0), "solve"), ((1.06, 1.0, 2.0), "rigid"), ((1.2, 1.0, 2.0), "rigid"),
+                       ((1.2, 2.0, 1.0), "prediction"), ((0.5, 1.0, 2.0), "solve")]:
+        meshes = []
+
+        def given_fit(Vm, *args, **kwargs):
+            meshes.append(Vm)
+            return fits[len(meshes) - 1]
+
+        monkeypatch.setattr(tracking, "depth_residual", given_fit)
+        (_, out, st), = track_sequence(V, F, [Observation(target)], TrackParams(w_flow=0.0), progress=False)
+        assert len(meshes) == 3 and np.array_equal(meshes[2], V)       # the prediction of frame 0: the template
+        k = ["solve", "rigid", "prediction"].index(keep)
+        assert out is meshes[k] and st["frame_fallback"] == int(keep != "solve")
+        assert st["depth_residual_m"] == fits[k]
+
+
+def test_volume_links_stay_within_their_range():
+    """On a closed rod 40 cm long (radius 2 cm), every link through the solid joins nodes at most
+    volume_range spacings (here 4 x 3 cm) apart (Euclidean), however many links a node may have."""
+    import trimesh
+    m = trimesh.creation.cylinder(radius=0.02, height=0.4, sections=16).subdivide().subdivide()
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    plain = build_graph(V, F, 0.03)
+    g = build_graph(V, F, 0.03, volume_links=20, volume_range=4.0)
+    extra = np.array(sorted({tuple(e) for e in g.edges.tolist()} - {tuple(e) for e in plain.edges.tolist()}))
+    assert len(extra) > 20
+    P = V[g.nodes]
+    assert np.linalg.norm(P[extra[:, 0]] - P[extra[:, 1]], axis=1).max() <= 4.0 * 0.03
+
+
+def test_flow_weights_fall_with_the_age_of_the_model_texels(tiny_config, monkeypatch):
+    """flow_age_frames k: a flow constraint on a texel captured at frame a weighs 1 / (1 + a / k).
+    With k = 2 over three frames the model holds texels of frames 0 and 1: weights 1 and 2/3
+    (1/2 for a texel not captured yet, taken as captured now, at frame 2)."""
+    import cv2
+
+    import stex.tracking as tracking
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import mask_in_depth
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    weights = []
+    solve = tracking._solve_frame
+
+    def spy(V0, faces, node_pos, graph, target, p, x_init, flow=None, silhouette=None):
+        if flow is not None:
+            weights.append(flow[4])
+        return solve(V0, faces, node_pos, graph, target, p, x_init, flow, silhouette)
+
+    monkeypatch.setattr(tracking, "_solve_frame", spy)
+
+    def obs():
+        for t in range(3):
+            r = s.render_frame(t)
+            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
+            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
+                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+
+    seen = []
+    for pos, _, _ in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(flow_age_frames=2.0, flow_passes=1),
+                                    progress=False, texcoords=s.texcoords, texcoord_faces=s.texcoord_faces):
+        seen.append(np.concatenate(weights) if weights else np.zeros(0))
+        weights.clear()
+
+    def near(w, values):   # (n, len(values)) bool: which of the values each weight is
+        return np.isclose(w[:, None], np.asarray(values)[None], rtol=1e-12, atol=0)
+
+    assert len(seen[0]) == 0                                            # no model yet at frame 0
+    assert near(seen[1], [1.0, 2 / 3]).any(1).all() and near(seen[1], [1.0]).any()  # frame-0 texels, new at 1
+    assert near(seen[2], [1.0, 2 / 3, 0.5]).any(1).all() and near(seen[2], [2 / 3]).any()
