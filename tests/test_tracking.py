@@ -15,6 +15,20 @@ from stex.tracking import (Observation, TrackParams, _solve_frame, build_graph, 
 K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
 
+def _scene_observations(s, n_frames=None):
+    """Observations of a synthetic scene's first frames (all by default): depth inside the true
+    mask, grey image, calibration and true mask, as the tracking stage builds them."""
+    import cv2
+
+    from stex.tracking import mask_in_depth
+    cal = s.calibration
+    for t in range(s.n_frames if n_frames is None else n_frames):
+        r = s.render_frame(t)
+        fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
+        yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
+                          cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+
+
 def _sphere():
     V, F = bumpy_sphere(subdivisions=3, radius=0.3, distance=1.2)
     return V, F
@@ -84,21 +98,15 @@ def test_template_from_depth_faces_the_camera():
 def test_tracking_follows_a_deforming_synthetic_scene(tiny_config):
     """A short run on a tiny synthetic scene (low resolution): the tracked mesh stays on the
     truth; the full-resolution figures are in benchmarks/bench_tracking.py."""
-    import cv2
 
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import mask_in_depth
     from stex.render import vertex_visibility
     cfg = tiny_config["source"]["synthetic"]
     s = SyntheticScene(cfg)
     cal = s.calibration
 
     def obs():
-        for t in range(s.n_frames):
-            r = s.render_frame(t)
-            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
-            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
-                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+        return _scene_observations(s)
 
     errors = []
     for pos, V, st in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(), progress=False,
@@ -346,13 +354,10 @@ def test_frame_guard_drops_a_solve_that_fits_the_depth_worse(tiny_config, monkey
     """A non-rigid solve that flings the mesh 0.3 m (stand-in for one that walked off with its
     own correspondences) explains the depth frame worse than the rigid fit: the frame keeps the
     rigid fit, says so in its stats, and stays on the truth."""
-    import cv2
 
     import stex.tracking as tracking
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import mask_in_depth
     s = SyntheticScene(tiny_config["source"]["synthetic"])
-    cal = s.calibration
     solve = tracking._solve_frame
 
     def flinging_solve(V0, faces, node_pos, graph, *args, **kwargs):
@@ -365,11 +370,7 @@ def test_frame_guard_drops_a_solve_that_fits_the_depth_worse(tiny_config, monkey
     monkeypatch.setattr(tracking, "_solve_frame", flinging_solve)
 
     def obs():
-        for t in range(3):
-            r = s.render_frame(t)
-            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
-            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
-                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+        return _scene_observations(s, 3)
 
     for pos, V, st in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(), progress=False,
                                      texcoords=s.texcoords, texcoord_faces=s.texcoord_faces):
@@ -933,13 +934,10 @@ def test_flow_weights_fall_with_the_age_of_the_model_texels(tiny_config, monkeyp
     """flow_age_frames k: a flow constraint on a texel captured at frame a weighs 1 / (1 + a / k).
     With k = 2 over three frames the model holds texels of frames 0 and 1: weights 1 and 2/3
     (1/2 for a texel not captured yet, taken as captured now, at frame 2)."""
-    import cv2
 
     import stex.tracking as tracking
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import mask_in_depth
     s = SyntheticScene(tiny_config["source"]["synthetic"])
-    cal = s.calibration
     weights = []
     solve = tracking._solve_frame
 
@@ -951,11 +949,7 @@ def test_flow_weights_fall_with_the_age_of_the_model_texels(tiny_config, monkeyp
     monkeypatch.setattr(tracking, "_solve_frame", spy)
 
     def obs():
-        for t in range(3):
-            r = s.render_frame(t)
-            fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
-            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
-                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+        return _scene_observations(s, 3)
 
     seen = []
     for pos, _, _ in track_sequence(s.true_vertices(0), s.faces, obs(), TrackParams(flow_age_frames=2.0, flow_passes=1),
