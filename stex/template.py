@@ -1086,13 +1086,16 @@ def uv_overlaps(texcoords, texcoord_faces, size: int, face_id=None) -> tuple[int
 def _strictly_inside(p, tri, eps: float) -> np.ndarray:
     """(n, 2) points, (n, 3, 2) triangles -> (n,) bool: the point lies more than ``eps`` inside
     every edge (either winding; a triangle of zero area contains nothing)."""
-    twice_area = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    def cross(a, b):   # z of the 2-D cross product (numpy 2 deprecates np.cross of 2-vectors)
+        return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+    twice_area = cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     sign = np.sign(twice_area)
     out = sign != 0
     for i in range(3):
         a, b = tri[:, i], tri[:, (i + 1) % 3]
         edge = b - a
-        dist = sign * np.cross(edge, p - a) / np.maximum(np.linalg.norm(edge, axis=1), 1e-300)
+        dist = sign * cross(edge, p - a) / np.maximum(np.linalg.norm(edge, axis=1), 1e-300)
         out &= dist > eps
     return out
 
