@@ -1085,18 +1085,15 @@ def uv_overlaps(texcoords, texcoord_faces, size: int, face_id=None) -> tuple[int
 
 def _strictly_inside(p, tri, eps: float) -> np.ndarray:
     """(n, 2) points, (n, 3, 2) triangles -> (n,) bool: the point lies more than ``eps`` inside
-    every edge (either winding; a triangle of zero area contains nothing)."""
-    def cross(a, b):   # z of the 2-D cross product (numpy 2 deprecates np.cross of 2-vectors)
-        return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-
-    twice_area = cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    sign = np.sign(twice_area)
+    every edge (either winding; a triangle of zero area contains nothing). Signed areas by
+    :func:`uv_signed_area`: of the triangle, and of each edge with the point."""
+    idx = np.arange(3 * len(p)).reshape(-1, 3)
+    sign = np.sign(uv_signed_area(tri.reshape(-1, 2), idx))
     out = sign != 0
     for i in range(3):
         a, b = tri[:, i], tri[:, (i + 1) % 3]
-        edge = b - a
-        dist = sign * cross(edge, p - a) / np.maximum(np.linalg.norm(edge, axis=1), 1e-300)
-        out &= dist > eps
+        twice_area = uv_signed_area(np.stack([a, b, p], 1).reshape(-1, 2), idx)
+        out &= sign * twice_area / np.maximum(np.linalg.norm(b - a, axis=1), 1e-300) > eps
     return out
 
 
