@@ -644,6 +644,66 @@ LM_MAX_TRIES = 6     # damped re-solves of one Gauss-Newton step before the roun
 LM_MU_MIN = 1e-4     # first damping (relative to J^T J's diagonal) after a rejected step
 
 
+def _px_scale(V0, flow, silhouette):
+    """Metres per colour pixel at each vertex of ``V0`` (V,), fixed for a solve (see :func:`_data_rows`);
+    None without colour terms. Flow and silhouette both carry (colour K, depth_to_color) at 2, 3."""
+    colour = flow if flow is not None else silhouette
+    return _colour_projection(V0, colour[2], colour[3])[1] if colour is not None else None
+
+
+def _step_terms(Vd, faces, target, p: TrackParams, visibility, flow, silhouette, px_scale, stats):
+    """The data-like terms of one Gauss-Newton step at vertices ``Vd`` (V, 3): associates depth
+    (within ``p.max_distance_m``; ``visibility`` as :func:`_correspondences`) and the silhouette's
+    rim, records the counts in ``stats``. Returns (depth, silhouette terms as :func:`_data_rows`
+    takes them, (vis, cos), robust cost, vertex ids (n,) int64, weighted rows (n, 3), weighted
+    residuals (n,))."""
+    ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, p.max_distance_m, visibility)
+    depth = (ids, q, nq)
+    if len(ids):
+        stats["n_corr"] = len(ids)
+        stats["data_rms_m"] = float(np.sqrt(np.mean(((nq * (Vd[ids] - q)).sum(1)) ** 2)))
+    if flow is not None and len(flow[0]):
+        stats["n_flow"] = len(flow[0])
+    sil = None
+    if silhouette is not None and p.w_silhouette > 0:
+        sid = _silhouette_rim(Vd, vis, cos, silhouette, p)
+        sil = (sid, *silhouette)
+        stats["n_silhouette"] = len(sid)
+    cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
+    vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
+    Dws.append(np.zeros((0, 3)))
+    rws.append(np.zeros(0))
+    return (depth, sil, (vis, cos), cost, np.concatenate(vids).astype(np.int64), np.concatenate(Dws),
+            np.concatenate(rws))
+
+
+def _lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats):
+    """Levenberg-Marquardt acceptance of one Gauss-Newton step (see :func:`_solve_frame`).
+
+    ``solve(mu)`` gives the step for damping mu (relative to J^T J's diagonal), ``energy_after(step)``
+    the energy after it; ``g`` = J^T r and ``JtJ`` (anything with ``@``) give the predicted decrease.
+    Returns (step, or None when no damping up to LM_MAX_TRIES descends, mu, nu); counts
+    "lm_rejected" / "lm_failed" in ``stats``."""
+    for _ in range(LM_MAX_TRIES + 1):
+        delta = solve(mu)
+        new_energy = energy_after(delta)
+        # the weighted squares majorise the robust costs: a true descent step lowers both
+        # (a converged step may change the energy by round-off only)
+        actual = energy - new_energy
+        if np.isfinite(new_energy) and actual >= -1e-9 * energy:
+            if mu > 0:  # Nielsen's update: less damping the better the model predicted
+                predicted = -(2.0 * g @ delta + delta @ (JtJ @ delta))
+                rho = min(actual / predicted, 1.0) if predicted > 0 else 1.0
+                mu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LM_MU_MIN)
+            return delta, mu, 2.0
+        stats["lm_rejected"] += 1
+        log.debug("solve: step rejected (energy %.4g -> %.4g, mu %.2g)", energy, new_energy, mu)
+        mu = max(mu * nu, LM_MU_MIN)
+        nu *= 2.0
+    stats["lm_failed"] += 1
+    return None, mu, nu
+
+
 def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None, silhouette=None):
     """Gauss-Newton + HQS for the incremental warp of one frame. Returns (x, stats).
 
@@ -652,7 +712,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     ``silhouette`` = (signed distance (Hc, Wc), its gradient (Hc, Wc, 2), colour K, depth_to_color)
     of :func:`silhouette_field` adds the silhouette term (weight ``p.w_silhouette``).
 
-    Step acceptance (Levenberg-Marquardt): a Gauss-Newton step is taken only if it lowers the
+    Step acceptance (Levenberg-Marquardt, :func:`_lm_step`): a Gauss-Newton step is taken only if it lowers the
     frame's energy (robust data costs with this step's correspondences, rotation, smoothness);
     otherwise it is solved again with the damping mu * diag(J^T J) raised (x2, x4, ...) up to
     LM_MAX_TRIES times, and the round stops if none lowers it. The damping is 0 until a step is
@@ -679,13 +739,9 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
         graph.normal_pattern = _NormalPattern(graph, N)
     pattern = graph.normal_pattern
     stats = {"n_corr": 0, "data_rms_m": np.nan, "lm_rejected": 0, "lm_failed": 0}
-    max_dist = p.max_distance_m
     sr = np.sqrt(p.w_rot)
     mu, nu = 0.0, 2.0
-    # metres per colour pixel at each vertex, fixed for the solve (see _data_rows); flow and
-    # silhouette both carry (colour K, depth_to_color) at positions 2, 3
-    colour = flow if flow is not None else silhouette
-    px_scale = _colour_projection(V0, colour[2], colour[3])[1] if colour is not None else None
+    px_scale = _px_scale(V0, flow, silhouette)
 
     def smooth_res(x):
         A = x[:, :9].reshape(N, 3, 3)
@@ -700,61 +756,36 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             Vd = deform(V0, node_pos, graph, x)
             # Visibility changes little between Gauss-Newton steps: the mesh is rasterised on
             # every VISIBILITY_EVERY-th step only (the association itself is redone every step).
-            ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, max_dist,
-                                                    None if it % VISIBILITY_EVERY == 0 else (vis, cos))
-            depth = (ids, q, nq)
-            if len(ids):
-                stats["n_corr"] = len(ids)
-                stats["data_rms_m"] = float(np.sqrt(np.mean(((nq * (Vd[ids] - q)).sum(1)) ** 2)))
-            if flow is not None and len(flow[0]):
-                stats["n_flow"] = len(flow[0])
-            sil = None
-            if silhouette is not None and p.w_silhouette > 0:
-                sid = _silhouette_rim(Vd, vis, cos, silhouette, p)
-                sil = (sid, *silhouette)
-                stats["n_silhouette"] = len(sid)
-            cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
+            depth, sil, vis_cos, cost, vid, Dw, rw = _step_terms(
+                Vd, faces, target, p, None if it % VISIBILITY_EVERY == 0 else vis_cos, flow, silhouette,
+                px_scale, stats)
             rr, Jr = _rot_terms(x)
             energy = cost + prior_cost(x, rr)
-            vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
-            Dws.append(np.zeros((0, 3)))
-            rws.append(np.zeros(0))
             # smoothness with HQS: sqrt(w_smooth * beta) * (r_jk - s_jk)
             JtJ, g, diag_blocks = _normal_equations(
-                pattern, graph, local, np.concatenate(vids).astype(np.int64), np.concatenate(Dws),
-                np.concatenate(rws), rr * sr, Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk, p.damping)
+                pattern, graph, local, vid, Dw, rw, rr * sr, Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk,
+                p.damping)
             # CSR: scipy's CSR mat-vec is ~1.7x faster than its BSR one at 12x12 blocks
             JtJ = JtJ.tocsr()
             diag = JtJ.diagonal()
-            for _ in range(LM_MAX_TRIES + 1):
+
+            def solve(mu):
                 # 12x12 block-Jacobi preconditioner (of the damped matrix)
                 blocks = diag_blocks + mu * np.einsum("ni,ij->nij", diag.reshape(N, 12), np.eye(12))
                 inv = np.linalg.inv(blocks + np.eye(12) * 1e-12)
                 precond = LinearOperator((nP, nP), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
                 lhs = JtJ if mu == 0 else JtJ + sp.diags(mu * diag)
-                delta, _ = cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=precond)
+                return cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=precond)[0]
+
+            def energy_after(delta):
                 x_new = x + delta.reshape(N, 12)
-                new_cost = _data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False,
-                                      px_scale=px_scale)[0]
-                new_energy = new_cost + prior_cost(x_new)
-                # the weighted squares majorise the robust costs: a true descent step lowers both
-                # (a converged step may change the energy by round-off only)
-                actual = energy - new_energy
-                if np.isfinite(new_energy) and actual >= -1e-9 * energy:
-                    if mu > 0:  # Nielsen's update: less damping the better the model predicted
-                        predicted = -(2.0 * g @ delta + delta @ (JtJ @ delta))
-                        rho = min(actual / predicted, 1.0) if predicted > 0 else 1.0
-                        mu = max(mu * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LM_MU_MIN)
-                    nu = 2.0
-                    break
-                stats["lm_rejected"] += 1
-                log.debug("solve: step rejected (energy %.4g -> %.4g, mu %.2g)", energy, new_energy, mu)
-                mu = max(mu * nu, LM_MU_MIN)
-                nu *= 2.0
-            else:
-                stats["lm_failed"] += 1
+                return _data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False,
+                                  px_scale=px_scale)[0] + prior_cost(x_new)
+
+            delta, mu, nu = _lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats)
+            if delta is None:
                 break
-            x = x_new
+            x = x + delta.reshape(N, 12)
             if np.abs(delta).max() < 1e-6:
                 break
         # s-step: hard threshold (L0): keep a motion difference only where it pays for itself
