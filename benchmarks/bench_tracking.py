@@ -175,7 +175,7 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
 
     flow_constraints = tracking.flow_constraints
     capture = tracking.AppearanceModel.capture
-    solve_frame = tracking._solve_frame
+    solve_rigid = tracking._solve_rigid
 
     def colour_px(X, calibration):  # (n, 3) points in the depth camera -> (n, 2) colour pixels
         return project_points(transform_points(calibration.depth_to_color, X), calibration.color.K)[0]
@@ -202,19 +202,14 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
             capture_log[frame] = tuple(float(np.median(off[m])) if m.any() else float("nan") for m in (~again, again))
         return out
 
-    def true_rigid_stage(V0, faces, node_pos, graph, *a, **k):
-        x, stats = solve_frame(V0, faces, node_pos, graph, *a, **k)
-        if len(graph.nodes) == 1:   # the rigid stage: x' = A (x - g) + g + t for its one node g
-            R, tr = truth["rigid_step"][:3, :3], truth["rigid_step"][:3, 3]
-            g = node_pos[0]
-            x = x.copy()
-            x[0, :9], x[0, 9:] = R.ravel(), R @ g + tr - g
-        return x, stats
+    def true_rigid_stage(*a, **k):   # the rigid stage's (R, t, stats): x' = R x + t
+        _, _, stats = solve_rigid(*a, **k)
+        return truth["rigid_step"][:3, :3], truth["rigid_step"][:3, 3], stats
 
     if ceiling in ("flow", "flow-all"):
         tracking.flow_constraints = oracle_flow
     if ceiling == "rigid":
-        tracking._solve_frame = true_rigid_stage
+        tracking._solve_rigid = true_rigid_stage
     if ceiling == "model" or capture_error:
         tracking.AppearanceModel.capture = logged_capture
 

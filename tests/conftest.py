@@ -15,6 +15,52 @@ def data_samples() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data_samples"
 
 
+def real_tracking_pairs(samples: Path) -> list[tuple[str, "np.ndarray", list, list]]:
+    """The real depth frame pairs of the tracking checks, from the shared samples: (name, depth K
+    (3, 3), depths [2 x (H, W) float64 metres], object masks [2 x (H, W) bool]). KillingFusion's
+    Snoopy, frames 50 and 51, with its own masks; DeepDeform seq017, frames 300 and 600, masked to
+    the largest connected region of depth within 2.05 m."""
+    import cv2
+    import numpy as np
+    from scipy import ndimage
+
+    sd = samples / "killingfusion_snoopy" / "frames_000050_000051"
+    Ks = np.array([[517.0, 0, 320], [0, 517.0, 240], [0, 0, 1]])
+    pairs = [("KillingFusion Snoopy, frames 50 -> 51", Ks,
+              [cv2.imread(str(sd / f"snoopy_depth_0000{i}.png"), -1) / 1000.0 for i in (50, 51)],
+              [cv2.imread(str(sd / f"snoopy_omask_0000{i}.png"), 0) > 0 for i in (50, 51)])]
+    dd = samples / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017"
+    Kd = np.loadtxt(dd / "intrinsics.txt")[:3, :3]
+    ds = [cv2.imread(str(dd / "depth" / f"000{i}.png"), -1) / 1000.0 for i in (300, 600)]
+
+    def largest(m):
+        lab, n = ndimage.label(m)
+        return lab == (np.argmax(np.bincount(lab.ravel())[1:]) + 1)
+    pairs.append(("DeepDeform seq017, frames 300 -> 600", Kd, ds, [largest((d > 0) & (d < 2.05)) for d in ds]))
+    return pairs
+
+
+def real_pair_fits(samples: Path, **params) -> list[tuple[str, float, float, float]]:
+    """For each of :func:`real_tracking_pairs`: a template from the first frame's depth (stride 2)
+    tracked to the second without flow (``gn_iterations`` 8 unless ``params`` say otherwise), and
+    the mean clipped depth difference (m) at the second frame over the pixels mesh and depth both
+    cover: (name, template as it is, rigid fit (``rigid_only``), tracked)."""
+    from stex.template import template_from_depth
+    from stex.tracking import Observation, TrackParams, depth_residual, depth_target, track_sequence
+
+    out = []
+    for name, K, depths, masks in real_tracking_pairs(samples):
+        V, F = template_from_depth(depths[0], K, masks[0], stride=2)
+        targets = [depth_target(d, K, m) for d, m in zip(depths, masks)]
+        fits = []
+        for rigid_only in (True, False):
+            p = TrackParams(**{"gn_iterations": 8, **params, "rigid_only": rigid_only, "w_flow": 0.0})
+            *_, (_, Vb, _) = track_sequence(V, F, [Observation(t) for t in targets], p, progress=False)
+            fits.append(depth_residual(Vb, F, targets[1], union=False))
+        out.append((name, depth_residual(V, F, targets[1], union=False), *fits))
+    return out
+
+
 # the tiny scene's source.synthetic settings, in a file so that benchmarks read them without pytest
 TINY_SYNTHETIC = yaml.safe_load((REPO / "tests" / "tiny_synthetic.yaml").read_text())
 
