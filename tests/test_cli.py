@@ -25,8 +25,6 @@ def test_inspect_prints_arrays_and_fails_on_bad_store(tmp_path, capsys):
 # stex export / stex preview, end to end on the tiny cube scene of test_export
 # --------------------------------------------------------------------------------------------
 
-import shutil  # noqa: E402
-
 import av  # noqa: E402
 import trimesh  # noqa: E402
 from PIL import Image  # noqa: E402
