@@ -524,6 +524,61 @@ def test_8bit_depth(authors, synth):
         FolderDataset(authors).depth(FIRST + 1)
 
 
+def test_authors_meshes_without_start_idx_count_from_the_first_colour_frame_on_disk(authors, synth):
+    """Without conf.json's main.start_idx, mesh/Frame_000 is the first colour frame on disk (7),
+    whatever source.folder.start selects: with start 9, frame 9's mesh is Frame_002 (9 - 7)."""
+    conf = json.loads((authors / "conf.json").read_text())
+    del conf["case_test"]["main"]["start_idx"]
+    (authors / "conf.json").write_text(json.dumps(conf))
+    ds = _silent(authors, "authors", FIRST + 2)
+    assert ds.frame_ids == IDS[2:] and ds.mesh_base == FIRST
+    assert ds.mesh_path(FIRST + 2).name == "Frame_002.off"
+    np.testing.assert_allclose(ds.load_given_mesh(FIRST + 2).vertices, synth.verts[2], atol=1e-6)
+
+
+def test_start_idx_that_is_no_whole_non_negative_number_is_refused(authors):
+    """A start_idx of 7.5 would be cut to 7, one of -1 would put Frame_000 before frame 0."""
+    for bad in (7.5, -1):
+        conf = json.loads((authors / "conf.json").read_text())
+        conf["case_test"]["main"]["start_idx"] = bad
+        (authors / "conf.json").write_text(json.dumps(conf))
+        with pytest.raises(ValueError, match=r"main\.start_idx must be a non-negative integer, got " + re.escape(str(bad))):
+            FolderDataset(authors)
+
+
+def test_16bit_depth_with_three_channels_is_refused(authors, synth):
+    """Depth is one channel of millimetres: a 16-bit image with three channels is not depth."""
+    bad = authors / "stream" / "depth" / f"Frame_{FIRST + 1:06d}.png"
+    assert cv2.imwrite(str(bad), np.dstack([synth.depth[1]] * 3))
+    with pytest.raises(ValueError, match=re.escape(bad.name) + r": depth must be single-channel 16-bit millimetres, "
+                                                               r"got uint16 \(72, 80, 3\)"):
+        FolderDataset(authors).depth(FIRST + 1)
+
+
+def test_colour_mask_labels_in_any_channel_are_foreground(authors, synth):
+    """A colour mask's label in the red channel (BGR (0, 0, 1) on disk) or the green one
+    ((0, 255, 0)) marks foreground as one in the blue channel does."""
+    folder = authors / "stream" / "mask"
+    for k, bgr in ((0, (0, 0, 1)), (1, (0, 255, 0))):
+        m = np.zeros(synth.mask[k].shape + (3,), np.uint8)
+        m[synth.mask[k]] = bgr
+        assert cv2.imwrite(str(folder / f"Frame_{IDS[k]:06d}.png"), m)
+    ds = FolderDataset(authors)
+    for k in (0, 1):
+        np.testing.assert_array_equal(ds.mask(IDS[k]), synth.mask[k])
+
+
+def test_files_with_a_further_suffix_are_named_not_read(authors, synth):
+    """An editor's or a copy tool's 'Frame_000007.png.bak' is not frame 7 (the name must end in the
+    image extension): it is named in a warning, and frame 7 is read from its own file."""
+    folder = authors / "stream" / "color"
+    shutil.copy(folder / f"Frame_{FIRST:06d}.png", folder / f"Frame_{FIRST:06d}.png.bak")
+    with pytest.warns(UserWarning, match=r"color: 1 file\(s\) not read.*\['Frame_000007\.png\.bak'\]"):
+        ds = FolderDataset(authors)
+    assert ds.frame_ids == IDS
+    np.testing.assert_array_equal(ds.color(FIRST), synth.color[0])
+
+
 def test_16bit_colour_is_refused_not_rescaled(authors, synth):
     bad = authors / "stream" / "color" / f"Frame_{FIRST:06d}.png"
     cv2.imwrite(str(bad), synth.color[0][..., ::-1].astype(np.uint16) * 257)
@@ -1008,6 +1063,44 @@ def test_ply_face_index_out_of_range(tmp_path, bad):
         load_mesh(p)
 
 
+def test_obj_polygons_are_fanned_with_their_texture_corners(tmp_path):
+    """A pentagon with corners a..e (vertices 1..5, texture coordinates 5..1) is fanned from its
+    first corner into (a, b, c), (a, c, d), (a, d, e), by hand: faces [[0, 1, 2], [0, 2, 3],
+    [0, 3, 4]] and, corner for corner, texcoord faces [[4, 3, 2], [4, 2, 1], [4, 1, 0]]."""
+    p = tmp_path / "pentagon.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 1.5 1 0\nv 0.5 1.6 0\nv -0.5 1 0\n"
+                 "vt 0 0\nvt 0.25 0\nvt 0.5 0\nvt 0.75 0\nvt 1 0\nf 1/5 2/4 3/3 4/2 5/1\n")
+    m = load_mesh(p)
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [0, 2, 3], [0, 3, 4]])
+    np.testing.assert_array_equal(m.texcoord_faces, [[4, 3, 2], [4, 2, 1], [4, 1, 0]])
+
+
+def test_obj_texture_coordinate_without_v_and_faces_with_normals_only(tmp_path):
+    """OBJ's 'vt u [v [w]]': a missing v is 0, i.e. 1 in stex's downward v. Faces 'f v//vn' (normals,
+    no texture coordinates) are read as 'f v'."""
+    p = tmp_path / "u_only.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0.25\nvt 1 0.5\nvt 0 0.75 0\nf 1/1 2/2 3/3\n")
+    np.testing.assert_allclose(load_mesh(p).texcoords, [[0.25, 1.0], [1.0, 0.5], [0.0, 0.25]])
+    p = tmp_path / "normals.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\nf 2//1 4//1 3//1\n")
+    m = load_mesh(p)
+    np.testing.assert_array_equal(m.faces, [[0, 1, 2], [1, 3, 2]])
+    assert m.texcoords is None and m.texcoord_faces is None
+
+
+def test_write_obj_without_texture_coordinates_is_read_back_by_trimesh(tmp_path):
+    """stex's OBJ writer, untextured branch, read by trimesh's own OBJ loader: OBJ's 1-based faces
+    come back as the 0-based faces written."""
+    from stex.readers.meshes import Mesh, write_obj
+
+    V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.5]])
+    F = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+    write_obj(tmp_path / "m.obj", Mesh(V, F))
+    tm = trimesh.load(tmp_path / "m.obj", process=False, maintain_order=True, force="mesh")
+    np.testing.assert_allclose(tm.vertices, V)
+    np.testing.assert_array_equal(tm.faces, F)
+
+
 def test_intrinsics_refuse_non_finite_distortion_and_fractional_sizes():
     from stex.camera import Intrinsics
 
@@ -1034,6 +1127,107 @@ def test_intrinsics_refuse_skew_and_another_last_row_and_look_at_degenerate_view
     with pytest.raises(ValueError, match="apart from the eye"):
         look_at((0, 0, 0), (0, 0, 0))
     assert np.isfinite(look_at((0, 0, -1), (0, 0, 0))).all()
+
+
+def test_project_points_matches_opencv_with_unequal_focal_lengths_and_is_nan_behind_the_camera():
+    """project_points against OpenCV's projectPoints (no rotation, translation or distortion) with
+    fx != fy and cx != cy, so that a swapped focal length or principal point shows; a point behind
+    the camera (z < 0) or on its plane (z = 0) gets NaN pixel coordinates and its own z."""
+    from stex.camera import project_points
+
+    K = np.array([[520.0, 0.0, 310.25], [0.0, 480.0, 245.75], [0.0, 0.0, 1.0]])
+    P = np.random.default_rng(3).uniform([-0.3, -0.2, 0.5], [0.3, 0.2, 2.0], (20, 3))
+    expected = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, None)[0].reshape(-1, 2)
+    uv, z = project_points(P, K)
+    np.testing.assert_allclose(uv, expected, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(z, P[:, 2])
+    uv, z = project_points([[0.1, 0.2, -1.0], [0.1, 0.2, 0.0]], K)
+    assert np.isnan(uv).all() and z.tolist() == [-1.0, 0.0]
+
+
+def _pinhole_pair(t):
+    """Colour and depth cameras alike (4x2 pixels, f = 10, principal point (1.5, 0.5)) with the
+    depth camera translated by ``t`` (metres) into the colour camera's frame."""
+    from stex.camera import Calibration, Intrinsics
+
+    cam = Intrinsics.from_focal(10.0, 10.0, 1.5, 0.5, 4, 2)
+    T = np.eye(4)
+    T[:3, 3] = t
+    return Calibration(cam, cam, T)
+
+
+def test_depth_pixels_in_color_by_hand():
+    """Worked by hand. Depth 1 m everywhere: depth pixel (row r, column c) is the point
+    ((c - 1.5) / 10, (r - 0.5) / 10, 1).
+    - Shifted 7 cm along x it lands at colour (u, v) = (c + 0.7, r): the nearest pixel is column
+      c + 1 (not the c of rounding down), and column 3 lands on column 4, outside the 4-pixel-wide
+      image, so it is left out. Pixel (1, 1) has depth 0 (invalid) and is left out.
+    - Shifted 1 cm forward (z 1.01), pixel (r, c) lands at ((c - 1.5) / 1.01 + 1.5, ...), nearest
+      pixel (c, r). A depth-0 pixel backprojects to the depth camera's centre, which lies 1 cm
+      before the colour camera at its principal point (1.5, 0.5) (on the image): it must stay out
+      because its depth is invalid, not because it projects outside.
+    - The same depth in uint16 millimetres is refused, not read as kilometres."""
+    from stex.camera import depth_pixels_in_color
+
+    depth = np.ones((2, 4))
+    depth[1, 1] = 0.0
+    idx, px, z = depth_pixels_in_color(depth, _pinhole_pair([0.07, 0.0, 0.0]))
+    assert idx.tolist() == [0, 1, 2, 4, 6]
+    assert px.tolist() == [[1, 0], [2, 0], [3, 0], [1, 1], [3, 1]]
+    np.testing.assert_allclose(z, 1.0)
+    idx, px, z = depth_pixels_in_color(depth, _pinhole_pair([0.0, 0.0, 0.01]))
+    assert idx.tolist() == [0, 1, 2, 3, 4, 6, 7]
+    assert px.tolist() == [[0, 0], [1, 0], [2, 0], [3, 0], [0, 1], [2, 1], [3, 1]]
+    np.testing.assert_allclose(z, 1.01)
+    with pytest.raises(ValueError, match=r"depth_m must be float metres, got uint16"):
+        depth_pixels_in_color((depth * 1000).astype(np.uint16), _pinhole_pair([0.0, 0.0, 0.0]))
+
+
+def test_scaled_intrinsics_keep_pixel_centres():
+    """Halving a 640x480 camera (fx 500, fy 400, cx 300, cy 200): the focal lengths halve, and pixel
+    i of the small image covers pixels 2i and 2i + 1 of the large one, so its centre is the large
+    image's 2i + 0.5: cx' = (300 - 0.5) / 2 = 149.75, cy' = (200 - 0.5) / 2 = 99.75. Checked with a
+    point too: its large-image u equals 2 u' + 0.5 of the small one (OpenCV's projectPoints)."""
+    from stex.camera import Intrinsics
+
+    big = Intrinsics.from_focal(500.0, 400.0, 300.0, 200.0, 640, 480)
+    small = big.scaled(0.5)
+    assert (small.fx, small.fy, small.cx, small.cy) == (250.0, 200.0, 149.75, 99.75)
+    assert (small.width, small.height) == (320, 240)
+    P = np.array([[0.12, -0.07, 1.3]])
+    uv_big = cv2.projectPoints(P, np.zeros(3), np.zeros(3), big.K, None)[0].reshape(2)
+    uv_small = cv2.projectPoints(P, np.zeros(3), np.zeros(3), small.K, None)[0].reshape(2)
+    np.testing.assert_allclose(uv_big, 2 * uv_small + 0.5, atol=1e-9)
+
+
+def test_principal_point_may_lie_anywhere_on_the_image_pixels():
+    """Pixel centres are integers, so a W x H image spans [-0.5, W - 0.5] x [-0.5, H - 0.5]: a
+    principal point on that edge is accepted (if odd), one a hundredth of a pixel beyond refused."""
+    from stex.camera import Intrinsics
+
+    for cx, cy in ((-0.5, 59.5), (159.5, 59.5), (79.5, -0.5), (79.5, 119.5)):
+        Intrinsics.from_focal(100.0, 100.0, cx, cy, 160, 120)
+    for cx, cy in ((-0.51, 59.5), (159.51, 59.5), (79.5, -0.51), (79.5, 119.51)):
+        with pytest.raises(ValueError, match=r"lies outside the 160x120 image"):
+            Intrinsics.from_focal(100.0, 100.0, cx, cy, 160, 120)
+
+
+def test_look_at_puts_the_target_ahead_and_up_upwards():
+    """By hand, with the default up (0, -1, 0) (world -y appears up in the image, OpenCV's -y):
+    - from (0, 0, -1) at the origin the camera axes are the world's: R = I, t = (0, 0, 1);
+    - from (3, 0, 0) at the origin z = (-1, 0, 0), x = (-up) x z = (0, 0, 1), y = z x x = (0, 1, 0),
+      t = -R eye = (0, 0, 3): the target is 3 m straight ahead, the world point (0, -1, 0) is
+      above it in the image (camera y < 0), and (0, 0, 1) right of it (camera x > 0).
+    A right-handed rotation (det +1) either way."""
+    from stex.camera import look_at, transform_points
+
+    np.testing.assert_allclose(look_at((0, 0, -1), (0, 0, 0)), [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1]],
+                               atol=1e-12)
+    T = look_at((3, 0, 0), (0, 0, 0))
+    np.testing.assert_allclose(T, [[0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 3], [0, 0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(transform_points(T, [[0, 0, 0], [0, -1, 0], [0, 0, 1]]),
+                               [[0, 0, 3], [0, -1, 3], [1, 0, 3]], atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
 
 
 # -- file names: the same rules in both layouts; files not read are named -----------------------
@@ -1310,3 +1504,17 @@ def test_frames_added_to_a_dataset_after_a_run_rewrite_the_scene_store(tmp_path,
     assert "rule ingest_scene:" in plan, plan[-2000:]
     snakemake()
     assert open_store(res / "scene.zarr", "scene").attrs["frame_ids"] == IDS
+
+
+def test_degenerate_triangles_count_as_the_same_with_their_corners_rotated():
+    """A per-frame mesh's triangle counts as the template's with its corners rotated; that held
+    for degenerate triangles (a vertex twice) only when the repeated vertex was not the smallest:
+    [1, 3, 1] was refused against the template's [1, 1, 3] as 'not among the template's triangles'.
+    The rotations of [1, 1, 3] are [1, 3, 1] and [3, 1, 1] (by hand); [1, 3, 3] is another triangle."""
+    from stex.readers.meshes import Mesh, check_same_topology
+
+    V, ref = np.zeros((4, 3)), np.array([[0, 1, 2], [1, 1, 3]])
+    for F in ([[1, 3, 1], [0, 1, 2]], [[0, 1, 2], [1, 3, 1]], [[3, 1, 1], [2, 0, 1]]):
+        check_same_topology(ref, 4, Mesh(V, np.array(F)), "f.off")
+    with pytest.raises(ValueError, match=r"f\.off: .*its face 1 \[1, 3, 3\] is not among the template's triangles"):
+        check_same_topology(ref, 4, Mesh(V, np.array([[0, 1, 2], [1, 3, 3]])), "f.off")

@@ -163,3 +163,30 @@ def test_depth_scale_error_names_the_masks_as_a_cause():
     with pytest.raises(ValueError, match=r"t\.zarr: at frame 0 the mesh lies 0\.\d+ times as far .* in metres .* "
                        r"a mask that marks the background instead \(an inverted mask\) gives such a ratio too"):
         _check_depth_scale(mesh, F, depth_target(depth, K, ~(sphere > 0)), 0, "t.zarr")
+
+
+def test_border_foreground_counts_each_border_pixel_once():
+    """A 4x5 image has 2 * 5 + 2 * (4 - 2) = 14 border pixels (corners once). Its first column (4
+    pixels, 2 of them corners) as foreground is 4/14 of the border; the top row alone 5/14."""
+    from stex.readers.images import border_foreground
+
+    m = np.zeros((4, 5), bool)
+    m[:, 0] = True
+    assert border_foreground(m) == pytest.approx(4 / 14)
+    m = np.zeros((4, 5), bool)
+    m[0] = True
+    assert border_foreground(m) == pytest.approx(5 / 14)
+
+
+def test_check_mask_refuses_more_than_half_of_the_border_as_foreground():
+    """Of the 14 border pixels of a 4x5 mask, 7 as foreground (the top row and two of the left
+    column's middle pixels: exactly half) is accepted; one more (8/14, 57 %) is refused."""
+    from stex.readers.images import check_mask
+
+    m = np.zeros((4, 5), bool)
+    m[0] = True
+    m[1:3, 0] = True
+    check_mask(m, "half.png")
+    m[1, 4] = True
+    with pytest.raises(ValueError, match=r"^more\.png: the mask's foreground covers 57 % of the image border"):
+        check_mask(m, "more.png")

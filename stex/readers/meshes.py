@@ -186,9 +186,18 @@ def check_same_topology(reference_faces: np.ndarray, n_vertices: int, mesh: Mesh
 
 
 def _rotated_to_smallest(F: np.ndarray) -> np.ndarray:
-    """(F, 3) triangles with their corners rotated (winding kept) so that the smallest index is first."""
-    k = np.argmin(F, axis=1)
-    return np.take_along_axis(F, (k[:, None] + np.arange(3)) % 3, axis=1)
+    """(F, 3) triangles with their corners rotated (winding kept) to the lexicographically smallest
+    of their three rotations: the smallest index first, and of two such corners (a degenerate
+    triangle such as [1, 3, 1]) the one followed by the smaller index, so that every rotation of a
+    triangle gives the same row."""
+    F = np.asarray(F)
+    best = F
+    for k in (1, 2):
+        c = np.roll(F, -k, axis=1)
+        less = (c[:, 0] < best[:, 0]) | ((c[:, 0] == best[:, 0]) & ((c[:, 1] < best[:, 1])
+                                                                   | ((c[:, 1] == best[:, 1]) & (c[:, 2] < best[:, 2]))))
+        best = np.where(less[:, None], c, best)
+    return best
 
 
 def write_obj(path: str | Path, mesh: Mesh, mtl: str | None = None) -> None:
