@@ -1689,7 +1689,8 @@ def dynamism_regions(S, face_chart, face_area, n_regions: int) -> list[tuple[int
         np.add.at(den[t], chart, ok[t] * area)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(den > 0, num / den, np.nan)
-    valid = np.isfinite(mean).sum(0) >= max(1, S.shape[0] // 2)
+    n_finite = np.isfinite(mean).sum(0)
+    valid = (n_finite >= 1) & (2 * n_finite >= S.shape[0])   # at least half the frames
     cand = np.flatnonzero(valid)
     if cand.size == 0:
         return []

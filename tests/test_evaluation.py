@@ -566,6 +566,12 @@ def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_pa
     s = res["summary"]
     assert s["n_held_out"] == 1 and "projection" not in s["held_out"]
     assert s["held_out"]["ours"]["psnr"]["n"] == 1 and s["source"]["global"]["psnr"]["n"] == 1
+    # 'seen by some frame' means by some source frame (0, 2, 4): the projection of held-out
+    # frame 1 textures the faces it sees, of which coverage_seen counts those sources saw
+    vis = open_store(P["projection"], "projection")["face_visible"][...].astype(bool)
+    seen = vis[0] | vis[2] | vis[4]
+    assert (vis[1] & ~seen).any()
+    assert res["frames"][0]["methods"]["projection"]["coverage_seen"] == pytest.approx(vis[1][seen].mean(), abs=1e-12)
     assert not res["has_truth"] and "gt_novel_psnr_all" not in res["frames"][0]["methods"]["ours"]
     assert any("held-out" in r[0] for r in res["tables"]["reconstruction"])
 
@@ -750,3 +756,299 @@ def test_evaluation_records_the_library_versions_and_tables_name_differences(eva
     note = runs_tables([a, b]).splitlines()[-1]
     assert note.startswith("The runs were scored with different library versions")
     assert f"scipy {library_versions()['scipy']} (a), 0.0.1 (b)" in note
+
+
+def test_image_scores_look_only_inside_the_mask():
+    """A render equal to the photo inside the mask and black outside scores as the photo itself:
+    PSNR 100 dB (the cap), SSIM 1 (outside the mask the render is replaced by the photo, so
+    every window compares the photo with itself), n_pixels = the mask's 40 x 50 = 2000 pixels.
+    The same render brightened by 10 grey levels inside the mask: plain PSNR
+    10 log10(255² / 10²) = 28.1308 dB, whatever lies outside the mask."""
+    rng = np.random.default_rng(0)
+    photo = rng.integers(0, 200, (96, 96, 3)).astype(np.uint8)
+    mask = np.zeros((96, 96), bool)
+    mask[20:60, 10:60] = True
+    render = np.where(mask[..., None], photo, 0).astype(np.float32)
+    s = image_scores(photo, render, mask)
+    assert s["n_pixels"] == 2000
+    assert s["psnr_plain"] == ev.PSNR_CAP and s["psnr"] == ev.PSNR_CAP
+    assert s["ssim"] == pytest.approx(1.0, abs=1e-12)
+    brighter = image_scores(photo, render + 10 * mask[..., None], mask)
+    assert brighter["psnr_plain"] == pytest.approx(28.1308, abs=1e-4)
+
+
+def test_novel_view_at_zero_degrees_is_the_input_view(frame):
+    """truth_views' novel view turns the true mesh by ``novel_angle_deg`` about the vertical axis
+    through its centre: at 0 degrees the transform is the identity and the novel render is the
+    input render."""
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"],
+                     novel_angle_deg=0.0)
+    np.testing.assert_allclose(tv["novel_transform"], np.eye(4), atol=1e-12)
+    np.testing.assert_array_equal(tv["novel"][1], tv["input"][1])
+    np.testing.assert_allclose(tv["novel"][0], tv["input"][0], atol=1e-3)
+
+
+def _bands(rows, shape=(30, 30)):
+    """(H, W) bool mask of the listed rows (all columns)."""
+    m = np.zeros(shape, bool)
+    m[list(rows)] = True
+    return m
+
+
+def test_truth_region_scores_by_hand():
+    """Ground-truth region scores of hand-made 30 x 30 images. True silhouette rows 0-19, ours
+    rows 5-24: scored pixels rows 5-19 (450 px), IoU 450 / 750 (rows 0-24) = 0.6. Ours is the
+    truth + 10 grey levels there (PSNR 10 log10(255² / 100) = 28.1308 dB) and + 100 where only
+    the truth covers (rows 0-4, not scored). A seen region of 99 px is below MIN_REGION_PX
+    (100): NaN; one of 100 px is scored; without a seen mask every scored pixel is unseen."""
+    from stex.evaluation import MIN_REGION_PX, _truth_region_scores
+
+    assert MIN_REGION_PX == 100
+    truth = np.zeros((30, 30, 3))
+    t_mask, r_mask = _bands(range(0, 20)), _bands(range(5, 25))
+    rec = truth + 10.0
+    rec[:5] += 90.0
+    p10 = 10 * np.log10(255.0 ** 2 / 100.0)                    # 28.1308 dB
+    seen99 = _bands(range(5, 8))                                # 90 px ...
+    seen99[8, :9] = True                                        # ... + 9 = 99 px
+    s = _truth_region_scores("x", truth, t_mask, rec, r_mask, seen99)
+    assert s["x_iou"] == pytest.approx(0.6)
+    assert (s["x_n_seen"], s["x_n_unseen"]) == (99, 351)
+    assert s["x_psnr_all"] == pytest.approx(p10) and s["x_psnr_unseen"] == pytest.approx(p10)
+    assert np.isnan(s["x_psnr_seen"]) and np.isnan(s["x_ssim_seen"])
+    seen100 = seen99.copy()
+    seen100[8, 9] = True
+    s = _truth_region_scores("x", truth, t_mask, rec, r_mask, seen100)
+    assert s["x_n_seen"] == 100 and s["x_psnr_seen"] == pytest.approx(p10)
+    s = _truth_region_scores("x", truth, t_mask, rec, r_mask, None)
+    assert (s["x_n_seen"], s["x_n_unseen"]) == (0, 450)
+    assert s["x_psnr_unseen"] == pytest.approx(p10) and np.isnan(s["x_psnr_seen"])
+
+
+def test_novel_scores_split_the_unseen_region_by_hand():
+    """The novel view's unseen-at-t pixels split into borrowed (seen by some source frame) and
+    never seen, on hand-made 30 x 30 images, everything inside both silhouettes: seen at t rows
+    0-9 (ours exact), borrowed rows 10-19 (ours + 5: 10 log10(255² / 25) = 34.1514 dB), never
+    seen rows 20-29 (ours + 20: 10 log10(255² / 400) = 22.1102 dB), 300 px each. With only 50
+    borrowed pixels (row 10 and 20 pixels of row 11) that region is below MIN_REGION_PX: NaN,
+    and the other 600 - 50 = 550 unseen pixels are never seen."""
+    from stex.evaluation import _novel_scores
+
+    truth_img = np.zeros((30, 30, 3))
+    full = np.ones((30, 30), bool)
+    rec = truth_img.copy()
+    rec[10:20] += 5.0
+    rec[20:30] += 20.0
+    seen_t = _bands(range(0, 10))
+    truth = {"novel": (truth_img, full)}
+    views = {"novel": (rec, full), "novel_seen": seen_t}
+    s = _novel_scores("g", truth, views, _bands(range(0, 20)))
+    assert (s["g_n_borrowed"], s["g_n_never_seen"]) == (300, 300)
+    assert s["g_psnr_borrowed"] == pytest.approx(10 * np.log10(255.0 ** 2 / 25.0))
+    assert s["g_psnr_never_seen"] == pytest.approx(10 * np.log10(255.0 ** 2 / 400.0))
+    ever = _bands(range(0, 11))
+    ever[11, :20] = True
+    s = _novel_scores("g", truth, views, ever)
+    assert (s["g_n_borrowed"], s["g_n_never_seen"]) == (50, 550)
+    assert np.isnan(s["g_psnr_borrowed"]) and np.isfinite(s["g_psnr_never_seen"])
+
+
+def test_vertex_motion_is_the_mean_displacement():
+    """Two vertices, one moved by (3, 4, 0) mm, one still: mean displacement (5 + 0) / 2 = 2.5 mm."""
+    V = np.zeros((2, 3))
+    assert vertex_motion(V, V + [[0.003, 0.004, 0.0], [0.0, 0.0, 0.0]]) == pytest.approx(2.5)
+
+
+def test_dynamism_regions_by_hand():
+    """Charts: 0 = faces 0 (area 1, S 0.2) and 1 (area 3, S 0.6), area-weighted mean
+    (0.2 + 1.8) / 4 = 0.5 in every frame; 1 = face 2, S 0.9 in 2 of 4 frames (at least half:
+    kept); 2 = face 3, S 0.7. Two regions: the most dynamic (chart 0, 0.5) and the most static
+    (chart 1, 0.9)."""
+    S = np.array([[0.2, 0.6, 0.9, 0.7], [0.2, 0.6, 0.9, 0.7],
+                  [0.2, 0.6, np.nan, 0.7], [0.2, 0.6, np.nan, 0.7]])
+    regions = dynamism_regions(S, np.array([0, 0, 1, 2]), np.array([1.0, 3.0, 1.0, 1.0]), 2)
+    assert [c for c, _ in regions] == [0, 1]
+    np.testing.assert_allclose(regions[0][1], [0.5] * 4)
+    np.testing.assert_allclose(regions[1][1], [0.9, 0.9, np.nan, np.nan])
+    # three frames: a chart finite in 1 of them is not seen in at least half (1 < 1.5), one in 2 is
+    # (before the fix, 3 // 2 = 1 frame let the first in, and it was drawn as the most dynamic)
+    S = np.array([[0.9, np.nan, 0.5], [0.9, np.nan, np.nan], [0.9, 0.1, 0.5]])
+    assert [c for c, _ in dynamism_regions(S, np.array([0, 1, 2]), np.ones(3), 3)] == [2, 0]
+
+
+def _records(values: dict, held_out=(False, False, True)):
+    """Per-frame records of frames 0, 1, 2 (``held_out`` each) with ``{method: {metric: [v0,
+    v1, v2]}}`` (None: the metric is absent from that frame's record)."""
+    return [{"frame": t, "position": t, "held_out": h, "motion_mm": float("nan"),
+             "methods": {m: {k: v[t] for k, v in metrics.items() if v[t] is not None}
+                         for m, metrics in values.items()}}
+            for t, h in enumerate(held_out)]
+
+
+def test_summarise_frames_by_hand():
+    """Frames 0 and 1 are sources, frame 2 is held out. ours psnr 30, 33, 21: every frame mean
+    28, sources mean 31.5 (n 2), held out 21 (n 1). projection is summarised on every frame and
+    the sources, not on the held-out frames (its texture there is the frame's own photo). A
+    metric absent from frame 0's record (the flicker, which needs a predecessor) is averaged over
+    the frames that have it (values 1.0 and 3.0 -> mean 2.0, n 2) and counted over all 3 (n_total)."""
+    from stex.evaluation import summarise_frames
+
+    recs = _records({"ours": {"psnr": [30.0, 33.0, 21.0], "flicker": [None, 1.0, 3.0]},
+                     "projection": {"psnr": [40.0, 42.0, 50.0]}})
+    s = summarise_frames(recs, methods=("ours", "projection"))
+    assert s["all"]["ours"]["psnr"]["mean"] == pytest.approx(28.0)
+    assert (s["source"]["ours"]["psnr"]["mean"], s["source"]["ours"]["psnr"]["n"]) == (pytest.approx(31.5), 2)
+    assert (s["held_out"]["ours"]["psnr"]["mean"], s["held_out"]["ours"]["psnr"]["n"]) == (21.0, 1)
+    assert s["source"]["projection"]["psnr"]["mean"] == pytest.approx(41.0)
+    assert "projection" not in s["held_out"]
+    fl = s["all"]["ours"]["flicker"]
+    assert (fl["mean"], fl["n"], fl["n_total"]) == (pytest.approx(2.0), 2, 3)
+
+
+def test_table_rows_by_hand():
+    """table_rows of hand-made summaries (summarise_frames of frames 0, 1 sources, 2 held out),
+    scene "a" with ours and global, scene "b" with ours only: each cell is the mean over the
+    frames, formatted by hand. PSNR 30, 33, 21 -> 28.00 (held out: 21.00, labelled '(1/2)');
+    plain PSNR 25, 27, 15 -> 22.33; SSIM 0.9, 0.9, 0.6 -> 0.8000; the photo's blur 0.2 and
+    ours' 0.3 in their own rows; coverage 0.5, 0.25, 0.125 of the faces -> 29.2 %; global's
+    PSNR in "b", which has no global, shows '–'."""
+    from stex.evaluation import summarise_frames, table_rows
+
+    ours = {"psnr": [30.0, 33.0, 21.0], "psnr_plain": [25.0, 27.0, 15.0], "ssim": [0.9, 0.9, 0.6],
+            "blur": [0.3] * 3, "blur_input": [0.2] * 3, "coverage_faces": [0.5, 0.25, 0.125]}
+    summaries = {}
+    for scene, methods in (("a", {"ours": ours, "global": {"psnr": [20.0] * 3}}), ("b", {"ours": ours})):
+        summaries[scene] = summarise_frames(_records(methods), methods=tuple(methods))
+        summaries[scene].update(n_held_out=1, held_out_label="(1/2)", blur_interior_px=3)
+    tabs = table_rows(summaries)
+    rows = {}
+    for name, table in tabs.items():
+        label = None
+        for r in table[1:]:
+            label = r[0] or label
+            rows[(name, label, r[1])] = r[2:]
+    rec = "reconstruction"
+    assert rows[(rec, "PSNR, dB (every frame)", "Ours")] == ["28.00", "28.00"]
+    assert rows[(rec, "PSNR, dB (every frame)", "Kim et al. 2019 (global)")] == ["20.00", "–"]
+    assert rows[(rec, "PSNR, dB (held-out frames)", "Ours (1/2)")] == ["21.00", "21.00"]
+    assert rows[(rec, "Plain PSNR, dB (every frame)", "Ours")] == ["22.33", "22.33"]
+    assert rows[(rec, "SSIM (every frame)", "Ours")] == ["0.8000", "0.8000"]
+    assert rows[(rec, "Blurriness (Crete et al.)", "Input images")] == ["0.2000", "0.2000"]
+    assert rows[(rec, "Blurriness (Crete et al.)", "Ours")] == ["0.3000", "0.3000"]
+    assert rows[("coverage", "faces, %", "Ours")] == ["29.2", "29.2"]
+
+
+def test_per_frame_csv_by_hand(evaluation, tiny_pipeline):
+    """per_frame.csv: held_out as 0/1, NaN as an empty cell (frame 0 has no motion and no
+    flicker: no predecessor), motion_mm the mean vertex displacement between the tracked meshes
+    of frames t-1 and t, in mm (numpy from the tracking store)."""
+    out, _ = evaluation
+    with open(out / "per_frame.csv") as f:
+        rows = list(csv.DictReader(f))
+    V = np.asarray(open_store(tiny_pipeline["tracking"], "tracking")["vertices"][...], np.float64)
+    assert {r["held_out"] for r in rows} == {"0"}
+    for r in rows:
+        t = int(r["frame"])
+        if t == 0:
+            assert r["motion_mm"] == "" and r["flicker"] == ""
+        else:
+            want = 1000 * np.sqrt(((V[t] - V[t - 1]) ** 2).sum(1)).mean()
+            assert float(r["motion_mm"]) == pytest.approx(want, rel=1e-9) and r["flicker"] != ""
+
+
+def _silhouette(frame, V):
+    """(H, W) bool pixels the mesh at ``V`` covers in the colour camera (the renderer's own
+    rasteriser, as in test_methods_scored_together_score_as_each_alone)."""
+    cal, a = frame["cal"], frame["atlas"]
+    Vc = transform_points(cal.depth_to_color, np.asarray(V, np.float64))
+    return ev.render_texture(Vc, a.faces, a.texcoords, a.texcoord_faces, frame["ours"], cal.color.K,
+                             cal.color.width, cal.color.height)[1]
+
+
+def test_mask_iou_is_intersection_over_union(frame):
+    """mask_iou is |mask & render| / |mask | render| (numpy on the render's silhouette), here with
+    the mask cut to the object's lower half so that the render covers much the mask does not:
+    about 0.5, where |mask & render| / |mask| would be about 1."""
+    r = _silhouette(frame, frame["V"])
+    rows = np.flatnonzero(frame["mask"].any(1))
+    mask = frame["mask"].copy()
+    mask[: (rows[0] + rows[-1]) // 2] = False
+    s = score_frame(frame["ours"], frame["V"], frame["atlas"], frame["image"], mask, frame["cal"])
+    want = (mask & r).sum() / (mask | r).sum()
+    assert 0.3 < want < 0.7
+    assert s["mask_iou"] == pytest.approx(want, abs=1e-12)
+
+
+def test_coverage_area_weights_faces_by_their_area(frame):
+    """coverage_area = the textured faces' share of the tracked mesh's area, areas by Heron's
+    formula from the edge lengths (not the cross product the code uses); coverage_faces the
+    share of faces."""
+    V = np.asarray(frame["V"], np.float64)
+    F = np.asarray(frame["atlas"].faces)
+    has = np.asarray(frame["visible"], bool)
+    a, b, c = (np.linalg.norm(V[F[:, i]] - V[F[:, (i + 1) % 3]], axis=1) for i in range(3))
+    p = (a + b + c) / 2
+    area = np.sqrt(np.clip(p * (p - a) * (p - b) * (p - c), 0, None))
+    s = score_frame(frame["ours"], frame["V"], frame["atlas"], frame["image"], frame["mask"], frame["cal"],
+                    face_has_texture=has)
+    assert s["coverage_faces"] == pytest.approx(has.mean(), abs=1e-12)
+    assert s["coverage_area"] == pytest.approx(area[has].sum() / area.sum(), rel=1e-6)
+    assert abs(s["coverage_area"] - s["coverage_faces"]) > 1e-3   # the weighting shows here
+
+
+def test_truth_blur_is_taken_inside_the_true_silhouette_too(frame):
+    """blur_truth is the blur of the true render inside mask & our render's silhouette & the true
+    silhouette (score_frame's docstring), here with a whole-image mask and our mesh 1 cm to the
+    side of the truth, so that the true silhouette cuts the scored pixels; blur_truth_interior
+    the same eroded by blur_interior_px (3)."""
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"])
+    V = np.asarray(frame["V"]) + [0.01, 0.0, 0.0]
+    everywhere = np.ones_like(frame["mask"], bool)
+    s = score_frame(frame["ours"], V, frame["atlas"], frame["image"], everywhere, frame["cal"], truth=tv)
+    t_img, t_mask = tv["input"]
+    r = _silhouette(frame, V)
+    sel = r & t_mask
+    assert (r & ~t_mask).sum() > 100
+    assert s["blur_truth"] == ev.blur(t_img, sel)["blur"]
+    assert s["blur_truth_interior"] == ev.blur(t_img, sel, erode_px=3)["blur"]
+
+
+def test_true_surface_split_does_not_depend_on_the_tracked_mesh(frame, tiny_pipeline):
+    """gt_truegeom_* render the texture on the true surface: its borrowed / never-seen split
+    (novel-view pixels on surface some source frame saw) is the true surface's, so moving the
+    tracked mesh 1 cm leaves every gt_truegeom borrowed / never-seen score as with the tracked
+    mesh on the true surface, where they equal the gt_novel ones."""
+    from stex.template import transfer_vertices
+
+    template = open_store(tiny_pipeline["template"], "template")
+    surface = transfer_vertices(frame["true_V"], frame["true_atlas"].faces, template["embedding/face"][...],
+                                template["embedding/bary"][...])
+    tv = truth_views(frame["true_V"], frame["true_atlas"], frame["appearance"], frame["cal"],
+                     template_vertices=surface)
+    F = len(frame["atlas"].faces)
+    kw = dict(truth=tv, face_visible=frame["visible"], seen_faces=frame["visible"] | (np.arange(F) % 2 == 0))
+    on = score_frame(frame["ours"], surface, frame["atlas"], frame["image"], frame["mask"], frame["cal"], **kw)
+    moved = score_frame(frame["ours"], surface + [0.01, 0.0, 0.0], frame["atlas"], frame["image"],
+                        frame["mask"], frame["cal"], **kw)
+    for k in ("psnr_borrowed", "n_borrowed", "psnr_never_seen", "n_never_seen"):
+        assert moved[f"gt_truegeom_{k}"] == on[f"gt_novel_{k}"], k
+    assert moved["gt_novel_n_borrowed"] != on["gt_novel_n_borrowed"]
+
+
+def test_other_method_texels_with_any_colour_count_as_texture(tiny_pipeline, tmp_path):
+    """An other method's face has texture where one of its texels is not black (0, 0, 0): slices
+    of pure red (255, 0, 0) in the left half of the atlas and black in the right half texture
+    exactly the faces owning a texel in the left half (the template's texel map, numpy)."""
+    from stex.export import write_png_slices
+
+    template = open_store(tiny_pipeline["template"], "template")
+    W = int(template.attrs["atlas_size"])
+    red = np.zeros((W, W, 3), np.uint8)
+    red[:, : W // 2, 0] = 255
+    write_png_slices((red for _ in range(6)), range(6), tmp_path / "red")
+    res = _evaluate(tiny_pipeline, tmp_path / "eval", frames=[0], others={"red": tmp_path / "red"})
+    face_id = np.asarray(template["texel/face_id"][...])
+    left = face_id[:, : W // 2]
+    F = template["faces"].shape[0]
+    assert res["frames"][0]["methods"]["red"]["coverage_faces"] == pytest.approx(
+        np.unique(left[left >= 0]).size / F, abs=1e-12)
