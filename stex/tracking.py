@@ -47,6 +47,7 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import LinearOperator, cg
+from scipy.spatial.transform import Rotation
 
 from stex.camera import backproject_depth, depth_pixels_in_color, project_points, transform_points
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
@@ -799,16 +800,6 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     return x, stats
 
 
-def _rotation_vector_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of the rotation vector ``w`` (3,) (axis times angle, radians; Rodrigues)."""
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = w / angle
-    Kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1.0 - np.cos(angle)) * (Kx @ Kx)
-
-
 def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
     """Gauss-Newton for one rigid motion of the whole mesh ``V0`` (V, 3): returns (R (3, 3), t (3,),
     stats), the moved vertices being ``V0 @ R.T + t``.
@@ -839,7 +830,7 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
         diag = np.diag(JtJ).copy()
 
         def moved(delta):
-            return P0 @ (_rotation_vector_matrix(delta[:3]) @ R).T + c0 + t + delta[3:]
+            return P0 @ (Rotation.from_rotvec(delta[:3]).as_matrix() @ R).T + c0 + t + delta[3:]
 
         delta, mu, nu = _lm_step(
             cost, g, JtJ, lambda mu: np.linalg.solve(JtJ + np.diag(mu * diag), -g),
@@ -847,7 +838,7 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
             mu, nu, stats)
         if delta is None:
             break
-        R = _rotation_vector_matrix(delta[:3]) @ R
+        R = Rotation.from_rotvec(delta[:3]).as_matrix() @ R
         t = t + delta[3:]
         if np.abs(delta).max() < 1e-6:
             break
