@@ -362,6 +362,142 @@ def test_skin_mismatch_detected(tmp_path):
         load_skinned_gltf(p, on_skin_mismatch="raise")
 
 
+def _append_accessor(doc, binary: bytes, arr, ctype, atype, **extra) -> tuple[bytes, int]:
+    """Append ``arr`` (its bytes as they are) to the bar's buffer as a new bufferView +
+    accessor of ``doc`` (changed in place); returns (new buffer bytes, accessor index)."""
+    binary = bytes(binary) + b"\0" * (-len(binary) % 4)
+    data = np.ascontiguousarray(arr).tobytes()
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(data)})
+    doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1, "componentType": ctype,
+                             "count": int(np.shape(arr)[0]), "type": atype, **extra})
+    binary += data
+    doc["buffers"][0]["byteLength"] = len(binary)
+    return binary, len(doc["accessors"]) - 1
+
+
+def test_slerp_takes_the_shorter_arc_between_keyframes():
+    """q and -q are the same rotation: LINEAR rotation keys stored with opposite signs are
+    interpolated along the shorter arc, as scipy's Slerp (which interpolates rotations, not
+    quaternions) does."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from stex.synth.gltf import AnimationChannel, sample_channel
+
+    r = Rotation.from_rotvec([[0.1, 0.2, 0.3], [-0.4, 1.1, 0.2]])
+    q = r.as_quat()  # (x, y, z, w), scipy's order and glTF's
+    q[1] *= -np.sign(np.dot(q[0], q[1]))  # the second key on the far hemisphere
+    assert np.dot(q[0], q[1]) < 0
+    ch = AnimationChannel(0, "rotation", "LINEAR", np.array([0.0, 2.0]), q)
+    ref = Slerp([0.0, 2.0], r)
+    for t in (0.3, 1.0, 1.6):
+        got = Rotation.from_quat(sample_channel(ch, t))
+        assert (got.inv() * ref(t)).magnitude() < 1e-9
+
+
+def test_keyframe_times_hold_their_own_value():
+    """At an interior keyframe time the sampler gives that keyframe's value: for STEP it holds
+    over [t_k, t_k+1) (glTF spec), for LINEAR the segments meet there; between keys STEP keeps
+    the earlier key, LINEAR mixes; outside the keys both clamp."""
+    from stex.synth.gltf import AnimationChannel, sample_channel
+
+    times = np.array([0.5, 1.0, 2.0])
+    vals = np.array([[0.0, 0, 0], [1.0, 0, 0], [5.0, 0, 0]])
+    step = AnimationChannel(0, "translation", "STEP", times, vals)
+    lin = AnimationChannel(0, "translation", "LINEAR", times, vals)
+    for t, s, l in [(0.0, 0, 0), (0.5, 0, 0), (0.75, 0, 0.5), (1.0, 1, 1), (1.5, 1, 3), (2.0, 5, 5), (9.0, 5, 5)]:
+        np.testing.assert_allclose(sample_channel(step, t), [s, 0, 0], err_msg=f"STEP at {t}")
+        np.testing.assert_allclose(sample_channel(lin, t), [l, 0, 0], err_msg=f"LINEAR at {t}")
+
+
+def test_node_transform_is_translation_rotation_scale(tmp_path):
+    """A node's TRS is the matrix T @ R @ S (glTF spec: scale first, then rotation, then
+    translation), here with a non-uniform scale, built with scipy's Rotation; a node given by a
+    (column-major) matrix keeps it and reports its translation, rotation (as scipy's quaternion,
+    up to sign) and scale; the child's global transform is the parent's times its own."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec([0.3, -0.5, 0.9])
+    arm = Rotation.from_rotvec(np.deg2rad(40) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14))
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = arm.as_matrix(), [0.5, 1.0, -2.0]
+    doc, binary, _ = make_bar()
+    doc["nodes"][0]["matrix"] = A.T.ravel().tolist()
+    doc["nodes"][2].update(rotation=rot.as_quat().tolist(), scale=[2.0, 0.5, 1.5])
+    mesh = load_skinned_gltf(write_gltf(tmp_path / "trs.gltf", doc, binary))
+    expected = np.eye(4)
+    expected[:3, :3] = rot.as_matrix() @ np.diag([2.0, 0.5, 1.5])
+    expected[:3, 3] = [1.0, 0.0, 0.0]
+    np.testing.assert_allclose(mesh.node_matrix[2], expected, atol=1e-12)
+    np.testing.assert_allclose(mesh.node_matrix[0], A, atol=1e-12)
+    np.testing.assert_allclose(mesh.node_translation[0], [0.5, 1.0, -2.0])
+    q = mesh.node_rotation[0]
+    np.testing.assert_allclose(q * np.sign(q[3]), arm.as_quat() * np.sign(arm.as_quat()[3]), atol=1e-12)
+    np.testing.assert_allclose(mesh.node_scale[0], 1.0, atol=1e-12)
+    np.testing.assert_allclose(node_global_transforms(mesh)[2], A @ expected, atol=1e-12)  # root_bone: identity
+
+
+def test_normalized_integer_accessors_are_scaled_by_the_type_maximum(tmp_path):
+    """Normalized integers (glTF spec, "Animations"/"Meshes"): unsigned k -> k / (2^n - 1),
+    signed k -> max(k / (2^(n-1) - 1), -1). Texture coordinates as normalized UNSIGNED_SHORT
+    read as k / 65535 exactly; a STEP rotation to -90 deg about z stored as normalized SHORT
+    (negative components) reads back within 1 / 32767 and bends the bar by -90 deg."""
+    doc, binary, _ = make_bar()
+    prim = doc["meshes"][0]["primitives"][1]
+    uv = np.array([(0.5 + 0.25 * (x - 1), 0.2 if y == 1.0 else 0.0) for x in XS[2:] for y in YS])
+    k = np.round(uv * 65535).astype("<u2")
+    binary, prim["attributes"]["TEXCOORD_0"] = _append_accessor(doc, binary, k, 5123, "VEC2", normalized=True)
+    quats = np.array([_quat_z(0), _quat_z(-90)])
+    binary, q_acc = _append_accessor(doc, binary, np.round(quats * 32767).astype("<i2"), 5122, "VEC4",
+                                     normalized=True)
+    t_acc = doc["animations"][1]["samplers"][0]["input"]  # times 0, 1
+    doc["animations"].append({"name": "bend_back",
+                              "samplers": [{"input": t_acc, "output": q_acc, "interpolation": "STEP"}],
+                              "channels": [{"sampler": 0, "target": {"node": 2, "path": "rotation"}}]})
+    mesh = load_skinned_gltf(write_gltf(tmp_path / "normalized.gltf", doc, binary))
+    tris = np.array([t for i in range(2) for t in ((2 * i, 2 * i + 2, 2 * i + 3), (2 * i, 2 * i + 3, 2 * i + 1))])
+    got, want = mesh.texcoords[mesh.texcoord_faces[4:]], (k / 65535.0)[tris]  # primitive 1's triangles
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mesh.animations[-1].channels[0].values, quats, atol=1 / 32767)
+    np.testing.assert_allclose(pose_vertices(mesh, "bend_back", 1.0), expected_pose(-90), atol=1e-4)
+
+
+def test_more_than_four_influences_keep_the_four_largest_weights(tmp_path):
+    """With JOINTS_1/WEIGHTS_1 a vertex may have 8 influences; the 4 largest are kept (with a
+    warning naming the largest dropped weight) and renormalised. By hand, the x = 1.5 vertices:
+    influences (joint, weight) (1, .4) (0, .05) (0, 0) (0, 0) (0, .3) (1, .1) (0, .04) (1, .02)
+    keep .4 + .1 on the child and .3 + .05 on the root: child weight .5 / .85 = 10 / 17; the x = 2
+    vertices (only (1, 1)) stay on the child."""
+    doc, binary, _ = make_bar()
+    attrs = doc["meshes"][0]["primitives"][1]["attributes"]
+    j0 = np.array([[0, 1, 0, 0]] * 2 + [[1, 0, 0, 0]] * 2 + [[1, 0, 0, 0]] * 2, dtype="<u2")
+    w0 = np.array([[1, 0, 0, 0]] * 2 + [[0.4, 0.05, 0, 0]] * 2 + [[1, 0, 0, 0]] * 2, dtype="<f4")
+    j1 = np.array([[0, 0, 0, 0]] * 2 + [[0, 1, 0, 1]] * 2 + [[0, 0, 0, 0]] * 2, dtype="<u2")
+    w1 = np.array([[0, 0, 0, 0]] * 2 + [[0.3, 0.1, 0.04, 0.02]] * 2 + [[0, 0, 0, 0]] * 2, dtype="<f4")
+    for name, arr, ctype in (("JOINTS_0", j0, 5123), ("WEIGHTS_0", w0, 5126),
+                             ("JOINTS_1", j1, 5123), ("WEIGHTS_1", w1, 5126)):
+        binary, attrs[name] = _append_accessor(doc, binary, arr, ctype, "VEC4")
+    with pytest.warns(UserWarning, match=r"more than 4 influences.*0\.04"):
+        mesh = load_skinned_gltf(write_gltf(tmp_path / "eight.gltf", doc, binary))
+    child = np.where(mesh.joints == 1, mesh.weights, 0).sum(1)
+    np.testing.assert_allclose(child, [0] * 6 + [10 / 17] * 2 + [1] * 2, atol=1e-7)
+    np.testing.assert_allclose(mesh.weights.sum(1), 1.0)
+
+
+def test_animation_duration_is_its_longest_channel(tmp_path):
+    """An animation whose channels end at different times lasts until the last one ends
+    (2 s here, the translation; the rotation ends at 1 s and then holds)."""
+    doc, binary, _ = make_bar()
+    slide = doc["animations"][3]["samplers"][0]   # CUBICSPLINE, keys at 0 and 2 s
+    bend = doc["animations"][0]["samplers"][0]    # LINEAR, keys at 0 and 1 s
+    doc["animations"].append({"name": "both", "samplers": [slide, bend], "channels": [
+        {"sampler": 0, "target": {"node": 1, "path": "translation"}},
+        {"sampler": 1, "target": {"node": 2, "path": "rotation"}}]})
+    mesh = load_skinned_gltf(write_gltf(tmp_path / "both.gltf", doc, binary))
+    assert mesh.animations[-1].duration_s == 2.0
+    np.testing.assert_allclose(pose_vertices(mesh, "both", 3.0, loop=True), pose_vertices(mesh, "both", 1.0),
+                               atol=1e-12)
+
+
 # --------------------------------------------------------------------------------------------
 # The Khronos Fox sample (skipped when the data folder is absent)
 # --------------------------------------------------------------------------------------------
