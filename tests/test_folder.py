@@ -264,6 +264,8 @@ def test_stex_layout_default_template_is_first_given_mesh(tmp_path, synth):
     assert src.ds.template_path() == root / "meshes" / f"{FIRST + 1:06d}.obj"
     np.testing.assert_allclose(src.template().vertices, s.verts[1], atol=1e-9)
     assert src.template().texcoords is None
+    # the scene job's inputs: the calibration and the given meshes, the first (the template) once
+    assert src.files() == [root / "calibration.json"] + [root / "meshes" / f"{i:06d}.obj" for i in IDS[1:]]
     bad = root / "meshes" / f"{FIRST + 3:06d}.obj"
     _write_obj(bad, s.verts[3], s.faces[:, [0, 2, 1]])  # the same triangles turned round (other winding)
     with pytest.raises(ValueError, match=re.escape(bad.name) + r": mesh topology differs from the template \(.*\): "
@@ -309,7 +311,9 @@ def test_ingest_stores_equal_the_files(tmp_path, datasets, synth, layout):
         np.testing.assert_array_equal(f["color"][:], np.stack(s.color[start:stop]))
         np.testing.assert_array_equal(f["depth"][:], np.stack(s.depth[start:stop]))
         np.testing.assert_array_equal(f["mask"][:], np.stack(s.mask[start:stop]))
-        assert f["timestamps"].shape == (stop - start,) and np.isfinite(f["timestamps"][:]).all()
+        # no capture times in a folder dataset: sequence position / source.folder.fps (30 by default)
+        np.testing.assert_array_equal(f["timestamps"][:], np.arange(start, stop) / 30.0)
+        assert f.attrs["calibration"] == g.attrs["calibration"]
 
 
 @pytest.mark.parametrize("layout", ["authors", "stex"])

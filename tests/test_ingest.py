@@ -14,6 +14,8 @@ REAL_MKV = data_samples() / "azure_kinect_pyk4a" / "recording.mkv"
 
 def test_frame_blocks():
     assert frame_blocks(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert frame_blocks(9, 4) == [(0, 4), (4, 8), (8, 9)]  # a last block of one frame
+    assert frame_blocks(3, 5) == [(0, 3)]
     with pytest.raises(ValueError):
         frame_blocks(0, 4)
 
@@ -27,6 +29,8 @@ def test_mkv_ingest_of_a_written_recording(synthetic_mkv, tmp_path):  # noqa: F8
     from stex.readers.kinect_mkv import open_kinect_mkv
     src = _mkv_source(synthetic_mkv, undistort=False, start=2, stop=7)
     assert count_frames(src) == 5
+    # a stop past the end of the 10 captures reads to the end: captures 7, 8, 9
+    assert count_frames(_mkv_source(synthetic_mkv, undistort=False, start=7, stop=50)) == 3
     write_scene(src, 3, tmp_path / "scene.zarr")
     scene = open_store(tmp_path / "scene.zarr", "scene")
     assert scene.attrs["frame_ids"] == [2, 3, 4, 5, 6] and scene.attrs["has_template"] is False
@@ -104,3 +108,15 @@ def test_mkv_ingest_of_the_real_recording(tmp_path):
     assert depth.dtype == np.uint16 and depth.shape == (576, 640)
     assert np.mean((valid >= 150) & (valid <= 5500)) > 0.99 and np.median(valid) > 500
     assert f["color"].shape == (1, 720, 1280, 3)
+
+
+def test_a_source_that_delivers_too_few_frames_is_refused(synthetic_mkv, tmp_path, monkeypatch):  # noqa: F811
+    """A reader that ends early (here the recording's reader made to stop one capture short) is
+    refused, naming the count, rather than leaving the block's last frame all zeros."""
+    from stex.ingest import MkvSource
+
+    frames = MkvSource.frames
+    monkeypatch.setattr(MkvSource, "frames", lambda self, start, stop: frames(self, start, stop - 1))
+    with pytest.raises(ValueError, match=r"source delivered 2 of the 3 frames of block \[0, 3\)"):
+        write_frames_block(_mkv_source(synthetic_mkv[0], undistort=False), 0, 3, tmp_path / "f.zarr")
+    assert not (tmp_path / "f.zarr").exists()

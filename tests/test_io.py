@@ -1,10 +1,12 @@
 import os
+import re
 
 import numpy as np
 import pytest
 
 from conftest import REPO
-from stex.io import ARTIFACTS, FrameSequence, StoreError, artifacts_markdown, create_store, open_store
+from stex.io import (ARTIFACTS, FrameSequence, StoreError, artifacts_markdown, create_store, id_ranges, open_store,
+                     position_range, run_block_paths)
 
 
 def _frames(path, ids, H=4, W=5):
@@ -32,18 +34,19 @@ def test_round_trip_attrs_and_chunks(tmp_path):
     assert g["color"].dtype == np.uint8 and g["color"][1, 0, 0, 0] == 4
 
 
-def test_failed_writer_leaves_nothing(tmp_path):
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])  # Ctrl-C is no Exception
+def test_failed_writer_leaves_nothing(tmp_path, error):
     p = tmp_path / "f.zarr"
-    with pytest.raises(RuntimeError):
+    with pytest.raises(error):
         with create_store(p, "frames") as s:
             s.create("color", (1, 2, 2, 3))
-            raise RuntimeError("boom")
+            raise error("boom")
     assert not p.exists() and not list(tmp_path.glob("f.zarr.partial*"))
 
 
 def test_missing_required_array_is_refused(tmp_path):
     p = tmp_path / "f.zarr"
-    with pytest.raises(StoreError, match="required array 'depth'"):
+    with pytest.raises(StoreError, match=re.escape(f"{p}: required array 'depth'")):
         with create_store(p, "frames") as s:
             s.create("color", (1, 2, 2, 3))
             s.write("timestamps", np.zeros(1))
@@ -69,7 +72,7 @@ def test_open_refuses_wrong_kind_incomplete_and_missing(tmp_path):
     _frames(p, [0])
     with pytest.raises(StoreError, match="expected 'masks'"):
         open_store(p, "masks")
-    with pytest.raises(StoreError, match="no such store"):
+    with pytest.raises(StoreError, match=re.escape(f"{tmp_path / 'nope.zarr'}: no such store")):
         open_store(tmp_path / "nope.zarr", "frames")
     import zarr
     g = zarr.open_group(str(p), mode="r+")
@@ -86,6 +89,8 @@ def test_frame_sequence_across_blocks(tmp_path):
     assert seq.read("color", 4)[0, 0, 0] == 4
     with pytest.raises(KeyError):
         seq.read("color", 9)
+    with pytest.raises(StoreError, match="not in frame order"):
+        FrameSequence([tmp_path / "b1.zarr", tmp_path / "b0.zarr"], "frames")
     _frames(tmp_path / "dup.zarr", [2])
     with pytest.raises(StoreError, match="frame 2"):
         FrameSequence([tmp_path / "b0.zarr", tmp_path / "dup.zarr"], "frames")
@@ -275,6 +280,148 @@ def test_a_replaced_store_stays_whole_until_the_new_one_is_in_place(tmp_path, mo
     write(2)
     assert seen == [1] and open_store(p, "frames")["color"][0, 0, 0, 0] == 2
     assert sorted(x.name for x in tmp_path.iterdir()) == ["f.zarr"]
+
+
+def test_a_store_counts_as_complete_only_once_its_writer_finished(tmp_path):
+    """While the writer runs, its partial folder says complete=False, so a copy of it (or what a
+    crash leaves) is refused as incomplete; a store whose complete attr is lost is refused too,
+    not taken for complete."""
+    import zarr
+
+    p = tmp_path / "f.zarr"
+    with create_store(p, "frames", attrs={"frame_ids": [0]}) as s:
+        s.write("color", np.ones((1, 2, 2, 3), np.uint8))
+        s.write("depth", np.ones((1, 2, 2), np.uint16))
+        s.write("timestamps", np.zeros(1))
+        (partial,) = tmp_path.glob("f.zarr.partial*")
+        assert zarr.open_group(str(partial), mode="r").attrs["complete"] is False
+        with pytest.raises(StoreError, match="incomplete"):
+            open_store(partial, "frames")
+    g = zarr.open_group(str(p), mode="r+")
+    del g.attrs["complete"]
+    with pytest.raises(StoreError, match="incomplete"):
+        open_store(p, "frames")
+
+
+def test_per_frame_arrays_hold_one_frame_per_chunk_and_every_chunk_is_counted(tmp_path):
+    """Three non-zero frames (so zarr writes every chunk): colour, depth and the optional mask are
+    chunked one frame per chunk (3 chunk files each, the chunk the frame's shape), timestamps are
+    one chunk; chunk_files records these counts and units the declared units (docs/artifacts.md:
+    sRGB, mm, 1, s), the optional mask included, and a copy that lost a chunk of the mask is refused
+    like one of a required array."""
+    p = tmp_path / "f.zarr"
+    with create_store(p, "frames", attrs={"frame_ids": [0, 1, 2]}) as s:
+        s.write("color", np.ones((3, 4, 5, 3), np.uint8))
+        s.write("depth", np.full((3, 2, 3), 1000, np.uint16))
+        s.write("mask", np.ones((3, 4, 5), bool))
+        s.write("timestamps", np.arange(1.0, 4.0))
+    g = open_store(p, "frames")
+    assert g.attrs["chunk_files"] == {"color": 3, "depth": 3, "mask": 3, "timestamps": 1}
+    assert g.attrs["units"] == {"color": "sRGB", "depth": "mm", "mask": "1", "timestamps": "s"}
+    assert [g[k].chunks for k in ("color", "depth", "mask", "timestamps")] == [(1, 4, 5, 3), (1, 2, 3), (1, 4, 5), (3,)]
+    (p / "mask" / "c" / "1" / "0" / "0").unlink()
+    with pytest.raises(StoreError, match=r"f\.zarr: array 'mask' has 2 of the 3 chunk files"):
+        open_store(p, "frames")
+
+
+def test_every_array_is_written_with_the_chunk_checksum(tmp_path):
+    """Each array's own zarr.json (read as JSON) ends in zstd with checksum: the 1-D timestamps
+    as well as the per-frame images."""
+    import json
+
+    _frames(tmp_path / "f.zarr", [0, 1])
+    metas = sorted((tmp_path / "f.zarr").glob("*/zarr.json"))
+    assert [m.parent.name for m in metas] == ["color", "depth", "timestamps"]
+    for m in metas:
+        assert json.loads(m.read_text())["codecs"][-1] == {"name": "zstd", "configuration": {"level": 0, "checksum": True}}
+
+
+def test_arrays_of_another_dtype_or_axis_length_are_refused(tmp_path):
+    """open_store re-checks the arrays: depth rewritten in place as uint8 (same kind as the
+    declared uint16, but no room for millimetres above 255) is refused; create_store refuses
+    template vertices with 4 coordinates (the declared axis length is 3)."""
+    import zarr
+
+    p = tmp_path / "f.zarr"
+    _frames(p, [0, 1])
+    g = zarr.open_group(str(p), mode="r+")
+    g.create_array("depth", shape=(2, 2, 3), dtype="uint8", overwrite=True)[...] = 7  # 2 chunk files, as before
+    with pytest.raises(StoreError, match=r"f\.zarr: array 'depth' has dtype uint8, expected uint16"):
+        open_store(p, "frames")
+    with pytest.raises(StoreError, match=r"s\.zarr: array 'template/vertices' has shape \(5, 4\), expected \('V', 3\)"):
+        with create_store(tmp_path / "s.zarr", "scene") as s:
+            s.write("template/vertices", np.zeros((5, 4)))
+
+
+def test_a_live_writer_on_this_host_keeps_its_folder(tmp_path):
+    """Only dead writers' left-overs are removed: the partial folder named with this host and a
+    live process id (this test's parent process) is left to its writer."""
+    import socket
+
+    live = tmp_path / f"f.zarr.partial-{socket.gethostname().replace('-', '_')}-{os.getppid()}"
+    live.mkdir()
+    _frames(tmp_path / "f.zarr", [0])
+    assert live.is_dir() and open_store(tmp_path / "f.zarr", "frames").attrs["frame_ids"] == [0]
+
+
+def test_the_versions_recorded_are_the_installed_ones(tmp_path):
+    """stex_version is pyproject.toml's version; libraries holds the version each library
+    reports itself (numba, llvmlite, zarr, scikit-image, pyamg, trimesh, pillow, av), and only
+    installed libraries: every value is a version string."""
+    import tomllib
+
+    import av
+    import llvmlite
+    import numba
+    import PIL
+    import pyamg
+    import skimage
+    import trimesh
+    import zarr
+
+    _frames(tmp_path / "f.zarr", [0])
+    attrs = open_store(tmp_path / "f.zarr", "frames").attrs
+    assert attrs["stex_version"] == tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
+    libs = attrs["libraries"]
+    assert {k: libs.get(k) for k in ("numba", "llvmlite", "zarr", "scikit-image", "pyamg", "trimesh", "pillow", "av")} == {
+        "numba": numba.__version__, "llvmlite": llvmlite.__version__, "zarr": zarr.__version__,
+        "scikit-image": skimage.__version__, "pyamg": pyamg.__version__, "trimesh": trimesh.__version__,
+        "pillow": PIL.__version__, "av": av.__version__}
+    assert all(isinstance(v, str) and v for v in libs.values())
+
+
+def test_id_ranges_and_position_range_by_hand():
+    """id_ranges: runs of consecutive ids as [first, last + 1] ([0, 1, 2, 5, 6] -> [[0, 3], [5, 7]],
+    its docstring's example; [4, 6, 7] -> [[4, 5], [6, 8]]). position_range: [start, stop) within
+    the frames, the last block [7, 10) of 10 frames included; [0, 11), [-1, 2), [3, 3) refused."""
+    assert id_ranges([0, 1, 2, 5, 6]) == [[0, 3], [5, 7]]
+    assert id_ranges([4, 6, 7]) == [[4, 5], [6, 8]]
+    assert position_range([7, 10], 10, "slice") == (7, 10)
+    for bad in ([0, 11], [-1, 2], [3, 3]):
+        with pytest.raises(ValueError, match=r"slice range .* outside the 10 frames"):
+            position_range(bad, 10, "slice")
+
+
+def test_run_block_paths_lists_every_block_of_the_scene_and_no_stale_one(tmp_path):
+    """A scene of 10 frames in blocks [0, 4), [4, 8), [8, 10): block_0000..block_0002 of the
+    kind, in order; a block_0003 left by an earlier run with other blocks is not listed."""
+    with create_store(tmp_path / "scene.zarr", "scene", attrs={"frame_blocks": [[0, 4], [4, 8], [8, 10]]}):
+        pass
+    (tmp_path / "volume" / "block_0003.zarr").mkdir(parents=True)
+    assert run_block_paths(tmp_path, "volume") == [tmp_path / "volume" / f"block_{b:04d}.zarr" for b in range(3)]
+
+
+def test_frame_attr_is_the_entry_of_the_frame_in_its_own_block(tmp_path):
+    """Per-frame list attrs (e.g. masks' support_planes) of blocks [0, 1, 2] and [3, 4]: frame f
+    gets entry f - (its block's first frame) of its own block's list; the default without it."""
+    import zarr
+
+    for name, ids in (("b0.zarr", [0, 1, 2]), ("b1.zarr", [3, 4])):
+        _frames(tmp_path / name, ids)
+        zarr.open_group(str(tmp_path / name), mode="r+").attrs["planes"] = [f"plane of {i}" for i in ids]
+    seq = FrameSequence([tmp_path / "b0.zarr", tmp_path / "b1.zarr"], "frames")
+    assert [seq.frame_attr("planes", f) for f in range(5)] == [f"plane of {f}" for f in range(5)]
+    assert seq.frame_attr("other", 4, default="none") == "none"
 
 
 def test_docs_page_is_generated_from_the_registry():

@@ -1,4 +1,4 @@
-"""Synthetic scenes: geometry, coverage, shape-tied appearance, determinism, degradations."""
+"""Synthetic scenes: geometry, coverage, shape-tied appearance, determinism, degradations, ingest."""
 import copy
 
 import numpy as np
@@ -147,7 +147,13 @@ def test_fox_gltf_scene(tiny_config):
     cfg = copy.deepcopy(tiny_config["source"]["synthetic"])
     cfg["object"] = "gltf"
     cfg["gltf"] = {"path": str(data_samples() / "gltf_fox" / "glTF-Binary" / "Fox.glb"), "animation": "Walk", "size_m": 0.6}
-    s = SyntheticScene(cfg)
+    from pathlib import Path
+
+    from stex.ingest import SyntheticSource
+    src = SyntheticSource(cfg)
+    s = src.scene
+    # every ingest job reads the asset: it is their input (a replaced .glb re-runs them)
+    assert src.files() == src.files(0, 2) == [Path(cfg["gltf"]["path"])]
     r0, r3 = s.render_frame(0), s.render_frame(3)
     assert r0.true_mask.sum() > 200
     extent = np.ptp(s.true_vertices(0), axis=0).max()
@@ -480,3 +486,28 @@ def test_skinned_pose_patch_sits_on_the_highest_vertex(walking_fox):
     red = body.appearance(d / 4)[px[:, 1], px[:, 0]].astype(int)
     blue = body.appearance(3 * d / 4)[px[:, 1], px[:, 0]].astype(int)
     assert (red[:, 0] > red[:, 2] + 100).all() and (blue[:, 2] > blue[:, 0]).all()
+
+
+def test_synthetic_ingest_stores_the_scene_as_rendered(tiny_config, tmp_path):
+    """The tiny scene (6 frames) ingested in blocks of 4: the scene store holds the true and the
+    given vertices of all 6 frames as SyntheticScene gives them (float32); the last, partial block
+    [4, 6) holds frames 4 and 5 as render_frame draws them (colour, depth, timestamps) and its
+    truth store their appearance, mask and true depth, value for value."""
+    from stex.ingest import write_frames_block, write_scene
+    from stex.io import open_store
+
+    src = tiny_config["source"]
+    write_scene(src, 4, tmp_path / "scene.zarr")
+    write_frames_block(src, 4, 6, tmp_path / "f.zarr", tmp_path / "t.zarr")
+    s = SyntheticScene(src["synthetic"])
+    g = open_store(tmp_path / "scene.zarr", "scene")
+    assert g.attrs["frame_ids"] == list(range(6)) and g.attrs["frame_blocks"] == [[0, 4], [4, 6]]
+    np.testing.assert_array_equal(g["truth/vertices"][...], np.float32([s.true_vertices(t) for t in range(6)]))
+    np.testing.assert_array_equal(g["given/vertices"][...], np.float32([s.given_vertices(t) for t in range(6)]))
+    f, t = open_store(tmp_path / "f.zarr", "frames"), open_store(tmp_path / "t.zarr", "truth")
+    assert f.attrs["frame_ids"] == t.attrs["frame_ids"] == [4, 5]
+    r = [s.render_frame(i) for i in (4, 5)]
+    for store, name, attr in ((f, "color", "color"), (f, "depth", "depth_mm"), (t, "appearance", "appearance"),
+                              (t, "mask", "true_mask"), (t, "depth", "true_depth")):
+        np.testing.assert_array_equal(store[name][...], np.stack([getattr(x, attr) for x in r]), err_msg=name)
+    np.testing.assert_array_equal(f["timestamps"][...], [r[0].timestamp, r[1].timestamp])
