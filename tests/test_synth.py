@@ -71,7 +71,7 @@ def test_demo_scene_sees_a_third_per_frame_and_most_overall(demo_config):
     cfg = copy.deepcopy(demo_config["source"]["synthetic"])
     scene = SyntheticScene(cfg)
     per_frame, ever = _coverage(scene)
-    # Measured: per frame 0.29-0.34 of the area (faces at cos > 0.3), 0.84 seen at some frame.
+    # Measured: per frame 0.26-0.33 of the area (faces at cos > 0.3), 0.79 seen at some frame.
     assert 0.25 <= per_frame.min() and per_frame.max() <= 0.42
     assert 0.75 <= ever <= 0.95  # most regions seen at some frame, a few (underside, back) never
 
@@ -106,7 +106,15 @@ def test_each_degradation_is_a_switch(tiny_config, name):
     else:
         assert np.array_equal(clean.depth_mm, dirty.depth_mm)
         diff = np.abs(clean.color.astype(int) - dirty.color.astype(int))[clean.true_mask]
-        assert diff.mean() > 0.5
+        if name == "motion_blur":
+            # blur changes colours only where the texture varies along the motion: measured
+            # 31-33 % of the object's pixels over the tiny scene's frames 0-5, by 0.47-0.51 grey
+            # levels on average (too close to any round threshold to test the mean); how much
+            # it blurs is test_motion_blur_averages_renders_centred_on_the_frame_time's job
+            assert (diff.max(-1) > 0).mean() > 0.1
+        else:
+            # noise and exposure change every pixel: measured 1.59-1.61 / 4.36-4.56 levels
+            assert (diff.max(-1) > 0).mean() > 0.9 and diff.mean() > 0.5
 
 
 def test_clean_depth_matches_truth(tiny_config):
@@ -511,3 +519,25 @@ def test_synthetic_ingest_stores_the_scene_as_rendered(tiny_config, tmp_path):
                               (t, "mask", "true_mask"), (t, "depth", "true_depth")):
         np.testing.assert_array_equal(store[name][...], np.stack([getattr(x, attr) for x in r]), err_msg=name)
     np.testing.assert_array_equal(f["timestamps"][...], [r[0].timestamp, r[1].timestamp])
+
+
+def test_camera_looks_at_the_object_from_above(tiny_config):
+    """elevation_deg tilts the view so the camera looks down at the object (schema: "Camera
+    elevation above the object; the underside is never seen"). By hand, for a camera pitched
+    down by e: the object's up axis (+y) is image-up (camera -y) and leans towards the
+    camera (the viewing direction points down), so in camera coordinates it is
+    (0, -cos e, -sin e), and the bottom cap (the faces around the bottom pole) is not visible
+    in any frame."""
+    from scipy.spatial.transform import Rotation
+
+    s = _scene(tiny_config, elevation_deg=20.0)
+    e = np.deg2rad(20.0)
+    K, (W, H) = s.calibration.depth.K, s.calibration.depth.size
+    bottom = np.isin(s.faces, np.flatnonzero(s.body.vertex_h == 0)).any(1)  # the fan around the bottom pole
+    assert bottom.sum() == 32
+    for k in range(s.n_frames):
+        cam, obj = s.true_vertices(k), s.body.vertices(s.time_of(k))
+        R = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))[0].as_matrix()
+        np.testing.assert_allclose(R[:, 1], [0, -np.cos(e), -np.sin(e)], atol=1e-9)
+        vis, _ = face_visibility(cam, s.faces, K, rasterize(cam, s.faces, K, W, H).depth)
+        assert not vis[bottom].any()

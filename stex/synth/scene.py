@@ -117,7 +117,7 @@ class SyntheticScene:
         cfg = self.cfg
         yaw = np.deg2rad(cfg["yaw_offset_deg"] + cfg["yaw_range_deg"] * np.sin(2 * np.pi * time_s / cfg["yaw_period_s"]))
         flip = np.diag([1.0, -1.0, -1.0])  # object +y up -> camera -y; object faces the camera
-        R = _rot("x", -np.deg2rad(cfg["elevation_deg"])) @ flip @ _rot("y", yaw)
+        R = _rot("x", np.deg2rad(cfg["elevation_deg"])) @ flip @ _rot("y", yaw)
         sway = 0.03 * np.array([np.sin(2 * np.pi * time_s / 2.9), 0.5 * np.sin(2 * np.pi * time_s / 3.7), 0.0])
         T = np.eye(4)
         T[:3, :3] = R
