@@ -61,10 +61,14 @@ def _project(cal, X):
 
 def cache_digest(cfg, T) -> str:
     """Short digest of everything the render cache depends on (scene source, template, projection,
-    frame count)."""
+    frame count, and the code that renders and projects: a fix there, such as the synthetic
+    camera's at 35a5f98, must not be read from an old cache)."""
     import hashlib
+    code = sorted((REPO / "stex").glob("synth/*.py")) + [REPO / "stex" / f for f in
+                                                         ("template.py", "projection.py", "render.py", "camera.py")]
     key = json.dumps({"source": cfg["source"], "template": cfg["template"], "projection": cfg["projection"],
-                      "frames": T}, sort_keys=True, default=str)
+                      "frames": T, "code": [hashlib.sha256(f.read_bytes()).hexdigest() for f in code]},
+                     sort_keys=True, default=str)
     return hashlib.sha256(key.encode()).hexdigest()[:10]
 
 
