@@ -541,3 +541,9 @@ def test_camera_looks_at_the_object_from_above(tiny_config):
         np.testing.assert_allclose(R[:, 1], [0, -np.cos(e), -np.sin(e)], atol=1e-9)
         vis, _ = face_visibility(cam, s.faces, K, rasterize(cam, s.faces, K, W, H).depth)
         assert not vis[bottom].any()
+    # a negative elevation looks up from below (the schema: -20 is the view of the figures
+    # measured before the fix): the up axis leans away from the camera
+    below = _scene(tiny_config, elevation_deg=-20.0)
+    cam, obj = below.true_vertices(0), below.body.vertices(below.time_of(0))
+    R = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))[0].as_matrix()
+    np.testing.assert_allclose(R[:, 1], [0, -np.cos(e), np.sin(e)], atol=1e-9)
