@@ -210,6 +210,17 @@ def test_calibration_follows_the_config_conventions(tiny_config):
     np.testing.assert_allclose(cal.depth_to_color[3], [0, 0, 0, 1])
 
 
+def _object_pose(s, k, t):
+    """Frame k's true vertices (camera) against the body's shape at time t (object frame), fitted
+    by scipy's Rotation.align_vectors: (rotation (3, 3), the fit's rssd, camera points, object
+    points)."""
+    from scipy.spatial.transform import Rotation
+
+    cam, obj = s.true_vertices(k), s.body.vertices(t)
+    rot, rssd = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))
+    return rot.as_matrix(), rssd, cam, obj
+
+
 def test_object_pose_follows_the_yaw_law_at_the_frame_times(tiny_config):
     """The true vertices of frame k are the body's shape at t = k / fps moved rigidly; the
     rigid motion (fitted with scipy's Rotation.align_vectors) turns the object about its own
@@ -221,16 +232,12 @@ def test_object_pose_follows_the_yaw_law_at_the_frame_times(tiny_config):
     object +x, so the camera-x components of the object's +z and +x axes are sin(yaw) and
     cos(yaw): yaw = atan2(R[0, 2], R[0, 0]). The object's up axis has camera-y component
     -cos(elevation). The object sits distance_m in front of the camera (a sway of a few cm)."""
-    from scipy.spatial.transform import Rotation
-
     s = _scene(tiny_config, fps=10.0, yaw_offset_deg=30.0, yaw_range_deg=50.0, yaw_period_s=2.0)
     assert s.render_frame(5).timestamp == pytest.approx(0.5)
     for k in range(6):
         t = k / 10.0
-        cam, obj = s.true_vertices(k), s.body.vertices(t)
-        rot, rssd = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))
+        R, rssd, cam, obj = _object_pose(s, k, t)
         assert rssd < 1e-6  # a rigid motion of the shape at time k / fps
-        R = rot.as_matrix()
         yaw = np.rad2deg(np.arctan2(R[0, 2], R[0, 0]))
         assert yaw == pytest.approx(30.0 + 50.0 * np.sin(2 * np.pi * t / 2.0), abs=1e-6)
         assert R[1, 1] == pytest.approx(-np.cos(np.deg2rad(20.0)), abs=1e-9)  # elevation 20 deg
@@ -528,22 +535,18 @@ def test_camera_looks_at_the_object_from_above(tiny_config):
     camera (the viewing direction points down), so in camera coordinates it is
     (0, -cos e, -sin e), and the bottom cap (the faces around the bottom pole) is not visible
     in any frame."""
-    from scipy.spatial.transform import Rotation
-
     s = _scene(tiny_config, elevation_deg=20.0)
     e = np.deg2rad(20.0)
     K, (W, H) = s.calibration.depth.K, s.calibration.depth.size
     bottom = np.isin(s.faces, np.flatnonzero(s.body.vertex_h == 0)).any(1)  # the fan around the bottom pole
     assert bottom.sum() == 32
     for k in range(s.n_frames):
-        cam, obj = s.true_vertices(k), s.body.vertices(s.time_of(k))
-        R = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))[0].as_matrix()
+        R, _, cam, _ = _object_pose(s, k, s.time_of(k))
         np.testing.assert_allclose(R[:, 1], [0, -np.cos(e), -np.sin(e)], atol=1e-9)
         vis, _ = face_visibility(cam, s.faces, K, rasterize(cam, s.faces, K, W, H).depth)
         assert not vis[bottom].any()
     # a negative elevation looks up from below (the schema: -20 is the view of the figures
     # measured before the fix): the up axis leans away from the camera
     below = _scene(tiny_config, elevation_deg=-20.0)
-    cam, obj = below.true_vertices(0), below.body.vertices(below.time_of(0))
-    R = Rotation.align_vectors(cam - cam.mean(0), obj - obj.mean(0))[0].as_matrix()
+    R = _object_pose(below, 0, below.time_of(0))[0]
     np.testing.assert_allclose(R[:, 1], [0, -np.cos(e), np.sin(e)], atol=1e-9)
