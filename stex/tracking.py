@@ -32,6 +32,12 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   as a reprojection term; and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``,
   on by default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
 
+- Ours (``unseen_from_rest``): after each frame, the vertices the depth camera does not see are
+  posed by a warp of the template itself (:func:`fit_rest_warp`: the same graph and priors, L0
+  included, fitted to the seen vertices), so a hidden side follows its part's seen side as they
+  sit on the template instead of carrying every deformation the incremental warps dragged it
+  through.
+
 The frame is initialised from the previous frame's mesh, or with ``constant_velocity`` from it
 moved once more by the previous frame's rigid motion.
 """
@@ -315,6 +321,7 @@ class TrackParams:
     cg_tol: float = 1e-6
     damping: float = 1e-6
     constant_velocity: bool = False
+    unseen_from_rest: bool = True
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrackParams":
@@ -707,6 +714,26 @@ def _lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats):
     return None, mu, nu
 
 
+def _link_residuals(x, node_pos, j_, k_, d_jk):
+    """The graph's smoothness residuals (E, 3) r_jk = A_j (g_k - g_j) + g_j + t_j - (g_k + t_k) of
+    the warp ``x`` (N, 12), nodes at ``node_pos`` (N, 3), links j_ -> k_ (E,), d_jk = g_k - g_j."""
+    A = x[:, :9].reshape(-1, 3, 3)
+    return np.einsum("eab,eb->ea", A[j_], d_jk) + node_pos[j_] + x[j_, 9:] - node_pos[k_] - x[k_, 9:]
+
+
+def _link_weights(d_jk, p: TrackParams):
+    """Each link's smoothness weight (E,): w_reg times its length (d_jk (E, 3), m) in node spacings
+    to the power ``link_length_power`` (links shorter than a spacing: 1)."""
+    return p.w_reg * np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** p.link_length_power
+
+
+def _block_jacobi(blocks):
+    """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg."""
+    N = len(blocks)
+    inv = np.linalg.inv(blocks + np.eye(12) * 1e-12)
+    return LinearOperator((12 * N, 12 * N), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
+
+
 def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None, silhouette=None):
     """Gauss-Newton + HQS for the incremental warp of one frame. Returns (x, stats).
 
@@ -726,14 +753,13 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     stats: "lm_rejected" (steps re-solved with more damping), "lm_failed" (rounds stopped).
     """
     N = len(node_pos)
-    nP = N * PARAMS_PER_NODE
     x = x_init.copy()
     e = graph.edges
     j_, k_ = e[:, 0], e[:, 1]
     d_jk = node_pos[k_] - node_pos[j_]                    # (E, 3)
     # each link's smoothness weight: w_reg times its length in node spacings to a power
     # (TrackParams.link_length_power), the same in the cost, the normal equations and the L0 step
-    w_smooth = p.w_reg * np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** p.link_length_power
+    w_smooth = _link_weights(d_jk, p)
     beta = p.l0_beta0
     s = np.zeros((len(e), 3))
     # Constant Jacobian pieces of the data term: d x'_i / d(A_j, t_j).
@@ -747,8 +773,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     px_scale = _px_scale(V0, flow, silhouette)
 
     def smooth_res(x):
-        A = x[:, :9].reshape(N, 3, 3)
-        return np.einsum("eab,eb->ea", A[j_], d_jk) + node_pos[j_] + x[j_, 9:] - node_pos[k_] - x[k_, 9:]
+        return _link_residuals(x, node_pos, j_, k_, d_jk)
 
     def prior_cost(x, rot_res=None):  # rotation and smoothness: sums of squares, as in the normal equations
         rot_res = _rot_terms(x)[0] if rot_res is None else rot_res
@@ -775,10 +800,8 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             def solve(mu):
                 # 12x12 block-Jacobi preconditioner (of the damped matrix)
                 blocks = diag_blocks + mu * np.einsum("ni,ij->nij", diag.reshape(N, 12), np.eye(12))
-                inv = np.linalg.inv(blocks + np.eye(12) * 1e-12)
-                precond = LinearOperator((nP, nP), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
                 lhs = JtJ if mu == 0 else JtJ + sp.diags(mu * diag)
-                return cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=precond)[0]
+                return cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=_block_jacobi(blocks))[0]
 
             def energy_after(delta):
                 x_new = x + delta.reshape(N, 12)
@@ -843,6 +866,77 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
         if np.abs(delta).max() < 1e-6:
             break
     return R, c0 + t - c0 @ R.T, stats
+
+
+REST_FIT_SEEN_WEIGHT = 1e4   # the rest-shape fit's weight of a seen vertex's position (against w_rot, w_reg)
+REST_FIT_ITERATIONS = 2      # Gauss-Newton steps per L0 round of the rest-shape fit
+REST_FIT_CG_TOL = 1e-3       # the fit starts from the last frame's: it need not converge in one frame
+
+
+def compose_rigid(x: np.ndarray, node_pos: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """ED parameters (N, 12) of the warp ``x`` (nodes at ``node_pos`` (N, 3)) followed by the rigid
+    motion y = R y + t: deform(V, node_pos, graph, result) == deform(V, node_pos, graph, x) @ R.T + t."""
+    out = np.array(x, np.float64, copy=True)
+    N = len(out)
+    out[:, :9] = (R[None] @ out[:, :9].reshape(N, 3, 3)).reshape(N, 9)
+    out[:, 9:] = (node_pos + out[:, 9:]) @ R.T + t - node_pos
+    return out
+
+
+def fit_rest_warp(rest: np.ndarray, graph: DeformationGraph, x_init: np.ndarray, seen: np.ndarray,
+                  positions: np.ndarray, p: TrackParams) -> np.ndarray:
+    """The ED warp of the rest shape that puts the vertices ``seen`` at ``positions`` and moves the
+    rest as the graph's priors say, with the L0 regulariser: (N, 12) parameters, nodes at
+    ``rest[graph.nodes]``.
+
+    Args:
+        rest: (V, 3) float the template (m), the shape the warp starts from.
+        graph: the tracker's deformation graph of ``rest``.
+        x_init: (N, 12) float the warp the Gauss-Newton steps start from (last frame's, moved
+            by this frame's rigid motion).
+        seen: (n,) int vertex ids held to ``positions`` (n, 3) float (m), with weight
+            REST_FIT_SEEN_WEIGHT each.
+        p: rotation, smoothness (with ``link_length_power``, link lengths on the rest shape) and
+            L0 settings, as in the frame's solve.
+
+    Why: the frame's solve warps the previous frame's mesh, so a side the camera has not seen
+    for a while carries every deformation it was dragged through (on the demo the hidden back of
+    its rigid lower half drifted 9.8 mm by frame 40). Warped from the rest shape instead, with the
+    links between parts that move differently broken by the L0 step, the hidden side of a part
+    follows that part's seen side as it sits on the template (measured: 8.1 mm, docs/tracking.md).
+    """
+    node_pos = rest[graph.nodes]
+    N = len(node_pos)
+    x = np.array(x_init, np.float64, copy=True)
+    j_, k_ = graph.edges[:, 0], graph.edges[:, 1]
+    d_jk = node_pos[k_] - node_pos[j_]
+    w_smooth = _link_weights(d_jk, p)
+    local = rest[:, None, :] - node_pos[graph.vertex_nodes]
+    if graph.normal_pattern is None:
+        graph.normal_pattern = _NormalPattern(graph, N)
+    sw, sr = np.sqrt(REST_FIT_SEEN_WEIGHT), np.sqrt(p.w_rot)
+    vid = np.repeat(seen, 3)                               # one residual per axis
+    Dw = np.tile(np.eye(3) * sw, (len(seen), 1))
+    s = np.zeros((len(j_), 3))
+    beta = p.l0_beta0
+
+    def smooth_res(x):
+        return _link_residuals(x, node_pos, j_, k_, d_jk)
+
+    for _ in range(p.l0_rounds):
+        for _ in range(REST_FIT_ITERATIONS):
+            rw = (deform(rest, node_pos, graph, x)[seen] - positions).ravel() * sw
+            rr, Jr = _rot_terms(x)
+            JtJ, g, diag_blocks = _normal_equations(graph.normal_pattern, graph, local, vid, Dw, rw, rr * sr,
+                                                    Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk, p.damping)
+            delta = cg(JtJ.tocsr(), -g, rtol=REST_FIT_CG_TOL, maxiter=200, M=_block_jacobi(diag_blocks))[0]
+            x = x + delta.reshape(N, 12)
+            if np.abs(delta).max() < 1e-6:
+                break
+        r_jk = smooth_res(x)
+        s = np.where(((r_jk**2).sum(1) * w_smooth > p.l0_lambda / beta)[:, None], r_jk, 0.0)
+        beta *= p.l0_beta_growth
+    return x
 
 
 @dataclass
@@ -1028,6 +1122,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                                   "w_flow": params.rigid_w_flow})
     refine_params = TrackParams(**{**params.__dict__, "l0_rounds": 1})
     prev = before = V0
+    rest_warp = identity_params(len(graph.nodes))   # the warp from the template (unseen_from_rest)
     model = None
     prev_gray = None
     t0 = time.perf_counter()
@@ -1100,6 +1195,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                         pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
             cur = meshes[best]
             stats["depth_residual_m"] = fits[best]   # the fit of the mesh the frame keeps
+        if params.unseen_from_rest and not params.rigid_only:
+            cur, rest_warp = _pose_unseen_from_rest(V0, F, graph, rest_warp, prev, cur, obs.target, params, stats)
         stats["seconds"] = time.perf_counter() - tf
         stats.update(guard, frame_fallback=int(fallback))
         if progress:
@@ -1121,6 +1218,22 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 cur, obs.gray, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
             prev_gray = obs.gray
         yield pos, cur, stats
+
+
+def _pose_unseen_from_rest(rest, faces, graph, rest_warp, prev, cur, target: DepthTarget, p: TrackParams, stats):
+    """The frame's mesh ``cur`` (V, 3) with the vertices the depth camera does not see posed by
+    :func:`fit_rest_warp` to the ones it sees; returns (mesh, the rest warp). ``rest_warp`` is the
+    last frame's, the fit's start once moved by the rigid motion from ``prev`` to ``cur``."""
+    H, W = target.valid.shape
+    seen = vertex_visibility(cur, faces, target.K, rasterize(cur, faces, target.K, W, H).depth)[0]
+    if seen.sum() < 3 or seen.all():
+        return cur, rest_warp
+    R, t = rigid_fit(prev, cur)
+    rest_warp = fit_rest_warp(rest, graph, compose_rigid(rest_warp, rest[graph.nodes], R, t),
+                              np.flatnonzero(seen), cur[seen], p)
+    posed = deform(rest, rest[graph.nodes], graph, rest_warp)
+    stats["unseen_moved_m"] = float(np.linalg.norm(posed[~seen] - cur[~seen], axis=1).mean())
+    return np.where(seen[:, None], cur, posed), rest_warp
 
 
 def depth_residual(vertices, faces, target: DepthTarget, clip_m: float = 0.05, union: bool = True) -> float:
