@@ -313,6 +313,7 @@ class TrackParams:
     flow_min_cos: float = 0.15
     flow_age_frames: float = 0.0
     flow_passes: int = 2
+    flow_erode_px: int = 1
     rigid_only: bool = False
     model_size: int = 1024
     model_min_cos: float = 0.3
@@ -1148,7 +1149,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             flow = None
             if use_flow and model is not None:
                 fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
-                                           params.flow_consistency_px, params.flow_min_cos, prev_gray=prev_gray)
+                                           params.flow_consistency_px, params.flow_min_cos,
+                                           erode_px=params.flow_erode_px, prev_gray=prev_gray)
                 # Texels captured early carry less accumulated error: trust them more.
                 age = model.captured_at[model.vertex_texel[fid]].astype(np.float64)
                 age[age < 0] = pos
