@@ -728,6 +728,14 @@ def _link_weights(d_jk, p: TrackParams):
     return p.w_reg * np.maximum(1.0, np.linalg.norm(d_jk, axis=1) / p.node_spacing_m) ** p.link_length_power
 
 
+def _l0_step(r_jk, w_smooth, lam, beta):
+    """The HQS s-step of the L0 regulariser, a hard threshold: the auxiliary s_jk (E, 3) is the
+    link's residual r_jk (E, 3) where its weighted square exceeds lam / beta (the link's motion
+    difference pays for itself), else 0."""
+    keep = (r_jk**2).sum(1) * w_smooth > lam / beta
+    return np.where(keep[:, None], r_jk, 0.0)
+
+
 def _block_jacobi(blocks):
     """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg."""
     N = len(blocks)
@@ -815,11 +823,8 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             x = x + delta.reshape(N, 12)
             if np.abs(delta).max() < 1e-6:
                 break
-        # s-step: hard threshold (L0): keep a motion difference only where it pays for itself
-        r_jk = smooth_res(x)
-        keep = (r_jk**2).sum(1) * w_smooth > p.l0_lambda / beta
-        s = np.where(keep[:, None], r_jk, 0.0)
-        stats["l0_active"] = int(keep.sum())
+        s = _l0_step(smooth_res(x), w_smooth, p.l0_lambda, beta)
+        stats["l0_active"] = int(s.any(1).sum())
         beta *= p.l0_beta_growth
     return x, stats
 
@@ -934,8 +939,7 @@ def fit_rest_warp(rest: np.ndarray, graph: DeformationGraph, x_init: np.ndarray,
             x = x + delta.reshape(N, 12)
             if np.abs(delta).max() < 1e-6:
                 break
-        r_jk = smooth_res(x)
-        s = np.where(((r_jk**2).sum(1) * w_smooth > p.l0_lambda / beta)[:, None], r_jk, 0.0)
+        s = _l0_step(smooth_res(x), w_smooth, p.l0_lambda, beta)
         beta *= p.l0_beta_growth
     return x
 
@@ -1047,7 +1051,7 @@ class AppearanceModel:
 
 
 def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, calibration,
-                     consistency_px=1.0, min_cos=0.3, erode_px=3, prev_gray=None, crop_margin_px=64):
+                     consistency_px=1.0, min_cos=0.3, erode_px=1, prev_gray=None, crop_margin_px=64):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
     appearance model rendered at the predicted pose to the current image.
 
