@@ -43,7 +43,6 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -116,8 +115,7 @@ def main() -> int:
             r = scene.render_frame(t)
             truth["mask"] = r.true_mask
             fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
-            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
-                              cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+            yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg), r.color, cal, r.true_mask)
 
     # --params go straight to the tracker, so settings not (yet) in the schema can be tried
     cfg["tracking"].update(overrides)
@@ -180,18 +178,18 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
     def colour_px(X, calibration):  # (n, 3) points in the depth camera -> (n, 2) colour pixels
         return project_points(transform_points(calibration.depth_to_color, X), calibration.color.K)[0]
 
-    def oracle_flow(pred, faces, model, gray, mask, calibration, *a, **k):
+    def oracle_flow(pred, faces, model, image, mask, calibration, *a, **k):
         if ceiling == "flow-all":
             depth = rasterize(pred, faces, calibration.depth.K, *calibration.depth.size).depth
             fid = np.flatnonzero(vertex_visibility(pred, faces, calibration.depth.K, depth)[0])
         else:
-            fid, _ = flow_constraints(pred, faces, model, gray, mask, calibration, *a, **k)
+            fid, _ = flow_constraints(pred, faces, model, image, mask, calibration, *a, **k)
         return fid, colour_px(truth["V"][fid], calibration)
 
-    def logged_capture(model, vertices, gray, calibration, min_cos=0.5, frame=0, refresh_margin=None):
+    def logged_capture(model, vertices, image, calibration, min_cos=0.5, frame=0, refresh_margin=None):
         before = model.captured_at.copy()
-        filled = model.texture.reshape(-1, 2)[:, 1] > 0
-        out = capture(model, truth["V"] if ceiling == "model" else vertices, gray, calibration, min_cos, frame,
+        filled = model.texture[..., -1].ravel() > 0
+        out = capture(model, truth["V"] if ceiling == "model" else vertices, image, calibration, min_cos, frame,
                       refresh_margin)
         if capture_error:
             sel = model.captured_at[model.texels] != before[model.texels]   # captured just now

@@ -314,6 +314,7 @@ class TrackParams:
     flow_age_frames: float = 0.0
     flow_passes: int = 2
     flow_erode_px: int = 1
+    flow_channels: str = "grey+chroma"
     rigid_only: bool = False
     model_size: int = 1024
     model_min_cos: float = 0.3
@@ -944,13 +945,52 @@ def fit_rest_warp(rest: np.ndarray, graph: DeformationGraph, x_init: np.ndarray,
     return x
 
 
+FLOW_CHANNELS = ("grey", "chroma", "grey+chroma")
+CHROMA_DARK = 30.0   # grey levels added to R + G + B: a dark pixel's chromaticity is mostly noise
+
+
+def flow_image(image: np.ndarray, channels: str = "grey+chroma") -> np.ndarray:
+    """The images the flow term tracks, (Hc, Wc, C) uint8, from a colour image.
+
+    Args:
+        image: (Hc, Wc, 3) uint8 RGB, or (Hc, Wc) grey (then the one grey channel, whatever
+            ``channels`` says).
+        channels: "grey" (luma), "chroma" (two chromaticity channels, (R - G) / S and
+            (R + G - 2 B) / S with S = R + G + B + CHROMA_DARK, mapped around 128), or both.
+
+    Why chromaticity: shading that darkens the three channels alike (a wrinkle, a shadow, the
+    camera's exposure) leaves it unchanged, while it moves grey; the flow against an appearance
+    model captured frames earlier then still finds the surface (on the demo the wrinkles' stripes
+    drew grey flow targets 1-2 px off, chroma 0.1-0.2 px: docs/tracking.md).
+    """
+    if channels not in FLOW_CHANNELS:
+        raise ValueError(f"flow channels must be one of {FLOW_CHANNELS}, got {channels!r}")
+    img = np.asarray(image)
+    if img.ndim == 2:
+        return img.astype(np.uint8)[..., None]
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"the flow term needs an (H, W, 3) RGB or (H, W) grey image, got shape {img.shape}")
+    import cv2
+
+    out = []
+    if channels in ("grey", "grey+chroma"):
+        out.append(cv2.cvtColor(np.ascontiguousarray(img, np.uint8), cv2.COLOR_RGB2GRAY))
+    if channels in ("chroma", "grey+chroma"):
+        f = img.astype(np.float32)
+        S = f.sum(2) + CHROMA_DARK
+        out.append((128 + 400 * (f[..., 0] - f[..., 1]) / S).clip(0, 255).astype(np.uint8))
+        out.append((128 + 200 * (f[..., 0] + f[..., 1] - 2 * f[..., 2]) / S).clip(0, 255).astype(np.uint8))
+    return np.stack(out, -1)
+
+
 @dataclass
 class Observation:
     """One frame as the tracker sees it: the depth target and, for the flow term, the colour
-    image in grey (Hc, Wc) uint8 with the calibration (None disables the flow term)."""
+    image, (Hc, Wc, 3) uint8 RGB or (Hc, Wc) grey, with the calibration (None disables the flow
+    term; :func:`flow_image` makes the channels the flow tracks)."""
 
     target: DepthTarget
-    gray: np.ndarray | None = None
+    image: np.ndarray | None = None
     calibration: object | None = None
     mask: np.ndarray | None = None  # (Hc, Wc) bool foreground, for the flow term
 
@@ -966,7 +1006,8 @@ def _colour_view(vertices, faces, calibration):
 
 
 class AppearanceModel:
-    """A grey texture of the template in a UV atlas, each texel filled when first seen well.
+    """A texture of the template in a UV atlas (the flow's ``channels``: :func:`flow_image`), each
+    texel filled when first seen well.
 
     The tracker's flow term compares the current image with this model rendered at the
     predicted pose, so flow errors do not accumulate from frame to frame: a surface point's
@@ -976,7 +1017,7 @@ class AppearanceModel:
     (no texel there yet to give it flow) and carries that mesh's drift into every later frame.
     """
 
-    def __init__(self, texcoords, texcoord_faces, faces, size: int = 1024):
+    def __init__(self, texcoords, texcoord_faces, faces, size: int = 1024, channels: int = 1):
         from stex.template import texel_map
 
         self.texcoords = np.asarray(texcoords, np.float64)
@@ -986,7 +1027,8 @@ class AppearanceModel:
         self.texels = np.flatnonzero(face_id.ravel() >= 0)
         self.texel_face = face_id.ravel()[self.texels]
         self.texel_bary = bary.reshape(-1, 3)[self.texels].astype(np.float64)
-        self.texture = np.zeros((size, size, 2), np.float32)  # grey, filled
+        self.channels = channels
+        self.texture = np.zeros((size, size, channels + 1), np.float32)  # the channels, then filled
         self.captured_at = np.full(size * size, -1, np.int32)  # frame position of each texel's capture
         self.captured_cos = np.zeros(size * size, np.float32)   # its face's viewing cosine then
         self.size = size
@@ -995,15 +1037,15 @@ class AppearanceModel:
         px = np.clip((self.texcoords[self.texcoord_faces.ravel()] * size).astype(np.int64), 0, size - 1)
         self.vertex_texel[self.faces.ravel()] = px[:, 1] * size + px[:, 0]
 
-    def capture(self, vertices, gray, calibration, min_cos: float = 0.5, frame: int = 0,
+    def capture(self, vertices, image, calibration, min_cos: float = 0.5, frame: int = 0,
                 refresh_margin: float | None = None) -> tuple[int, int]:
-        """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``gray``, and with
+        """Fill still-empty texels of faces seen at cos > ``min_cos`` from ``image``, and with
         ``refresh_margin`` also capture again the filled texels whose face is now seen at a
         cosine more than ``refresh_margin`` above the one of their capture.
 
         Args:
             vertices: (V, 3) float mesh in the depth camera (m).
-            gray: (Hc, Wc) grey colour image, grey levels.
+            image: (Hc, Wc, channels) (or (Hc, Wc) with one channel) the flow's image.
             calibration: the rig (:class:`stex.camera.Calibration`).
             min_cos: least viewing cosine of a captured face.
             frame: frame position, recorded per texel (``captured_at``).
@@ -1018,9 +1060,9 @@ class AppearanceModel:
         Vc = transform_points(calibration.depth_to_color, vertices)
         depth = rasterize(Vc, self.faces, c.K, c.width, c.height).depth
         vis, cos = face_visibility(Vc, self.faces, c.K, depth, min_cos=min_cos)
-        flat = self.texture.reshape(-1, 2)
+        flat = self.texture.reshape(-1, self.channels + 1)
         seen = vis[self.texel_face]
-        filled = flat[self.texels, 1] > 0
+        filled = flat[self.texels, -1] > 0
         new = seen & ~filled
         todo = new.copy()
         if refresh_margin is not None:
@@ -1032,33 +1074,36 @@ class AppearanceModel:
         X = (self.texel_bary[todo][:, :, None] * Vc[f]).sum(1)
         uv, _ = project_points(X, c.K)
         idx = self.texels[todo]
-        flat[idx, 0] = sample_bilinear(gray, uv)
-        flat[idx, 1] = 1.0
+        flat[idx, :-1] = sample_bilinear(image, uv).reshape(len(idx), self.channels)
+        flat[idx, -1] = 1.0
         self.captured_at[idx] = frame
         self.captured_cos[idx] = cos[self.texel_face[todo]]
         n_new = int(new.sum())
         return n_new, int(todo.sum()) - n_new
 
     def render(self, vertices, calibration):
-        """The model at ``vertices`` in the colour camera: (grey (Hc, Wc) float32, valid bool)."""
+        """The model at ``vertices`` in the colour camera: (image (Hc, Wc, channels) float32, valid
+        (Hc, Wc) bool)."""
         from stex.render import render_textured
 
         c = calibration.color
         Vc = transform_points(calibration.depth_to_color, vertices)
         img, mask = render_textured(Vc, self.faces, self.texcoords, self.texcoord_faces, self.texture,
                                     c.K, c.width, c.height)
-        return img[..., 0], mask & (img[..., 1] > 0.999)
+        return img[..., :-1], mask & (img[..., -1] > 0.999)
 
 
-def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, calibration,
-                     consistency_px=1.0, min_cos=0.3, erode_px=1, prev_gray=None, crop_margin_px=64):
+def flow_constraints(pred_vertices, faces, model: AppearanceModel, image, mask, calibration,
+                     consistency_px=1.0, min_cos=0.3, erode_px=1, prev_image=None, crop_margin_px=64):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
-    appearance model rendered at the predicted pose to the current image.
+    appearance model rendered at the predicted pose to the current ``image`` ((Hc, Wc, C) uint8,
+    :func:`flow_image`, the model's channels; or (Hc, Wc) with one), each channel on its own.
 
     Only vertices seen at a good angle, away from the silhouette and from unknown model texels
     (eroded by ``erode_px``), whose flow lands inside the current ``mask``, are used. The flow is
     computed over the box of the model and the mask grown by ``crop_margin_px``.
-    Returns (vertex ids (n,), target colour pixels (n, 2)).
+    Returns (vertex ids (n,), target colour pixels (n, 2)); a vertex appears once per channel
+    whose flow passes.
     """
     import cv2
 
@@ -1079,29 +1124,36 @@ def flow_constraints(pred_vertices, faces, model: AppearanceModel, gray, mask, c
     # Fill what the model does not know with the previous image (the prediction is the previous
     # pose): it moves like the object does, whereas pasting the current image there would pin the
     # flow to zero around it and make the tracker lag behind the motion.
-    fill = gray if prev_gray is None else prev_gray
     # Flow only over the object's box (model and mask, with a margin for the motion and DIS's
     # patches): at colour-camera resolution the whole image costs several times more.
     box = valid if mask is None else (valid | mask)
     rows, cols = np.flatnonzero(box.any(1)), np.flatnonzero(box.any(0))
     y0, y1 = max(rows[0] - crop_margin_px, 0), min(rows[-1] + crop_margin_px + 1, c.height)
     x0, x1 = max(cols[0] - crop_margin_px, 0), min(cols[-1] + crop_margin_px + 1, c.width)
-    pred8 = np.where(valid, pred, fill)[y0:y1, x0:x1].clip(0, 255).astype(np.uint8)
-    cur8 = np.ascontiguousarray(gray[y0:y1, x0:x1])
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    fw = dis.calc(pred8, cur8, None)
-    bw = dis.calc(cur8, pred8, None)
+    img = image if image.ndim == 3 else image[..., None]
+    fill = img if prev_image is None else (prev_image if prev_image.ndim == 3 else prev_image[..., None])
+    if pred.ndim == 2:
+        pred = pred[..., None]
     offset = np.array([x0, y0], np.float64)
     u0 = uv[ids]
-    u1 = u0 + sample_bilinear(fw, u0 - offset)
-    back = sample_bilinear(bw, u1 - offset)
-    ok = np.linalg.norm(u1 + back - u0, axis=1) < consistency_px
-    ok &= (u1[:, 0] >= x0) & (u1[:, 0] <= x1 - 1) & (u1[:, 1] >= y0) & (u1[:, 1] <= y1 - 1)  # box is inside the image
-    if mask is not None:
-        m = cv2.erode(mask.astype(np.uint8), kernel) > 0
-        q = np.rint(u1).astype(np.int64).clip(0, [c.width - 1, c.height - 1])
-        ok &= m[q[:, 1], q[:, 0]]
-    return ids[ok], u1[ok]
+    inside = None if mask is None else cv2.erode(mask.astype(np.uint8), kernel) > 0
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    out_ids, out_targets = [], []
+    for ch in range(img.shape[2]):
+        pred8 = np.where(valid, pred[..., ch], fill[..., ch])[y0:y1, x0:x1].clip(0, 255).astype(np.uint8)
+        cur8 = np.ascontiguousarray(img[y0:y1, x0:x1, ch])
+        fw = dis.calc(pred8, cur8, None)
+        bw = dis.calc(cur8, pred8, None)
+        u1 = u0 + sample_bilinear(fw, u0 - offset)
+        back = sample_bilinear(bw, u1 - offset)
+        ok = np.linalg.norm(u1 + back - u0, axis=1) < consistency_px
+        ok &= (u1[:, 0] >= x0) & (u1[:, 0] <= x1 - 1) & (u1[:, 1] >= y0) & (u1[:, 1] <= y1 - 1)  # box is inside the image
+        if inside is not None:
+            q = np.rint(u1).astype(np.int64).clip(0, [c.width - 1, c.height - 1])
+            ok &= inside[q[:, 1], q[:, 0]]
+        out_ids.append(ids[ok])
+        out_targets.append(u1[ok])
+    return np.concatenate(out_ids), np.concatenate(out_targets)
 
 
 def track_sequence(template_vertices, faces, observations, params: TrackParams, progress=True,
@@ -1129,7 +1181,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     prev = before = V0
     rest_warp = identity_params(len(graph.nodes))   # the warp from the template (unseen_from_rest)
     model = None
-    prev_gray = None
+    prev_image = None
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
@@ -1140,7 +1192,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             pred = prev @ R.T + tr
         else:
             pred = prev
-        use_flow = params.w_flow > 0 and obs.gray is not None
+        use_flow = params.w_flow > 0 and obs.image is not None
+        image = flow_image(obs.image, params.flow_channels) if use_flow else None
         silhouette = None
         if params.w_silhouette > 0 and obs.mask is not None and obs.mask.any():
             cal = obs.calibration
@@ -1152,9 +1205,9 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         for npass in range(max(1, params.flow_passes) if use_flow and model is not None else 1):
             flow = None
             if use_flow and model is not None:
-                fid, u1 = flow_constraints(pred, F, model, obs.gray, obs.mask, obs.calibration,
+                fid, u1 = flow_constraints(pred, F, model, image, obs.mask, obs.calibration,
                                            params.flow_consistency_px, params.flow_min_cos,
-                                           erode_px=params.flow_erode_px, prev_gray=prev_gray)
+                                           erode_px=params.flow_erode_px, prev_image=prev_image)
                 # Texels captured early carry less accumulated error: trust them more.
                 age = model.captured_at[model.vertex_texel[fid]].astype(np.float64)
                 age[age < 0] = pos
@@ -1219,10 +1272,13 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 if texcoords is None:
                     from stex.template import build_atlas
                     texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
-                model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size)
+                model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size, image.shape[2])
+            if image.shape[2] != model.channels:
+                raise ValueError(f"tracking: frame position {pos}: the flow's image has {image.shape[2]} channels, "
+                                 f"the earlier frames' {model.channels} (a grey frame among colour ones?)")
             stats["model_texels_added"], stats["model_texels_refreshed"] = model.capture(
-                cur, obs.gray, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
-            prev_gray = obs.gray
+                cur, image, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
+            prev_image = image
         yield pos, cur, stats
 
 
@@ -1296,16 +1352,13 @@ def silhouette_iou(vertices, faces, mask, calibration) -> float:
 
 def observations_from_stores(frames, masks, calibration, use_flow: bool = True):
     """Yield :class:`Observation` of every frame of ``frames``/``masks`` (:class:`FrameSequence`)."""
-    import cv2
-
     K = calibration.depth.K
     for fid in frames.frame_ids:
         depth_mm = frames.read("depth", fid)
         mask = masks.read("mask", fid)
         fg = mask_in_depth(mask, depth_mm, calibration)
         target = depth_target(depth_mm.astype(np.float64) / 1000.0, K, fg)
-        gray = cv2.cvtColor(frames.read("color", fid), cv2.COLOR_RGB2GRAY) if use_flow else None
-        yield Observation(target, gray, calibration, mask)
+        yield Observation(target, frames.read("color", fid) if use_flow else None, calibration, mask)
 
 
 def write_tracking(scene_path, template_path, frames_paths, masks_paths, params: dict, out) -> None:

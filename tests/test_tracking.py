@@ -17,16 +17,13 @@ K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
 def _scene_observations(s, n_frames=None):
     """Observations of a synthetic scene's first frames (all by default): depth inside the true
-    mask, grey image, calibration and true mask, as the tracking stage builds them."""
-    import cv2
-
+    mask, colour image, calibration and true mask, as the tracking stage builds them."""
     from stex.tracking import mask_in_depth
     cal = s.calibration
     for t in range(s.n_frames if n_frames is None else n_frames):
         r = s.render_frame(t)
         fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
-        yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg),
-                          cv2.cvtColor(r.color, cv2.COLOR_RGB2GRAY), cal, r.true_mask)
+        yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg), r.color, cal, r.true_mask)
 
 
 def _sphere():
@@ -189,11 +186,56 @@ def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):
     V0 = s.true_vertices(0)
     model = AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256)
     assert model.capture(V0, g0, cal, 0.3)[0] > 0
-    ids_a, ua = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=16)
-    ids_b, ub = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_gray=g0, crop_margin_px=10**6)
+    ids_a, ua = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_image=g0, crop_margin_px=16)
+    ids_b, ub = flow_constraints(V0, s.faces, model, g1, r1.true_mask, cal, prev_image=g0, crop_margin_px=10**6)
     common, ia, ib = np.intersect1d(ids_a, ids_b, return_indices=True)
     assert len(common) > 0.8 * max(len(ids_a), len(ids_b)) > 20
     assert np.abs(ua[ia] - ub[ib]).mean() < 0.15
+
+
+def test_chroma_flow_follows_the_surface_under_shading_stripes(tiny_config):
+    """Stripes of shading (the frame darkened by up to 60 % in rows, as the demo's wrinkles do)
+    move the grey channel by tens of grey levels and its flow targets off the surface; the two
+    chromaticity channels of :func:`flow_image` barely change, and their targets stay put."""
+    from stex.camera import project_points, transform_points
+    from stex.synth.scene import SyntheticScene
+    from stex.tracking import AppearanceModel, flow_constraints, flow_image
+    s = SyntheticScene(tiny_config["source"]["synthetic"])
+    cal = s.calibration
+    r0 = s.render_frame(0)
+    V0 = s.true_vertices(0)
+    rows = np.arange(r0.color.shape[0])[:, None, None]
+    striped = (r0.color * (1 - 0.6 * (0.5 + 0.5 * np.cos(2 * np.pi * rows / 9.0)))).round().astype(np.uint8)
+    assert flow_image(r0.color).shape == (*r0.color.shape[:2], 3) and flow_image(r0.color).dtype == np.uint8
+    before, after = flow_image(r0.color).astype(float), flow_image(striped).astype(float)
+    change = np.abs(after - before)[r0.true_mask].mean(0)     # grey levels, per channel
+    assert change[0] > 20 and (change[1:] < 0.1 * change[0]).all(), change
+    uv = project_points(transform_points(cal.depth_to_color, V0), cal.color.K)[0]
+    median_px, kept = [], []
+    for ch in range(3):
+        model = AppearanceModel(s.texcoords, s.texcoord_faces, s.faces, 256)
+        model.capture(V0, flow_image(r0.color)[..., ch], cal, 0.3)
+        same = flow_constraints(V0, s.faces, model, flow_image(r0.color)[..., ch], r0.true_mask, cal)[0]
+        ids, u1 = flow_constraints(V0, s.faces, model, flow_image(striped)[..., ch], r0.true_mask, cal)
+        median_px.append(np.median(np.linalg.norm(u1 - uv[ids], axis=1)))
+        kept.append(len(ids) / len(same))
+    assert median_px[0] > 0.2 and kept[0] < 0.9, (median_px, kept)      # grey: off, and fewer pass
+    assert max(median_px[1:]) < 0.1 and min(kept[1:]) > 0.95, (median_px, kept)
+
+
+def test_flow_image_channels_and_bad_input():
+    from stex.tracking import flow_image
+    rgb = np.random.default_rng(0).integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    assert flow_image(rgb, "grey").shape == (6, 8, 1)
+    assert flow_image(rgb, "chroma").shape == (6, 8, 2)
+    np.testing.assert_array_equal(flow_image(rgb)[..., 1:], flow_image(rgb, "chroma"))
+    assert flow_image(rgb[..., 0]).shape == (6, 8, 1)              # a grey frame: its one channel
+    grey = np.full((6, 8, 3), 90, np.uint8)                         # no colour: chroma at its zero
+    assert (flow_image(grey, "chroma") == 128).all()
+    with pytest.raises(ValueError, match="flow channels"):
+        flow_image(rgb, "hue")
+    with pytest.raises(ValueError, match=r"\(6, 8, 4\)"):
+        flow_image(np.zeros((6, 8, 4), np.uint8))
 
 
 def test_appearance_model_recaptures_texels_seen_more_squarely(tiny_config):
