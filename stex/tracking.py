@@ -29,7 +29,8 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
-  as a reprojection term; and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``,
+  as a reprojection term; ours: on grey and on two chromaticity channels, each its own flow
+  (:func:`flow_image`), so shading that comes and goes (wrinkles) does not draw the targets off; and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``,
   on by default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
 
 - Ours (``unseen_from_rest``): after each frame, the vertices the depth camera does not see are
