@@ -1095,7 +1095,7 @@ class AppearanceModel:
 
 
 def flow_constraints(pred_vertices, faces, model: AppearanceModel, image, mask, calibration,
-                     consistency_px=1.0, min_cos=0.3, erode_px=1, prev_image=None, crop_margin_px=64):
+                     consistency_px=1.0, min_cos=0.15, erode_px=1, prev_image=None, crop_margin_px=64):
     """Colour-image targets for vertices: optical flow (DIS, forward-backward checked) from the
     appearance model rendered at the predicted pose to the current ``image`` ((Hc, Wc, C) uint8,
     :func:`flow_image`, the model's channels; or (Hc, Wc) with one), each channel on its own.
