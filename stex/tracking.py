@@ -29,9 +29,10 @@ Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo 
   (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
 - Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
   appearance model in the template's atlas rendered at the predicted pose to the current image,
-  as a reprojection term; ours: on grey and on two chromaticity channels, each its own flow
-  (:func:`flow_image`), so shading that comes and goes (wrinkles) does not draw the targets off; and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``,
-  on by default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
+  as a reprojection term (ours: on grey and on two chromaticity channels, each its own flow,
+  :func:`flow_image`, so shading that comes and goes, as wrinkles do, does not draw the targets
+  off); and a silhouette term (:func:`silhouette_field`, weight ``w_silhouette``, on by
+  default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
 
 - Ours (``unseen_from_rest``): after each frame, the vertices the depth camera does not see are
   posed by a warp of the template itself (:func:`fit_rest_warp`: the same graph and priors, L0
@@ -1122,27 +1123,28 @@ def flow_constraints(pred_vertices, faces, model: AppearanceModel, image, mask, 
     ids = ids[core[px[:, 1], px[:, 0]]]
     if len(ids) == 0:
         return ids, np.zeros((0, 2))
-    # Fill what the model does not know with the previous image (the prediction is the previous
-    # pose): it moves like the object does, whereas pasting the current image there would pin the
-    # flow to zero around it and make the tracker lag behind the motion.
     # Flow only over the object's box (model and mask, with a margin for the motion and DIS's
     # patches): at colour-camera resolution the whole image costs several times more.
     box = valid if mask is None else (valid | mask)
     rows, cols = np.flatnonzero(box.any(1)), np.flatnonzero(box.any(0))
     y0, y1 = max(rows[0] - crop_margin_px, 0), min(rows[-1] + crop_margin_px + 1, c.height)
     x0, x1 = max(cols[0] - crop_margin_px, 0), min(cols[-1] + crop_margin_px + 1, c.width)
-    img = image if image.ndim == 3 else image[..., None]
-    fill = img if prev_image is None else (prev_image if prev_image.ndim == 3 else prev_image[..., None])
-    if pred.ndim == 2:
-        pred = pred[..., None]
+    crop = (slice(y0, y1), slice(x0, x1))
+    img = np.atleast_3d(image)[crop]                     # (h, w, C): a grey image is one channel
+    # Fill what the model does not know with the previous image (the prediction is the previous
+    # pose): it moves like the object does, whereas pasting the current image there would pin the
+    # flow to zero around it and make the tracker lag behind the motion.
+    fill = img if prev_image is None else np.atleast_3d(prev_image)[crop]
+    known = valid[crop]
+    pred = np.atleast_3d(pred)[crop]
     offset = np.array([x0, y0], np.float64)
     u0 = uv[ids]
     inside = None if mask is None else cv2.erode(mask.astype(np.uint8), kernel) > 0
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     out_ids, out_targets = [], []
     for ch in range(img.shape[2]):
-        pred8 = np.where(valid, pred[..., ch], fill[..., ch])[y0:y1, x0:x1].clip(0, 255).astype(np.uint8)
-        cur8 = np.ascontiguousarray(img[y0:y1, x0:x1, ch])
+        pred8 = np.where(known, pred[..., ch], fill[..., ch]).clip(0, 255).astype(np.uint8)
+        cur8 = np.ascontiguousarray(img[..., ch])
         fw = dis.calc(pred8, cur8, None)
         bw = dis.calc(cur8, pred8, None)
         u1 = u0 + sample_bilinear(fw, u0 - offset)
