@@ -20,16 +20,14 @@ from pathlib import Path
 
 import zarr
 
-from stex.io import ARTIFACTS, StoreError, open_store
+from stex.io import ARTIFACTS, StoreArray, StoreError, StoreGroup, open_store
 
 
-def _arrays(group: zarr.Group, prefix: str = ""):
-    for name, member in sorted(group.members(), key=lambda m: m[0]):
-        path = f"{prefix}{name}"
-        if isinstance(member, zarr.Group):
-            yield from _arrays(member, path + "/")
-        else:
-            yield path, member
+def _arrays(group: StoreGroup):
+    """(path, array) of every array in the store, in path order."""
+    for name, member in sorted(group.members(max_depth=None), key=lambda m: m[0]):
+        if isinstance(member, StoreArray):
+            yield name, member
 
 
 def inspect_store(path: str) -> str:

@@ -536,19 +536,26 @@ def _chunks_of(selection, shape: tuple, chunks: tuple, limit: int = 100_000):
 
 class StoreGroup:
     """A store (or a group inside one) opened by :func:`open_store`: ``group[name]`` gives a
-    :class:`StoreArray` (or a StoreGroup); ``attrs``, ``in`` and everything else are the zarr
-    group's own (``members()`` yields plain zarr arrays)."""
+    :class:`StoreArray` (or a StoreGroup), and so does ``members()``; ``attrs``, ``in`` and
+    everything else are the zarr group's own."""
 
     __slots__ = ("_group", "_store", "_prefix")
 
     def __init__(self, group: zarr.Group, store: Path, prefix: str = ""):
         self._group, self._store, self._prefix = group, store, prefix
 
-    def __getitem__(self, name: str):
-        member = self._group[name]
+    def _wrap(self, name: str, member):
         if isinstance(member, zarr.Group):
             return StoreGroup(member, self._store, f"{self._prefix}{name}/")
         return StoreArray(member, self._store, f"{self._prefix}{name}")
+
+    def __getitem__(self, name: str):
+        return self._wrap(name, self._group[name])
+
+    def members(self, max_depth: int | None = 0) -> tuple:
+        """((name, member), ...) as zarr's ``Group.members``, each member wrapped as ``group[name]``
+        wraps it, so a read through it names a damaged chunk too."""
+        return tuple((name, self._wrap(name, member)) for name, member in self._group.members(max_depth=max_depth))
 
     def __contains__(self, name: str) -> bool:
         return name in self._group

@@ -175,6 +175,14 @@ def test_a_damaged_chunk_is_named_in_every_read(tmp_path, how):
         scene["template/vertices"][...]
     with pytest.raises(StoreError, match=r"array 'template/vertices' cannot be read"):
         scene["template"]["vertices"][:3]
+    # members() hands out the store's arrays too, not zarr's own (which raise zarr's error)
+    with pytest.raises(StoreError, match=r"array 'template/vertices' cannot be read"):
+        dict(scene.members())["template"]["vertices"][...]
+    with pytest.raises(StoreError, match=r"array 'template/vertices' cannot be read"):
+        dict(scene.members(max_depth=None))["template/vertices"][...]
+    with pytest.raises(StoreError, match=named):
+        dict(g.members())["color"][1]
+    np.testing.assert_array_equal(dict(g.members())["color"][0], color[0])
 
 
 def test_a_failed_read_lets_zarrs_other_reads_finish():
