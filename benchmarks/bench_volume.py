@@ -11,7 +11,10 @@ frame of the nearest of ``--patches`` random seed points on the surface; patch->
 re-drawn per slice).
 
 Each correction factor runs in its own subprocess so that its peak RSS (resource.getrusage) is
-its own. Reported per factor: system build (graph + pyamg setup, once per atlas), per-slice
+its own. The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds
+it (``stex/template.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
+again; the slice and the corrected results are handed from job to job in a folder of this run
+only, so a factor is never compared with another run's factor 1. Reported per factor: system build (graph + pyamg setup, once per atlas), per-slice
 median, iterations, the mean colour step across label boundaries before/after, the mean absolute
 change away from boundaries (> 16 texels), and for factor > 1 the mean |difference| to the
 factor-1 result when that was run.
@@ -23,11 +26,15 @@ factor-1 result when that was run.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import resource
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
@@ -44,12 +51,23 @@ def _rss_gb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
 
 
+def _atlas_digest() -> str:
+    """Digest of what the cached atlas depends on besides its size and gutter."""
+    import stex.synth.shapes
+    import stex.template
+
+    h = hashlib.sha1(version("xatlas").encode())
+    for module in (stex.template, stex.synth.shapes):
+        h.update(Path(module.__file__).read_bytes())
+    return h.hexdigest()[:12]
+
+
 def _atlas(size, gutter):
     from stex.synth.shapes import bumpy_sphere
     from stex.template import build_atlas, face_adjacency, texel_map, uv_charts
 
     CACHE.mkdir(exist_ok=True)
-    f = CACHE / f"atlas_{size}_{gutter}.npz"
+    f = CACHE / f"atlas_{size}_{gutter}_{_atlas_digest()}.npz"
     if f.exists():
         d = np.load(f)
         return {k: d[k] for k in d.files}
@@ -108,8 +126,7 @@ def run_volume(args):
     t0 = time.perf_counter()
     volume_slice(d["face"], d["bary"], d["F"], labels[0], coords, images, args.gutter)
     t_once = time.perf_counter() - t0
-    CACHE.mkdir(exist_ok=True)
-    np.savez(CACHE / f"slice_{args.size}.npz", slice=sl, label_map=lm)
+    np.savez(Path(args.workdir) / "slice.npz", slice=sl, label_map=lm)
     return {"stage": "volume", "interpolation": args.interpolation, "size": args.size, "faces": int(len(d["F"])),
             "covered_texels": int((d["face"] >= 0).sum()), "labels_in_slice": int(len(np.unique(lab))),
             "sampler_precompute_s": t_pre, "slice_median_s": float(np.median(times)),
@@ -120,7 +137,7 @@ def run_correction(args, factor):
     from stex.correction import CorrectionSystem, interior_change, label_boundary_step
 
     d = _atlas(args.size, args.gutter)
-    s = np.load(CACHE / f"slice_{args.size}.npz")
+    s = np.load(Path(args.workdir) / "slice.npz")
     sl, lm = s["slice"], s["label_map"]
     t0 = time.perf_counter()
     cs = CorrectionSystem(d["face"], d["tc"], d["tf"], d["F"], d["pairs"], d["edges"], d["chart"],
@@ -132,7 +149,7 @@ def run_correction(args, factor):
         out = cs.correct(sl, lm)
         times.append(time.perf_counter() - t0)
         stats.append(cs.last_stats)
-    np.save(CACHE / f"corrected_{args.size}_{factor}.npy", out)
+    np.save(Path(args.workdir) / f"corrected_{factor}.npy", out)
     res = {"stage": f"correction factor {factor}", "unknowns": cs.n_unknowns,
            "build_s": t_build, **{k: float(v) for k, v in cs.timings.items()},
            "slice_median_s": float(np.median(times)), "slice_times_s": times,
@@ -141,7 +158,7 @@ def run_correction(args, factor):
            "step_after": label_boundary_step(out, lm, d["face"], d["chart"]),
            "interior_change_16px": interior_change(sl, out, lm, 16),
            "peak_rss_gb": _rss_gb()}
-    ref = CACHE / f"corrected_{args.size}_1.npy"
+    ref = Path(args.workdir) / "corrected_1.npy"  # factor 1 of this run only
     if factor > 1 and ref.exists():
         cov = d["face"] >= 0
         res["mean_abs_diff_to_factor1"] = float(np.abs(np.load(ref)[cov].astype(float) - out[cov]).mean())
@@ -160,17 +177,28 @@ def main(argv=None):
                     help="the volume's image lookup (volume.interpolation)")
     ap.add_argument("--tol", type=float, default=1e-4, help="relative residual of the correction solve")
     ap.add_argument("--only", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--workdir", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.only is not None:
+        if args.workdir is None:
+            ap.error("--only is one job of a run: it needs the run's --workdir")
         res = run_volume(args) if args.only == "volume" else run_correction(args, int(args.only))
         print("RESULT " + json.dumps(res))
         return 0
+    _atlas(args.size, args.gutter)  # build (and cache) the atlas outside the measured jobs
+    workdir = tempfile.mkdtemp(prefix="run_", dir=CACHE)
     base = [sys.executable, __file__, "--size", str(args.size), "--gutter", str(args.gutter),
             "--runs", str(args.runs), "--frames", str(args.frames), "--patches", str(args.patches), "--tol", str(args.tol),
-            "--interpolation", args.interpolation]
-    _atlas(args.size, args.gutter)  # build (and cache) the atlas outside the measured jobs
+            "--interpolation", args.interpolation, "--workdir", workdir]
+    try:
+        return _run_jobs(base, ["volume"] + [f for f in args.factors.split(",") if f])
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _run_jobs(base, jobs):
     ok = True
-    for job in ["volume"] + [f for f in args.factors.split(",") if f]:
+    for job in jobs:
         p = subprocess.run(base + ["--only", job], capture_output=True, text=True)
         line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
         if p.returncode or not line:
