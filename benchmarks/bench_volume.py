@@ -11,13 +11,14 @@ frame of the nearest of ``--patches`` random seed points on the surface; patch->
 re-drawn per slice).
 
 Each correction factor runs in its own subprocess so that its peak RSS (resource.getrusage) is
-its own. The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds
-it (``stex/template.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
-again; the slice and the corrected results are handed from job to job in a folder of this run
-only, so a factor is never compared with another run's factor 1. Reported per factor: system build (graph + pyamg setup, once per atlas), per-slice
+its own. Reported per factor: system build (graph + pyamg setup, once per atlas), per-slice
 median, iterations, the mean colour step across label boundaries before/after, the mean absolute
 change away from boundaries (> 16 texels), and for factor > 1 the mean |difference| to the
-factor-1 result when that was run.
+factor-1 result when this run has one.
+
+The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds it
+(``stex/template.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
+again; the slice and the corrected results go from job to job through a folder of this run only.
 
     python benchmarks/bench_volume.py [--size 4096] [--runs 3] [--factors 4,2] [--tol 1e-4]
                                       [--interpolation bicubic|bilinear]
