@@ -11,6 +11,16 @@ from any boundary.
 
 ``--wide k`` (default 6, the Fox's texels per image pixel) adds the step between texels k before
 and k after each boundary, the scale at which a render shows it.
+
+``--input-view 26,130,208`` instead renders those frames' slices, corrected and not, on the
+tracked mesh in the input camera and compares them with the photo, apart on the pixels of faces
+labelled with the frame itself and of faces borrowed from another: the mean squared error, and
+the part of it at low spatial frequency (the error image blurred by a Gaussian of ``--sigma`` px,
+default the colour image's width / 128, within the region), the colour offsets a correction is
+for. What the correction should lower, and does not where the borrowed error is mostly detail
+out of place.
+
+    python benchmarks/bench_correction_quality.py results/paper --input-view 26,130,208
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stex.correction import interior_change
-from stex.io import FrameSequence, open_store
+from stex.io import FrameSequence, open_store, run_block_paths
 
 
 def neighbour_steps(image, label_map, chart):
@@ -70,12 +80,63 @@ def wide_steps(image, label_map, chart, k):
     return float(np.concatenate(across).mean()), float(np.concatenate(same).mean())
 
 
+def input_view_split(R: Path, frames, sigma=None) -> dict:
+    """{(method, region): (mean squared error, its low-pass part)} over ``frames`` (grey levels²),
+    method "volume" (uncorrected) or "corrected", region "own" or "borrowed" (see the module
+    docstring); pixels inside the frame's mask and the tracked mesh's render."""
+    import cv2
+
+    import stex.evaluate as ev
+    from stex.camera import Calibration, transform_points
+    from stex.evaluation import Atlas
+
+    scene = open_store(R / "scene.zarr", "scene")
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    K, W, H = cal.color.K, cal.color.width, cal.color.height
+    sigma = W / 128 if sigma is None else sigma
+    atlas = Atlas.from_store(open_store(R / "template.zarr", "template"))
+    vertices = open_store(R / "tracking.zarr", "tracking")["vertices"]
+    labels = open_store(R / "labels.zarr", "labels")["labels"]
+    pos = {int(f): k for k, f in enumerate(scene.attrs["frame_ids"])}
+    seq = {k: FrameSequence(run_block_paths(R, k, scene), k) for k in ("frames", "masks", "volume", "corrected")}
+    sums = {}
+    for fid in frames:
+        Vc = transform_points(cal.depth_to_color, np.asarray(vertices[pos[fid]], np.float64))
+        view = ev.mesh_view(Vc, atlas.faces, atlas.texcoords, atlas.texcoord_faces, K, W, H)
+        photo = seq["frames"].read("color", fid).astype(np.float32)
+        inside = seq["masks"].read("mask", fid) & view.mask
+        lab = np.full(view.face_id.shape, -1, np.int64)
+        lab[view.mask] = np.asarray(labels[pos[fid]])[view.face_id[view.mask]]
+        regions = {"own": inside & (lab == pos[fid]), "borrowed": inside & (lab >= 0) & (lab != pos[fid])}
+        for method in ("volume", "corrected"):
+            image = ev.view_texture(view, seq[method].read("texture", fid).astype(np.float32))
+            for region, m in regions.items():
+                err = np.where(m[..., None], image - photo, 0.0).astype(np.float32)
+                weight = cv2.GaussianBlur(m.astype(np.float32), (0, 0), sigma)
+                low = cv2.GaussianBlur(err, (0, 0), sigma) / np.maximum(weight, 1e-6)[..., None]
+                acc = sums.setdefault((method, region), [0.0, 0.0, 0])
+                acc[0] += float((err[m] ** 2).sum())
+                acc[1] += float((low[m] ** 2).sum())
+                acc[2] += int(m.sum()) * 3
+    return {k: (a / n, b / n) for k, (a, b, n) in sums.items()}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("results", type=Path, help="a finished run, e.g. results/demo")
     ap.add_argument("--wide", type=int, default=6, help="texels either side of a boundary (6: the Fox's texels per image pixel)")
+    ap.add_argument("--input-view", default=None, help="comma-separated frame ids: the input-view split instead")
+    ap.add_argument("--sigma", type=float, default=None, help="low-pass Gaussian of --input-view (px; default width / 128)")
     args = ap.parse_args(argv)
     R, wide = args.results, args.wide
+    if args.input_view:
+        frames = [int(f) for f in args.input_view.split(",")]
+        res = input_view_split(R, frames, args.sigma)
+        print(f"input view, frames {frames}: mean squared error (its low-pass part), grey levels²")
+        for region in ("own", "borrowed"):
+            (v, vl), (c, cl) = res[("volume", region)], res[("corrected", region)]
+            print(f"  {region:9s} uncorrected {v:8.2f} ({vl:6.2f})   corrected {c:8.2f} ({cl:6.2f})")
+        return
     vol = FrameSequence(sorted((R / "volume").glob("block_*.zarr")), "volume")
     cor = FrameSequence(sorted((R / "corrected").glob("block_*.zarr")), "corrected")
     t = open_store(R / "template.zarr", "template")
