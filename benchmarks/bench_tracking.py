@@ -31,6 +31,12 @@ body's turn about its vertical axis (mm; + = towards increasing yaw) of the body
 which is rigid in the truth, over its vertices the depth camera sees and those it does not: how
 far the tracked body twists there although the true one does not.
 
+``--prior-floor`` tracks nothing: per frame it fits the tracker's rest-shape warp
+(:func:`stex.tracking.fit_rest_warp`: the same graph, priors and L0 step) to the true positions
+of the vertices the depth camera sees, starting from the rest shape's rigid (Kabsch) fit to the
+truth, and prints how far every vertex then is from the truth, seen and unseen: the error of the
+hidden side that perfect data on the seen side still leaves to the deformation prior.
+
 ``--capture-error`` prints, at each printed frame, the median misregistration (colour px) of the
 texels the appearance model captured then (new / captured again): where the texel's surface
 point truly projects minus where the tracked mesh put it.
@@ -73,6 +79,8 @@ def main() -> int:
                     help="replace one input of the tracker by the truth (see the module docstring)")
     ap.add_argument("--lower-half", action="store_true",
                     help="procedural scenes: print the rigid lower half's error along the turn (mm), seen / unseen")
+    ap.add_argument("--prior-floor", action="store_true",
+                    help="no tracking: the rest-shape warp fitted to the true seen vertices, per frame (see the module docstring)")
     ap.add_argument("--capture-error", action="store_true",
                     help="print the appearance model's capture misregistration (px) per printed frame")
     args = ap.parse_args()
@@ -101,6 +109,9 @@ def main() -> int:
         # below h = 0.5 (procedural.py), 0.45 keeps clear of the nose's and the belly's tails
         h = (tmpl["embedding/bary"] * scene.body.vertex_h[scene.faces[tmpl["embedding/face"]]]).sum(1)
         lower = h < 0.45
+    if args.prior_floor:
+        cfg["tracking"].update(overrides)
+        return _prior_floor(scene, frames, tmpl, TrackParams.from_dict(cfg["tracking"]), args.every)
     truth = {}          # the true mesh of the frame being tracked, for --ceiling / --capture-error
     capture_log = {}    # frame position -> (new texels' median px, re-captured texels' median px)
     _patch_tracker(args.ceiling, args.capture_error, truth, capture_log)
@@ -151,6 +162,43 @@ def main() -> int:
           f"frames within 5 / 15 mm: {(r[:, 0] <= 0.005).mean() * 100:.0f} % / {(r[:, 1] <= 0.015).mean() * 100:.0f} %; "
           f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s); "
           f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back")
+    return 0
+
+
+def _prior_floor(scene, frames, tmpl, params, every) -> int:
+    """``--prior-floor``: per frame, the rest-shape warp fitted to the true seen vertices."""
+    from stex.tracking import build_graph, deform, fit_rest_warp, identity_params
+
+    cal = scene.calibration
+    F = tmpl["faces"].astype(np.int64)
+    emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
+    rest = transfer_vertices(scene.true_vertices(0), scene.faces, *emb)
+    graph = build_graph(rest, F, params.node_spacing_m, params.k_nodes, volume_links=params.volume_links,
+                        volume_range=params.volume_link_range)
+    nodes = rest[graph.nodes]
+    rows = []
+    for t in frames:
+        Vt = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
+        vis, _ = vertex_visibility(Vt, F, cal.depth.K, rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth)
+        # start where the tracker's rigid stage would at best: the rest's rigid fit to the truth
+        mu_r, mu_t = rest.mean(0), Vt.mean(0)
+        U, _, Wt = np.linalg.svd((rest - mu_r).T @ (Vt - mu_t))
+        R = Wt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Wt.T @ U.T))]) @ U.T
+        x0 = identity_params(len(nodes))
+        x0[:, :9] = R.ravel()
+        x0[:, 9:] = (nodes - mu_r) @ R.T + mu_t - nodes
+        seen = np.flatnonzero(vis)
+        x = fit_rest_warp(rest, graph, x0, seen, Vt[seen], params)
+        err = 1000 * np.linalg.norm(deform(rest, nodes, graph, x) - Vt, axis=1)
+        rigid = 1000 * np.linalg.norm((rest - mu_r) @ R.T + mu_t - Vt, axis=1).mean()
+        rows.append((err[vis].mean(), err[~vis].mean() if (~vis).any() else np.nan, err.mean()))
+        if (t - frames.start) % every == 0:
+            print(f"frame {t:4d}: seen {rows[-1][0]:5.2f} mm  unseen {rows[-1][1]:6.2f} mm  all {rows[-1][2]:6.2f} mm  "
+                  f"({len(seen)} vertices seen; the rigid fit alone {rigid:5.1f} mm)", flush=True)
+    r = np.array(rows)
+    print(f"prior floor: worst frame seen {r[:, 0].max():.2f} mm; unseen {np.nanmax(r[:, 1]):.2f} mm; "
+          f"all {r[:, 2].max():.2f} mm (frame {frames[int(r[:, 2].argmax())]}); frames within 15 mm on all "
+          f"vertices: {(r[:, 2] <= 15).mean() * 100:.0f} %")
     return 0
 
 
