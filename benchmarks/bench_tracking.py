@@ -109,9 +109,11 @@ def main() -> int:
         # below h = 0.5 (procedural.py), 0.45 keeps clear of the nose's and the belly's tails
         h = (tmpl["embedding/bary"] * scene.body.vertex_h[scene.faces[tmpl["embedding/face"]]]).sum(1)
         lower = h < 0.45
+    # --params go straight to the tracker, so settings not (yet) in the schema can be tried
+    cfg["tracking"].update(overrides)
+    params = TrackParams.from_dict(cfg["tracking"])
     if args.prior_floor:
-        cfg["tracking"].update(overrides)
-        return _prior_floor(scene, frames, tmpl, TrackParams.from_dict(cfg["tracking"]), args.every)
+        return _prior_floor(scene, frames, F, emb, params, args.every)
     truth = {}          # the true mesh of the frame being tracked, for --ceiling / --capture-error
     capture_log = {}    # frame position -> (new texels' median px, re-captured texels' median px)
     _patch_tracker(args.ceiling, args.capture_error, truth, capture_log)
@@ -128,9 +130,6 @@ def main() -> int:
             fg = mask_in_depth(r.true_mask, r.depth_mm, cal)
             yield Observation(depth_target(r.depth_mm / 1000.0, cal.depth.K, fg), r.color, cal, r.true_mask)
 
-    # --params go straight to the tracker, so settings not (yet) in the schema can be tried
-    cfg["tracking"].update(overrides)
-    params = TrackParams.from_dict(cfg["tracking"])
     print(f"scene {args.scene}: frames {frames.start}..{frames.stop - 1}; template {len(tmpl['vertices'])} vertices, {len(F)} faces "
           f"(source mesh {len(scene.faces)} faces); params {json.dumps(cfg['tracking'])}")
     rows = []
@@ -165,13 +164,11 @@ def main() -> int:
     return 0
 
 
-def _prior_floor(scene, frames, tmpl, params, every) -> int:
+def _prior_floor(scene, frames, F, emb, params, every) -> int:
     """``--prior-floor``: per frame, the rest-shape warp fitted to the true seen vertices."""
-    from stex.tracking import build_graph, deform, fit_rest_warp, identity_params
+    from stex.tracking import build_graph, compose_rigid, deform, fit_rest_warp, identity_params, rigid_fit
 
     cal = scene.calibration
-    F = tmpl["faces"].astype(np.int64)
-    emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
     rest = transfer_vertices(scene.true_vertices(0), scene.faces, *emb)
     graph = build_graph(rest, F, params.node_spacing_m, params.k_nodes, volume_links=params.volume_links,
                         volume_range=params.volume_link_range)
@@ -181,16 +178,11 @@ def _prior_floor(scene, frames, tmpl, params, every) -> int:
         Vt = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
         vis, _ = vertex_visibility(Vt, F, cal.depth.K, rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth)
         # start where the tracker's rigid stage would at best: the rest's rigid fit to the truth
-        mu_r, mu_t = rest.mean(0), Vt.mean(0)
-        U, _, Wt = np.linalg.svd((rest - mu_r).T @ (Vt - mu_t))
-        R = Wt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Wt.T @ U.T))]) @ U.T
-        x0 = identity_params(len(nodes))
-        x0[:, :9] = R.ravel()
-        x0[:, 9:] = (nodes - mu_r) @ R.T + mu_t - nodes
+        R, tr = rigid_fit(rest, Vt)
         seen = np.flatnonzero(vis)
-        x = fit_rest_warp(rest, graph, x0, seen, Vt[seen], params)
+        x = fit_rest_warp(rest, graph, compose_rigid(identity_params(len(nodes)), nodes, R, tr), seen, Vt[seen], params)
         err = 1000 * np.linalg.norm(deform(rest, nodes, graph, x) - Vt, axis=1)
-        rigid = 1000 * np.linalg.norm((rest - mu_r) @ R.T + mu_t - Vt, axis=1).mean()
+        rigid = 1000 * np.linalg.norm(rest @ R.T + tr - Vt, axis=1).mean()
         rows.append((err[vis].mean(), err[~vis].mean() if (~vis).any() else np.nan, err.mean()))
         if (t - frames.start) % every == 0:
             print(f"frame {t:4d}: seen {rows[-1][0]:5.2f} mm  unseen {rows[-1][1]:6.2f} mm  all {rows[-1][2]:6.2f} mm  "
