@@ -1375,6 +1375,8 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     in the store's ``poorly_fitted_frames``; given meshes below it at every frame raise
     ``ValueError`` (they and the calibration disagree) and no store is written.
     """
+    import trimesh
+
     from stex.camera import Calibration
     from stex.io import FrameSequence, create_store, open_store
     from stex.template import transfer_vertices
@@ -1455,8 +1457,10 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                 why = "the mesh has likely lost part of the object there"
             log.warning("tracking: the mesh covers the object's mask poorly (silhouette IoU below %.2f) at %d of %d "
                         "frames, first at frame %d, worst %.2f at frame %d: %s, and texture taken from those frames "
-                        "will be misplaced (frames: %s)",
-                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], why, _runs(poor))
+                        "will be misplaced (frames: %s)%s",
+                        threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], why, _runs(poor),
+                        _lost_mesh_hint(poor[0] == frames.frame_ids[0], params,
+                                        trimesh.Trimesh(V0, F, process=False).is_watertight))
         if no_depth:
             log.warning("tracking: no depth of the object to fit at %d of %d frames (%s): no valid depth inside "
                         "the mask, or none near the mesh; the mesh there is carried by the colour terms and the "
@@ -1481,6 +1485,21 @@ def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, wher
             f"(millimetres give 1000, centimetres 100) and in the depth camera's coordinates. The depth is "
             f"read where the frame's mask puts the object, so a mask that marks the background instead (an "
             f"inverted mask) gives such a ratio too: look at the masks (previews/masks.png)")
+
+
+def _lost_mesh_hint(from_first_frame: bool, params: dict, closed: bool) -> str:
+    """What to try, appended to the tracking stage's warning about poorly fitted frames: for a
+    tracked mesh that loses the object (not one that misses it from the first frame, ``from_first_frame``,
+    nor given meshes), the settings that can help; ``params`` the ``tracking`` config section,
+    ``closed`` whether the template is closed (only a closed one gets links through the solid).
+    "" where none applies."""
+    if from_first_frame or params["mode"] != "track" or params["volume_links"] == 0 or not closed:
+        return ""
+    # links through the solid hold back parts that turn against each other (docs/tracking.md:
+    # the Fox's standing animation 13.1 mm with them, 6.1 mm without)
+    return (f". If the object is made of parts that turn against each other (an animal, a person's head and "
+            f"arms), try tracking.volume_links: 0 (now {params['volume_links']}; docs/tracking.md); fast, thin "
+            f"limbs need per-frame meshes from elsewhere (tracking.mode: given)")
 
 
 def _runs(ids) -> str:

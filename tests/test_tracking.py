@@ -526,6 +526,23 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
                        tmp_path / "focal_tracking.zarr")
 
 
+def test_a_lost_tracked_mesh_is_told_what_to_try():
+    """The warning for a mesh that loses the object points a tracked run at the settings that can
+    help (links through the solid hold back parts that turn against each other: docs/tracking.md),
+    only where they apply: not to given meshes, not when the links are already off or the template
+    is open (it gets none), and not when the mesh misses the object from the first frame (nothing
+    was lost)."""
+    from stex.tracking import _lost_mesh_hint
+
+    track = {"mode": "track", "volume_links": 20}
+    hint = _lost_mesh_hint(False, track, closed=True)
+    assert "try tracking.volume_links: 0 (now 20" in hint and "tracking.mode: given" in hint
+    assert _lost_mesh_hint(True, track, closed=True) == ""
+    assert _lost_mesh_hint(False, track, closed=False) == ""   # an open template has no such links
+    assert _lost_mesh_hint(False, {"mode": "track", "volume_links": 0}, closed=True) == ""
+    assert _lost_mesh_hint(False, {"mode": "given", "volume_links": 20}, closed=True) == ""
+
+
 def test_tracking_stage_refuses_a_mesh_in_millimetres_and_names_frames_without_depth(tmp_path, caplog):
     """A template (track) or given meshes (given) in millimetres project like metres, so the
     silhouette cannot tell; the depth can, and the stage refuses them at the first frame. A frame
