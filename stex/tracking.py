@@ -169,6 +169,15 @@ def build_graph(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, k: in
     return DeformationGraph(nodes, vn.astype(np.int32), w, edges)
 
 
+def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the mesh (V, 3) / (F, 3) is closed (watertight): only a closed template has an inside,
+    and so links through the solid (:func:`volume_links_through_solid`)."""
+    import trimesh
+
+    return bool(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                                process=False).is_watertight)
+
+
 def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: np.ndarray,
                                edges: np.ndarray, k: int, max_distance_m: float) -> np.ndarray:
     """``edges`` (E, 2) int32 plus links from every node to its ``k`` Euclidean nearest nodes
@@ -181,18 +190,17 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
     outside (between two legs, across a concavity) is not made, and neither is any on an open
     mesh (a template from one depth frame has no inside): (E', 2) is then ``edges`` unchanged.
     """
-    import trimesh
     from scipy.spatial import cKDTree
 
     from stex.template import points_inside
 
-    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    V = np.asarray(vertices, np.float64)
     if len(nodes) < 2:
         return edges
-    if not mesh.is_watertight:
+    if not is_closed(V, faces):
         log.info("deformation graph: mesh not closed, no links through the solid")
         return edges
-    P = mesh.vertices[nodes]
+    P = V[nodes]
     d, idx = cKDTree(P).query(P, k=min(k + 1, len(P)))
     j = np.repeat(np.arange(len(P)), idx.shape[1] - 1)
     q = idx[:, 1:].ravel()
@@ -204,7 +212,7 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
     if not len(cand):
         return edges
     # ray parity, any winding (trimesh's contains took 3.3 of the demo graph's 4.0 s; same links)
-    inside = points_inside(mesh.vertices, faces, 0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))
+    inside = points_inside(V, faces, 0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))
     log.info("deformation graph: %d links through the solid (of %d candidates)", int(inside.sum()), len(cand))
     out = np.concatenate([np.asarray(edges, np.int32).reshape(-1, 2), cand[inside].astype(np.int32)])
     return np.unique(out, axis=0)
@@ -1375,8 +1383,6 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     in the store's ``poorly_fitted_frames``; given meshes below it at every frame raise
     ``ValueError`` (they and the calibration disagree) and no store is written.
     """
-    import trimesh
-
     from stex.camera import Calibration
     from stex.io import FrameSequence, create_store, open_store
     from stex.template import transfer_vertices
@@ -1459,8 +1465,7 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                         "frames, first at frame %d, worst %.2f at frame %d: %s, and texture taken from those frames "
                         "will be misplaced (frames: %s)%s",
                         threshold, len(poor), T, poor[0], iou[worst], frames.frame_ids[worst], why, _runs(poor),
-                        _lost_mesh_hint(poor[0] == frames.frame_ids[0], params,
-                                        trimesh.Trimesh(V0, F, process=False).is_watertight))
+                        _lost_mesh_hint(poor[0] == frames.frame_ids[0], params, V0, F))
         if no_depth:
             log.warning("tracking: no depth of the object to fit at %d of %d frames (%s): no valid depth inside "
                         "the mask, or none near the mesh; the mesh there is carried by the colour terms and the "
@@ -1487,13 +1492,14 @@ def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, wher
             f"inverted mask) gives such a ratio too: look at the masks (previews/masks.png)")
 
 
-def _lost_mesh_hint(from_first_frame: bool, params: dict, closed: bool) -> str:
+def _lost_mesh_hint(from_first_frame: bool, params: dict, vertices, faces) -> str:
     """What to try, appended to the tracking stage's warning about poorly fitted frames: for a
     tracked mesh that loses the object (not one that misses it from the first frame, ``from_first_frame``,
     nor given meshes), the settings that can help; ``params`` the ``tracking`` config section,
-    ``closed`` whether the template is closed (only a closed one gets links through the solid).
-    "" where none applies."""
-    if from_first_frame or params["mode"] != "track" or params["volume_links"] == 0 or not closed:
+    ``vertices`` (V, 3) and ``faces`` (F, 3) the template (only a closed one gets links through
+    the solid). "" where none applies."""
+    if (from_first_frame or params["mode"] != "track" or params["volume_links"] == 0
+            or not is_closed(vertices, faces)):
         return ""
     # links through the solid hold back parts that turn against each other (docs/tracking.md:
     # the Fox's standing animation 13.1 mm with them, 6.1 mm without)

@@ -532,15 +532,19 @@ def test_a_lost_tracked_mesh_is_told_what_to_try():
     only where they apply: not to given meshes, not when the links are already off or the template
     is open (it gets none), and not when the mesh misses the object from the first frame (nothing
     was lost)."""
+    import trimesh
+
     from stex.tracking import _lost_mesh_hint
 
+    closed = trimesh.creation.icosphere(2, radius=0.2)
+    V, F = closed.vertices, closed.faces
     track = {"mode": "track", "volume_links": 20}
-    hint = _lost_mesh_hint(False, track, closed=True)
+    hint = _lost_mesh_hint(False, track, V, F)
     assert "try tracking.volume_links: 0 (now 20" in hint and "tracking.mode: given" in hint
-    assert _lost_mesh_hint(True, track, closed=True) == ""
-    assert _lost_mesh_hint(False, track, closed=False) == ""   # an open template has no such links
-    assert _lost_mesh_hint(False, {"mode": "track", "volume_links": 0}, closed=True) == ""
-    assert _lost_mesh_hint(False, {"mode": "given", "volume_links": 20}, closed=True) == ""
+    assert _lost_mesh_hint(True, track, V, F) == ""
+    assert _lost_mesh_hint(False, track, V, F[1:]) == ""   # an open template has no such links
+    assert _lost_mesh_hint(False, {"mode": "track", "volume_links": 0}, V, F) == ""
+    assert _lost_mesh_hint(False, {"mode": "given", "volume_links": 20}, V, F) == ""
 
 
 def test_tracking_stage_refuses_a_mesh_in_millimetres_and_names_frames_without_depth(tmp_path, caplog):
