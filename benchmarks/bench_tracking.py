@@ -137,8 +137,7 @@ def main() -> int:
                                      texcoords=tmpl["texcoords"], texcoord_faces=tmpl["texcoord_faces"]):
         t = frames[pos]
         Vt = truth["V"]   # frame t: the observations generator has just set it
-        depth = rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth
-        vis, _ = vertex_visibility(Vt, F, cal.depth.K, depth)
+        vis = _seen_by_depth(Vt, F, cal)
         err = np.linalg.norm(V - Vt, axis=1)
         iou = silhouette_iou(V, F, truth["mask"], cal)
         rows.append((err[vis].mean(), err.mean(), st["seconds"], st.get("lm_rejected", 0), st.get("lm_failed", 0),
@@ -164,6 +163,12 @@ def main() -> int:
     return 0
 
 
+def _seen_by_depth(V, F, calibration) -> np.ndarray:
+    """(V,) bool: the vertices of the mesh V (V, 3) / F (F, 3) that the depth camera sees."""
+    K = calibration.depth.K
+    return vertex_visibility(V, F, K, rasterize(V, F, K, *calibration.depth.size).depth)[0]
+
+
 def _prior_floor(scene, frames, F, emb, params, every) -> int:
     """``--prior-floor``: per frame, the rest-shape warp fitted to the true seen vertices."""
     from stex.tracking import build_graph, compose_rigid, deform, fit_rest_warp, identity_params, rigid_fit
@@ -176,7 +181,7 @@ def _prior_floor(scene, frames, F, emb, params, every) -> int:
     rows = []
     for t in frames:
         Vt = transfer_vertices(scene.true_vertices(t), scene.faces, *emb)
-        vis, _ = vertex_visibility(Vt, F, cal.depth.K, rasterize(Vt, F, cal.depth.K, *cal.depth.size).depth)
+        vis = _seen_by_depth(Vt, F, cal)
         # start where the tracker's rigid stage would at best: the rest's rigid fit to the truth
         R, tr = rigid_fit(rest, Vt)
         seen = np.flatnonzero(vis)
@@ -220,8 +225,7 @@ def _patch_tracker(ceiling, capture_error, truth, capture_log):
 
     def oracle_flow(pred, faces, model, image, mask, calibration, *a, **k):
         if ceiling == "flow-all":
-            depth = rasterize(pred, faces, calibration.depth.K, *calibration.depth.size).depth
-            fid = np.flatnonzero(vertex_visibility(pred, faces, calibration.depth.K, depth)[0])
+            fid = np.flatnonzero(_seen_by_depth(pred, faces, calibration))
         else:
             fid, _ = flow_constraints(pred, faces, model, image, mask, calibration, *a, **k)
         return fid, colour_px(truth["V"][fid], calibration)
