@@ -45,7 +45,7 @@ from bench_labeling import gt_error, true_face_colours  # noqa: E402
 from stex.evaluation import write_evaluation  # noqa: E402
 from stex.io import open_store  # noqa: E402
 from stex.labeling import write_labels  # noqa: E402
-from stex.tables import write_tables  # noqa: E402
+from stex.data_term import write_data_term  # noqa: E402
 from stex.volume import write_volume  # noqa: E402
 
 # name -> (tables overrides, labeling overrides); the first is the main run's configuration
@@ -70,15 +70,15 @@ def run_variant(R: Path, out: Path, tables_over: dict, labels_over: dict, stride
     scene = open_store(R / "scene.zarr", "scene")
     blocks = scene.attrs["frame_blocks"]
     timing = {}
-    tables = _blocks(R, "tables")
+    tables = _blocks(R, "data_term")
     if tables_over:
         t0 = time.perf_counter()
-        base = dict(open_store(tables[0], "tables").attrs["params"])
+        base = dict(open_store(tables[0], "data_term").attrs["params"])
         tables = []
         for b, (s, e) in enumerate(blocks):
-            p = out / "tables" / f"block_{b:04d}.zarr"
+            p = out / "data_term" / f"block_{b:04d}.zarr"
             shutil.rmtree(p, ignore_errors=True)
-            write_tables(R / "scene.zarr", R / "template.zarr", R / "tracking.zarr", R / "poses.zarr",
+            write_data_term(R / "scene.zarr", R / "template.zarr", R / "tracking.zarr", R / "poses.zarr",
                          R / "observations.zarr", [s, e], dict(base, **tables_over), p)
             tables.append(str(p))
         timing["tables_s"] = round(time.perf_counter() - t0, 1)
@@ -106,7 +106,7 @@ def run_variant(R: Path, out: Path, tables_over: dict, labels_over: dict, stride
                           out / "evaluation", {"stride": stride},
                           truth_paths=_blocks(R, "truth"), coords_path=coords,
                           global_texture_path=R / "global_texture.zarr",
-                          tables_paths=tables, frames=ids[::stride])
+                          data_term_paths=tables, frames=ids[::stride])
     timing["evaluation_s"] = round(time.perf_counter() - t0, 1)
     return {"labels": str(labels), "summary": ev["summary"], "timing": timing}
 

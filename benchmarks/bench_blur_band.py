@@ -1,7 +1,7 @@
 """Where the Crete blur of a photo and of a render differ: the mask eroded step by step.
 
 On a finished run (``snakemake --cores 2`` → results/demo; the Fox: results/fox) this scores, on
-every ``--stride``-th frame and with the evaluation's own blur code (``stex.evaluate.blur``, same
+every ``--stride``-th frame and with the evaluation's own blur code (``stex.metrics.blur``, same
 h_size), the input photo, our corrected slice and the global texture rendered on the tracked mesh
 in the input view, and on synthetic scenes the true appearance rendered on the true mesh, all
 inside one mask: the photo's mask ∩ our render's silhouette (∩ the true silhouette), eroded by
@@ -25,7 +25,7 @@ try:
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stex import evaluate as ev
+from stex import metrics as ev
 from stex.camera import Calibration
 from stex.evaluation import Atlas, evaluation_params, method_views, truth_views
 from stex.io import FrameSequence, open_store

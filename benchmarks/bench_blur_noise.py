@@ -1,7 +1,7 @@
 """How much of the inputs' Crete sharpness is sensor noise (issue 7's blur criterion).
 
 On a finished synthetic run (``snakemake --cores 2`` → results/demo) this measures, on every
-``--stride``-th frame and with the evaluation's own blur code (``stex.evaluate.blur``, same
+``--stride``-th frame and with the evaluation's own blur code (``stex.metrics.blur``, same
 h_size, inside the photo's mask and the true silhouette): the input photo, the true appearance
 rendered on the true mesh in the input view (no noise: what a perfect reconstruction renders to),
 and that same render with the scene's sensor noise added (Gaussian, the scene's σ, seeded). If
@@ -28,7 +28,7 @@ try:
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stex import evaluate as ev
+from stex import metrics as ev
 from stex.camera import Calibration
 from stex.evaluation import Atlas, evaluation_params, truth_views
 from stex.io import FrameSequence, open_store

@@ -86,7 +86,7 @@ def input_view_split(R: Path, frames, sigma=None) -> dict:
     docstring); pixels inside the frame's mask and the tracked mesh's render."""
     import cv2
 
-    import stex.evaluate as ev
+    import stex.metrics as ev
     from stex.camera import Calibration, transform_points
     from stex.evaluation import Atlas
 

@@ -34,7 +34,7 @@ def main(argv=None):
     ap.add_argument("--global-step", type=int, default=10, help="global texture from every k-th frame")
     a = ap.parse_args(argv)
 
-    from stex.baseline import global_texture, projection_texture
+    from stex.global_texture import global_texture, projection_texture
     from stex.camera import Calibration
     from stex.evaluation import Atlas, score_frame, truth_views
     from stex.io import FrameSequence, open_store

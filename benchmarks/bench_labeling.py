@@ -90,7 +90,7 @@ def gt_error(labels, colours, face_visible) -> dict:
 
 def alpha_vs_icm(results: Path) -> dict:
     obs = results / "observations.zarr"
-    tables = sorted(str(p) for p in (results / "tables").glob("block_*.zarr"))
+    tables = sorted(str(p) for p in (results / "data_term").glob("block_*.zarr"))
     params = dict(open_store(results / "labels.zarr", "labels").attrs["params"])
     a = labeling_inputs(obs, tables, results / "template.zarr", params)
     feats = EdgeFeatures(a["edge_samples"])
@@ -110,7 +110,7 @@ def alpha_vs_icm(results: Path) -> dict:
 
 
 def relabel(results: Path, scratch: Path, params: dict, tables=None) -> Path:
-    tables = tables or sorted(str(p) for p in (results / "tables").glob("block_*.zarr"))
+    tables = tables or sorted(str(p) for p in (results / "data_term").glob("block_*.zarr"))
     name = "labels_" + "_".join(f"{k}-{v}" for k, v in sorted(params.items())) + ".zarr"
     out = scratch / name
     shutil.rmtree(out, ignore_errors=True)
@@ -157,16 +157,16 @@ def main(argv=None):
                                           energy=float(g["energy"][-1]))
             print(name, json.dumps(res["ablations"][name]), flush=True)
     if args.prune_check:
-        from stex.tables import write_tables
+        from stex.data_term import write_data_term
         blocks = open_store(R / "scene.zarr", "scene").attrs["frame_blocks"]
         T = vis.shape[0]
-        tp = dict(open_store(sorted((R / "tables").glob("block_*.zarr"))[0], "tables").attrs["params"])
+        tp = dict(open_store(sorted((R / "data_term").glob("block_*.zarr"))[0], "data_term").attrs["params"])
         full = []
         t0 = time.perf_counter()
         for b, (s, e) in enumerate(blocks):
             p = args.scratch / f"tables_full_{b}.zarr"
             shutil.rmtree(p, ignore_errors=True)
-            write_tables(R / "scene.zarr", R / "template.zarr", R / "tracking.zarr", R / "poses.zarr",
+            write_data_term(R / "scene.zarr", R / "template.zarr", R / "tracking.zarr", R / "poses.zarr",
                          R / "observations.zarr", [s, e], dict(tp, candidates=T, prefilter=T), p)
             full.append(str(p))
         g = open_store(relabel(R, args.scratch, {"seed": 0}, tables=full), "labels")

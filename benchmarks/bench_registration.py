@@ -18,7 +18,7 @@ run optimised ξ), frames and truth stores.
    rebuilt from its stored settings) is out of reach of any photometric correction under the
    plain-mean gauge: "|consensus − truth|" is that part, "|Φ − consensus|" the rest.
 2. On each of ``--frames`` (frame ids): frame t's photo copied into the atlas at Φ and at ξ
-   (:func:`stex.baseline.projection_texture`, the per-frame projection baseline) and rendered on
+   (:func:`stex.global_texture.projection_texture`, the per-frame projection baseline) and rendered on
    the tracked mesh in the input view, scored on the pixels of faces seen at t (inside the true
    silhouette) against the photo and against the true appearance rendered on the true mesh
    (:func:`stex.evaluation.truth_views`); the photo itself against that truth; and the photo
@@ -63,7 +63,7 @@ def main(argv=None):
                     help="part 2: comma-separated frame ids (default: three spread over the run)")
     a = ap.parse_args(argv)
 
-    from stex.baseline import projection_texture
+    from stex.global_texture import projection_texture
     from stex.camera import Calibration
     from stex.evaluation import Atlas, frame_views, method_views, truth_views
     from stex.io import FrameSequence, open_store

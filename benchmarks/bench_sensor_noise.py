@@ -1,7 +1,7 @@
 """Calibrate the synthetic colour noise against real RGB-D colour frames (issue 7's blur criterion).
 
 The Crete blur metric reads fine-scale noise as sharpness, so the inputs' blur depends on how much
-noise the synthetic camera adds. This measures, with one estimator (``stex.evaluate.noise_sigma``:
+noise the synthetic camera adds. This measures, with one estimator (``stex.metrics.noise_sigma``:
 Immerkær 1996 on the 30 % flattest pixels) and at 640 px width:
 
 - the real colour frames in ``../shared/data_samples`` (an Azure Kinect MJPG recording, DeepDeform
@@ -28,7 +28,7 @@ except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stex.config import load_config
-from stex.evaluate import noise_sigma
+from stex.metrics import noise_sigma
 from stex.synth.scene import SyntheticScene
 
 REPO = Path(__file__).resolve().parents[1]

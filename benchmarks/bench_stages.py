@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 CODE = {
     "observations": "from stex.observations import write_observations as w; w(R/'template.zarr', R/'tracking.zarr', R/'projection.zarr', C, F, cfg['observations'], O/'observations.zarr')",
-    "tables": "from stex.tables import write_tables as w; w(R/'scene.zarr', R/'template.zarr', R/'tracking.zarr', R/'poses.zarr', R/'observations.zarr', B, cfg['tables'], O/'tables.zarr')",
+    "data_term": "from stex.data_term import write_data_term as w; w(R/'scene.zarr', R/'template.zarr', R/'tracking.zarr', R/'poses.zarr', R/'observations.zarr', B, cfg['tables'], O/'data_term.zarr')",
     "labeling": "from stex.labeling import write_labels as w; w(R/'observations.zarr', T, R/'template.zarr', cfg['labeling'], O/'labels.zarr', threads=2)",
     "volume": "from stex.volume import write_volume as w; w(R/'template.zarr', R/'labels.zarr', C, F, B, cfg['volume'], O/'volume.zarr')",
     "correction": "from stex.correction import write_corrected as w; w(R/'template.zarr', V, cfg['correction'], O/'corrected.zarr')",
@@ -82,8 +82,8 @@ def main(argv=None):
     for stage in args.stages.split(","):
         r = run_stage(stage, args.results.resolve(), args.scratch, args.block)
         out = args.scratch
-        if stage == "tables":
-            g = open_store(out / "tables.zarr", "tables")
+        if stage == "data_term":
+            g = open_store(out / "tables.zarr", "data_term")
             r["per_target_s"] = round(r["wall_s"] / len(g.attrs["frame_ids"]), 3)
             r["blocks"] = len(open_store(args.results / "scene.zarr", "scene").attrs["frame_blocks"])
         if stage == "labeling":

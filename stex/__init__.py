@@ -18,7 +18,7 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
 8. ``stex.observations`` — one pass over the frames: grey samples per face and shared edge,
    E_qual flags, SSIM dynamism (``stex.dynamism``), SHOT descriptors and face strain
    (``stex.similarity``).
-9. ``stex.tables``   — per target frame and face the candidate source frames and the data term
+9. ``stex.data_term``   — per target frame and face the candidate source frames and the data term
    (E_qual + ω_g E_glo + (1 − ω_g) E_loc + ω_str E_str; the similarities from
    ``stex.similarity``).
 10. ``stex.labeling`` — the spatiotemporal MRF: α-expansion per frame (``stex.mrf``), block
@@ -29,8 +29,8 @@ Snakemake workflow in ``workflow/`` calls them through thin scripts):
     the slice's own frame's texels kept, the borrowed ones corrected towards them).
 13. ``stex.export``  — PNG slices, MP4, OBJ/glTF per frame, preview videos.
 
-Baselines: ``stex.baseline`` (Kim et al. 2019's global texture, naive projection). Metrics:
-``stex.evaluate``; the evaluation stage ``stex.evaluation`` (other methods' textures in another
+Baselines: ``stex.global_texture`` (Kim et al. 2019's global texture, naive projection). Metrics:
+``stex.metrics``; the evaluation stage ``stex.evaluation`` (other methods' textures in another
 UV layout carried into the run's atlas by ``stex.resample``). Shared building blocks: ``stex.camera`` (conventions, projection),
 ``stex.render`` (numba rasteriser, visibility, textured rendering), ``stex.io`` (the artifact
 stores and their layout), ``stex.isolated`` (xatlas run in a child process, whose atlas is never

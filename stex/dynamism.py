@@ -215,7 +215,7 @@ def face_ssim(tex_a, covered_a, tex_b, covered_b, texel_face, n_faces: int, data
     gaussian_weights=True, sigma=sigma, use_sample_covariance=False, data_range=data_range,
     full=True)`` on the grey images (see the module docstring for grey and ``data_range``; the
     authors' ``win_size=13`` only rescaled the covariances by 169/168 — population covariances
-    are used here, as :func:`stex.evaluate.masked_ssim`). The common coverage
+    are used here, as :func:`stex.metrics.masked_ssim`). The common coverage
     ``covered_a & covered_b`` is eroded by ``erode_px`` (see "Erosion" in the module docstring).
 
     Args:

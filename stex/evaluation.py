@@ -1,6 +1,6 @@
 """Evaluation stage: score reconstructions with the paper's metrics and against ground truth.
 
-The metric definitions live in :mod:`stex.evaluate` (``docs/metrics.md``); this module decides
+The metric definitions live in :mod:`stex.metrics` (``docs/metrics.md``); this module decides
 which images go in, scores every method with the same code, and writes the tables, plots and
 pictures of the report.
 
@@ -20,7 +20,7 @@ What it computes
   :func:`frame_views`, :func:`method_views` — the pieces of :func:`score_frame`, for callers
   that score other images.
 - :func:`write_evaluation` — the stage: reads the Kim 2019 global texture over the source
-  frames (the ``global_texture`` store, :func:`stex.baseline.write_global_texture`), builds the
+  frames (the ``global_texture`` store, :func:`stex.global_texture.write_global_texture`), builds the
   naive per-frame projection baseline, scores ``ours`` (corrected volume),
   ``ours_uncorrected`` (volume), ``global`` and ``projection`` on the chosen frames, temporal
   flicker in borrowed regions, and writes ``evaluation.json``, one CSV per table, ``tables.rst``
@@ -48,11 +48,11 @@ with ours (``gt_*_iou``).
 
 Held-out protocol
 -----------------
-With ``tables.source_stride`` = k only every k-th frame may texture anything (attr
+With ``data_term.source_stride`` = k only every k-th frame may texture anything (attr
 ``source_frames`` of the tables stores); every frame is still a target. Frames that are not
 sources are scored as ``held_out``: their own photo was not used by ``ours`` nor by ``global``
 (built from the source frames only by the ``global_texture`` stage, which takes the same
-``tables.source_stride``; its attr ``source_frames`` is checked against the tables'). The naive
+``data_term.source_stride``; its attr ``source_frames`` is checked against the tables'). The naive
 ``projection`` baseline of a held-out frame is its own photo, so it is left out of the held-out
 summaries.
 """
@@ -73,7 +73,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from stex import evaluate as ev
+from stex import metrics as ev
 from stex.io import library_versions, move_into_place, partial_path, short_ids, write_json
 from stex.camera import Calibration, transform_points
 from stex.config import RESERVED_METHOD_NAMES, scoring_settings
@@ -430,7 +430,7 @@ def frame_views(vertices, atlas, calibration, novel_transform=None, face_visible
         input_view: False leaves the input camera's view out (only the novel view is needed).
 
     Returns:
-        dict of :class:`stex.evaluate.MeshView` ``input`` and ``novel`` (None when not asked
+        dict of :class:`stex.metrics.MeshView` ``input`` and ``novel`` (None when not asked
         for), and (H, W) bool images (None without the flags): ``input_seen`` (pixels of the
         input view on faces seen at this frame), ``novel_seen`` (the same in the novel view) and
         ``novel_ever`` (novel-view pixels on faces some source frame saw).
@@ -683,7 +683,7 @@ SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur
 def summarise_frames(frames: list[dict], methods=METHODS) -> dict:
     """Summaries of per-frame records (as in ``evaluation.json`` ``frames``).
 
-    Returns ``{subset: {method: {metric: stex.evaluate.summarise(...)}}}`` for the subsets
+    Returns ``{subset: {method: {metric: stex.metrics.summarise(...)}}}`` for the subsets
     ``all`` (every scored frame), ``source`` (frames that were sources) and ``held_out``
     (frames that were not; the projection baseline is left out there, it uses the frame's own
     photo).
@@ -958,7 +958,7 @@ class _Inputs:
 
     def __init__(self, scene_path, frames_paths, masks_paths, template_path, tracking_path,
                  projection_path, labels_path, volume_paths, corrected_paths, params, *,
-                 global_texture_path, truth_paths, coords_path, tables_paths, frames, block):
+                 global_texture_path, truth_paths, coords_path, data_term_paths, frames, block):
         from stex.io import FrameSequence, StoreError, open_store
         from stex.observations import open_coordinates
         from stex.template import check_atlas
@@ -1012,16 +1012,16 @@ class _Inputs:
         # held-out protocol: the frames allowed to texture
         sources = set(global_sources)
         k = global_store.attrs.get("params", {}).get("source_stride")
-        if tables_paths:
-            tables_attrs = open_store(list(tables_paths)[0], "tables").attrs
-            src = tables_attrs.get("source_frames")
+        if data_term_paths:
+            data_term_attrs = open_store(list(data_term_paths)[0], "data_term").attrs
+            src = data_term_attrs.get("source_frames")
             if src is not None:
                 sources = {int(i) for i in src}
-                k = tables_attrs.get("params", {}).get("source_stride")
+                k = data_term_attrs.get("params", {}).get("source_stride")
             if sorted(sources) != sorted(global_sources):
                 raise ValueError(f"global_texture store {global_texture_path} was built from source "
                                  f"frames {short_ids(sorted(global_sources))}, the tables "
-                                 f"{list(tables_paths)[0]} allow {short_ids(sorted(sources))} "
+                                 f"{list(data_term_paths)[0]} allow {short_ids(sorted(sources))} "
                                  f"(global_texture and tables must use the same source_stride)")
         self.sources = sorted(sources)
         self.stride_label = "" if len(sources) == T else (f"(1/{k})" if k else f"({len(sources)}/{T} frames)")
@@ -1117,7 +1117,7 @@ class _Inputs:
 
     def textures(self, t):
         """Every method's texture slice (W, W, 3) at sequence position t."""
-        from stex.baseline import projection_texture
+        from stex.global_texture import projection_texture
 
         fid = self.ids[t]
         proj_tex, _ = projection_texture(self.sampler, np.asarray(self.coords[t], np.float64),
@@ -1260,7 +1260,7 @@ def nan_for_none(x):
 def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                  projection_path, labels_path, volume_paths, corrected_paths, out_path,
                  params: dict | None = None, *, global_texture_path, truth_paths=None,
-                 coords_path=None, tables_paths=None, frames=None, block=None,
+                 coords_path=None, data_term_paths=None, frames=None, block=None,
                  threads: int = 1) -> dict:
     """Evaluation, one frame block: score every method on the block's frames to score.
 
@@ -1290,7 +1290,7 @@ def score_frames(scene_path, frames_paths, masks_paths, template_path, tracking_
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                   projection_path, labels_path, volume_paths, corrected_paths, params,
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
-                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=block)
+                  coords_path=coords_path, data_term_paths=data_term_paths, frames=frames, block=block)
     records = _score(inp, inp.score_ids, threads) if inp.score_ids else []
     doc = _finite_or_none({"stex_artifact": "evaluation_frames", "params": scoring_settings(inp.p),
                            "frame_ids": inp.ids, "source_frames": inp.sources,
@@ -1339,7 +1339,7 @@ def _load_records(records_paths, inp: _Inputs) -> tuple[list[dict], float]:
 def write_evaluation(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                      projection_path, labels_path, volume_paths, corrected_paths, out_dir,
                      params: dict | None = None, *, global_texture_path, truth_paths=None,
-                     coords_path=None, observations_path=None, tables_paths=None, frames=None,
+                     coords_path=None, observations_path=None, data_term_paths=None, frames=None,
                      records_paths=None, timing: dict | None = None, threads: int = 1,
                      others: dict | None = None, sampling_path=None) -> dict:
     """Evaluation stage: score every method on the chosen frames and write the report content.
@@ -1356,13 +1356,13 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             (``ours_uncorrected`` / ``ours``).
         params: the evaluation settings (:func:`evaluation_params`).
         global_texture_path: (keyword, required) ``global_texture`` store, the ``global``
-            method (:func:`stex.baseline.write_global_texture`: texture (W, W, 3) uint8,
+            method (:func:`stex.global_texture.write_global_texture`: texture (W, W, 3) uint8,
             face_textured (F,) bool, attrs source_frames and seconds); its source frames must be
             the tables' source frames.
         truth_paths: ``truth`` block stores (synthetic scenes) -> ground-truth scores and flicker.
         coords_path: ``texcoords`` store (ξ) or the projection store (Φ, the default): the
             texture coordinates of the baselines, as used by the volume.
-        tables_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
+        data_term_paths: ``tables`` block stores: attr ``source_frames`` marks the frames that may
             texture (held-out protocol); without, the global texture's ``source_frames``.
         frames: global frame ids to score; None -> every ``stride``-th frame of the scene.
         out_dir: folder to write (built in ``<out_dir>.partial-<host>-<pid>`` and moved into
@@ -1411,7 +1411,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
     inp = _Inputs(scene_path, frames_paths, masks_paths, template_path, tracking_path,
                   projection_path, labels_path, volume_paths, corrected_paths, params,
                   global_texture_path=global_texture_path, truth_paths=truth_paths,
-                  coords_path=coords_path, tables_paths=tables_paths, frames=frames, block=None)
+                  coords_path=coords_path, data_term_paths=data_term_paths, frames=frames, block=None)
     p, ids, T = inp.p, inp.ids, len(inp.ids)
     log.info("evaluation: global texture %s from %d source frames (built in %.1f s)",
              global_texture_path, len(inp.global_sources), inp.seconds_global)
@@ -1585,7 +1585,7 @@ def evaluate_results(results_dir, out_dir, others: dict | None = None, frames=No
         params, global_texture_path=R / "global_texture.zarr",
         truth_paths=blocks("truth") if "truth" in scene else None, coords_path=coords,
         observations_path=observations if observations.exists() else None,
-        tables_paths=blocks("tables"), frames=chosen, threads=threads, others=others,
+        data_term_paths=blocks("data_term"), frames=chosen, threads=threads, others=others,
         sampling_path=sampling if sampling.is_file() else None)
 
 

@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, transform_points
-from stex.evaluate import novel_view, render_texture
+from stex.metrics import novel_view, render_texture
 from stex.io import FrameSequence, StoreError, open_store, partial_path, run_block_paths
 from stex.render import vertex_normals
 from stex.template import check_atlas
@@ -507,7 +507,7 @@ def preview_frame(color_t, vertices_t, faces, texcoords, texcoord_faces, texture
     camera, and from the opposite side, side by side and labelled.
 
     The opposite side is the mesh rotated by 180 degrees about the colour camera's vertical (y)
-    axis through the vertex centroid (:func:`stex.evaluate.novel_view`), seen by the same camera.
+    axis through the vertex centroid (:func:`stex.metrics.novel_view`), seen by the same camera.
     Renders use the colour camera's intrinsics scaled to the panel height (no supersampling).
 
     Args:

@@ -289,13 +289,13 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "fractions": "dict: blurred (the blur step, whatever blur_rule) and slanted fractions of the visible (frame, face) pairs",
         },
     ),
-    "tables": ArtifactSpec(
-        description="Label candidates of one block of target frames (stex.tables): for every "
+    "data_term": ArtifactSpec(
+        description="Label candidates of one block of target frames (stex.data_term): for every "
         "target t and face f the K best source frames l by the data term, with the terms of "
         "each candidate, and the global similarity rows. Candidates are positions in the "
         "sequence (0..T-1), sorted ascending, -1 = padding (a face visible in fewer than K "
         "frames, or never).",
-        path="tables/block_{block}.zarr",
+        path="data_term/block_{block}.zarr",
         arrays={
             "glo": ArraySpec(("Tb", "T"), "float32", "1", "E_glo[t, l]: clipped depth difference of K_{t->l}(M_t) and M_l rendered in the depth camera over the union of their silhouettes, divided by the clip (0..1)"),
             "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
@@ -307,7 +307,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each target row",
             "sequence_frame_ids": "list[int]: global frame index of each sequence position (columns of glo, candidate values)",
-            "source_frames": "list[int]: global frame indices allowed as sources (tables.source_stride)",
+            "source_frames": "list[int]: global frame indices allowed as sources (data_term.source_stride)",
             "prefilter_exact": "list[float]: per target, fraction of faces whose candidate pruning is provably exact",
             "seconds": "float: wall time of the block (s)",
         },
@@ -376,10 +376,10 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         },
     ),
     "global_texture": ArtifactSpec(
-        description="The comparison baseline of Kim et al. 2019 (stex.baseline.write_global_texture): "
+        description="The comparison baseline of Kim et al. 2019 (stex.global_texture.write_global_texture): "
         "ONE texture for the whole sequence in the template atlas, every texel the weighted mean "
         "of the source frames (held-out protocol: sequence positions 0, k, 2k, ..., k = "
-        "tables.source_stride) that see its face, sampled at the texture coordinates of the volume "
+        "data_term.source_stride) that see its face, sampled at the texture coordinates of the volume "
         "(ξ or Φ), weight w_t(f) = projection face_cos, (t, f) with w_t(f) <= min_weight left out; "
         "texels of faces never used are filled from their neighbours, gutters dilated (template "
         "gutter_px). Read by the evaluation.",
@@ -390,7 +390,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "face_textured": ArraySpec(("F",), "bool", "1", "face with at least one used observation (visible in a source frame with face_cos > min_weight)"),
         },
         attrs={
-            "source_frames": "list[int]: global frame ids of the source frames blended (as the tables' source_frames)",
+            "source_frames": "list[int]: global frame ids of the source frames blended (as the data_term stores' source_frames)",
             "sequence_frame_ids": "list[int]: every frame id of the scene, in order",
             "seconds": "float: wall time of the blend (s)",
             "atlas_digest": "str: as in volume",

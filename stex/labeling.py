@@ -3,11 +3,11 @@
 For every frame t and face f the stage chooses l_{f,t}, the frame whose colour image textures f
 at time t, minimising
 
-    E = Σ_t Σ_f U(t, f, l_{f,t})                                   data term (stex.tables)
+    E = Σ_t Σ_f U(t, f, l_{f,t})                                   data term (stex.data_term)
       + ω_s Σ_t Σ_{(f,f')} w_{ff'} E_spa(l_{f,t}, l_{f',t})         spatial smoothness
       + ω_t Σ_t Σ_f g_f(l_{f,t}, l_{f,t+1}) E_temp(l_{f,t}, l_{f,t+1})   temporal smoothness
 
-- U = E_qual + ω_g E_glo + (1 − ω_g) E_loc over the face's candidate frames (``tables`` store;
+- U = E_qual + ω_g E_glo + (1 − ω_g) E_loc over the face's candidate frames (``data_term`` store;
   ``similarity: global | local`` keep one of the two geometric terms, as ablations).
 - E_spa(a, b) = 0.5·mean|I_a − I_b| + 0.5·mean|ΔI_a − ΔI_b| over the 9 grey samples along the
   shared edge (``observations`` edge_samples, /255; ΔI = differences of consecutive samples, the
@@ -35,7 +35,7 @@ of frame t are unary terms of its MRF (the authors fold them the same way), so e
 α-expansion (:func:`stex.mrf.alpha_expansion`: per-node label subsets, moves accepted only when
 the frame's energy falls) warm-started from its current labels: the total energy never rises.
 Frames of one parity do not interact, so they are solved in parallel threads (numba releases the
-GIL). A frame's candidates and data term are read from the tables stores when it is solved
+GIL). A frame's candidates and data term are read from the data_term stores when it is solved
 (:class:`TableRows`), not held for every frame: at paper scale the stage's peak is 0.85 GB instead
 of 1.59 GB, for 10 % more time (252 against 229 s), the same labels.
 
@@ -56,7 +56,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from stex import mrf
-from stex.tables import unary_terms
+from stex.data_term import unary_terms
 
 log = logging.getLogger("stex.labeling")
 
@@ -333,20 +333,20 @@ def total_energy(labels, cand, unary, pairs, pair_weight, edge_samples, face_sam
 
 
 class TableRows:
-    """The candidates or the data term of every frame, read from the tables blocks one frame at a
+    """The candidates or the data term of every frame, read from the data_term blocks one frame at a
     time (their arrays are chunked by frame), so that the labeling does not hold all frames'
     (T, F, K) rows: ``rows[t]`` is frame t's (F, K) array, ``rows.shape`` (T, F, K).
 
     Args:
-        blocks: the ``tables`` block stores, in frame order.
-        what: ``'candidates'`` (int16) or ``'unary'`` (float32, :func:`stex.tables.unary_terms`
-            of the block's E_qual, E_glo, E_loc and E_str with the weights the tables ranked
+        blocks: the ``data_term`` block stores, in frame order.
+        what: ``'candidates'`` (int16) or ``'unary'`` (float32, :func:`stex.data_term.unary_terms`
+            of the block's E_qual, E_glo, E_loc and E_str with the weights the data term ranked
             them with, ``params``).
     """
 
     def __init__(self, blocks, what: str, params: dict | None = None):
         if what not in ("candidates", "unary") or (what == "unary" and params is None):
-            raise ValueError(f"TableRows reads 'candidates', or 'unary' with the tables' params; "
+            raise ValueError(f"TableRows reads 'candidates', or 'unary' with the data term's params; "
                              f"got {what!r}")
         self.blocks, self.what, self.params = blocks, what, params
         sizes = [b["candidates"].shape[0] for b in blocks]
@@ -369,7 +369,7 @@ class TableRows:
                            tp.get("omega_str", 0.0)).astype(np.float32)
 
 
-def labeling_inputs(observations_path, tables_paths, template_path, params: dict) -> dict:
+def labeling_inputs(observations_path, data_term_paths, template_path, params: dict) -> dict:
     """Read what :func:`label_sequence` needs from the stores and apply the config switches.
 
     Returns a dict of keyword arguments for :func:`label_sequence` plus ``frame_ids`` and
@@ -384,10 +384,10 @@ def labeling_inputs(observations_path, tables_paths, template_path, params: dict
     template = open_store(template_path, "template")
     pairs = np.asarray(template["adjacency/pairs"][...], np.int64)
     ids = list(obs.attrs["frame_ids"])
-    blocks = [open_store(path, "tables") for path in tables_paths]
+    blocks = [open_store(path, "data_term") for path in data_term_paths]
     got = [fid for b in blocks for fid in b.attrs["frame_ids"]]
     if got != ids:
-        raise ValueError(f"tables blocks cover frames {got[:3]}..{got[-3:]} but the observations "
+        raise ValueError(f"data_term blocks cover frames {got[:3]}..{got[-3:]} but the observations "
                          f"hold {ids[:3]}..{ids[-3:]} (every frame exactly once, in order)")
     tp = blocks[0].attrs["params"]            # the data term is weighted as it was ranked
     # read a frame at a time while solving: the (T, F, K) rows are what grows with the sequence
@@ -430,7 +430,7 @@ def glimpse_sources(face_glimpsed, face_cos, never_seen, is_source) -> np.ndarra
     return np.where(g.any(axis=0), best, -1).astype(np.int32)
 
 
-def write_labels(observations_path, tables_paths, template_path, params: dict, out,
+def write_labels(observations_path, data_term_paths, template_path, params: dict, out,
                  threads: int = 2, projection_path=None) -> None:
     """Labeling stage: write the ``labels`` store.
 
@@ -441,7 +441,7 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
     from stex.io import create_store, open_store, short_ids
 
     p = section_params("labeling", params)
-    args = labeling_inputs(observations_path, tables_paths, template_path, p)
+    args = labeling_inputs(observations_path, data_term_paths, template_path, p)
     ids, never = args.pop("frame_ids"), args.pop("never_seen")
     log.info("labeling: %d frames, %d faces (%d never seen), %d candidates per face",
              len(ids), never.size, int(never.sum()), args["cand"].shape[2])
@@ -455,8 +455,8 @@ def write_labels(observations_path, tables_paths, template_path, params: dict, o
         if list(proj.attrs["frame_ids"]) != ids:
             raise ValueError(f"{projection_path} holds frames {short_ids(proj.attrs['frame_ids'])}, "
                              f"the observations {short_ids(ids)}")
-        # the held-out protocol's source frames, as the tables ranked them
-        sources = set(open_store(tables_paths[0], "tables").attrs.get("source_frames", ids))
+        # the held-out protocol's source frames, as the data term ranked them
+        sources = set(open_store(data_term_paths[0], "data_term").attrs.get("source_frames", ids))
         is_source = np.array([i in sources for i in ids])
         glimpse = glimpse_sources(proj["face_glimpsed"][...], proj["face_cos"][...], never, is_source)
         got = glimpse >= 0

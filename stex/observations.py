@@ -2,7 +2,7 @@
 
 The labeling (paper §5) compares frames with each other through a handful of per-(frame, face)
 and per-(frame, edge) quantities that do not depend on the target time t. They are computed once
-here, streaming the colour images one at a time, so that the tables and labeling stages never
+here, streaming the colour images one at a time, so that the data-term and labeling stages never
 touch an image again:
 
 - **Face samples** (E_temp): the grey value at the authors' 15 barycentric samples of face f,
@@ -15,7 +15,7 @@ touch an image again:
   coordinates move per frame (mean of the moves to frame l-1 and l+1 of the centroid of its three
   coordinates, as the authors' ``Selector.cpp``; :func:`face_motion`, with ``unseen_neighbours``
   saying whether a neighbouring frame that does not see the face still gives a motion); and
-  ``blur_cost``, the blur part of E_qual the tables use (:func:`blur_cost`): the paper's step
+  ``blur_cost``, the blur part of E_qual the data term uses (:func:`blur_cost`): the paper's step
   (blurred when the motion exceeds θ_b or is unknown) or, with ``blur_rule: graded``, the motion
   in units of θ_b. ``slanted`` — the view angle is too oblique (rule ``angle_rule``, below).
 - **Dynamism** S(f, t) (selective weighting): mean SSIM of face f between the partial texture
@@ -23,7 +23,7 @@ touch an image again:
 - **SHOT descriptors** of every vertex of the tracked mesh (E_loc; :mod:`stex.similarity`).
 - **Strain** of every face of the tracked mesh: smoothed log stretch of its edges against the
   template (E_str; :func:`stex.similarity.face_strain`), once for all frames here rather than in
-  every tables block.
+  every data_term block.
 
 Texture coordinates are the optimised ξ of the ``texcoords`` store when the workflow runs that
 stage, or Φ of the ``projection`` store otherwise (:func:`open_coordinates`).

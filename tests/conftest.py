@@ -142,13 +142,13 @@ def run_pipeline(cfg: dict, d) -> dict:
     and the global texture (at Φ, the tables' source_stride) through the real stage writers.
     Returns the store paths of :func:`run_stages` plus poses, observations, tables, labels,
     volume and corrected (lists per block) and global_texture."""
-    from stex.baseline import write_global_texture
+    from stex.global_texture import write_global_texture
     from stex.correction import write_corrected
     from stex.io import open_store
     from stex.labeling import write_labels
     from stex.observations import write_observations
     from stex.poses import write_pose_table
-    from stex.tables import write_tables
+    from stex.data_term import write_data_term
     from stex.volume import write_volume
 
     P = run_stages(cfg, d)
@@ -158,12 +158,12 @@ def run_pipeline(cfg: dict, d) -> dict:
     write_observations(P["template"], P["tracking"], P["projection"], P["projection"], P["frames"],
                        cfg["observations"], P["observations"])
     blocks = open_store(P["scene"], "scene").attrs["frame_blocks"]
-    P["tables"] = [d / f"tables_{b}.zarr" for b in range(len(blocks))]
-    for path, (start, stop) in zip(P["tables"], blocks):
-        write_tables(P["scene"], P["template"], P["tracking"], P["poses"], P["observations"],
-                     [start, stop], cfg["tables"], path)
+    P["data_term"] = [d / f"data_term_{b}.zarr" for b in range(len(blocks))]
+    for path, (start, stop) in zip(P["data_term"], blocks):
+        write_data_term(P["scene"], P["template"], P["tracking"], P["poses"], P["observations"],
+                     [start, stop], cfg["data_term"], path)
     P["labels"] = d / "labels.zarr"
-    write_labels(P["observations"], P["tables"], P["template"], cfg["labeling"], P["labels"],
+    write_labels(P["observations"], P["data_term"], P["template"], cfg["labeling"], P["labels"],
                  projection_path=P["projection"])
     P["volume"] = [d / f"volume_{b}.zarr" for b in range(len(blocks))]
     P["corrected"] = [d / f"corrected_{b}.zarr" for b in range(len(blocks))]
@@ -174,5 +174,5 @@ def run_pipeline(cfg: dict, d) -> dict:
     P["global_texture"] = d / "global_texture.zarr"
     write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], P["projection"],
                          P["global_texture"],
-                         dict(cfg["global_texture"], source_stride=cfg["tables"]["source_stride"]))
+                         dict(cfg["global_texture"], source_stride=cfg["data_term"]["source_stride"]))
     return P

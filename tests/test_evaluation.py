@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import zarr
 
-from stex import evaluate as ev
+from stex import metrics as ev
 from stex.camera import Calibration, transform_points
 from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dynamism_regions, image_scores,
                              rst_tables, score_frame, score_frames, score_methods, truth_views,
                              vertex_motion,
                              write_evaluation)
-from stex.baseline import write_global_texture
+from stex.global_texture import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
 
 
@@ -31,7 +31,7 @@ def _evaluate(P, out, **kw):
 def evaluation(tiny_pipeline, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
     res = _evaluate(tiny_pipeline, out, truth_paths=tiny_pipeline["truth"],
-                    observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"],
+                    observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"],
                     timing={"labeling": 90.0, "volume": 30.0})
     return out, res
 
@@ -265,7 +265,7 @@ def test_threads_score_exactly_as_one(tiny_pipeline, evaluation, tmp_path):
     predecessor): every score equals the single-thread evaluation's."""
     _, res = evaluation
     par = _evaluate(tiny_pipeline, tmp_path / "eval3", truth_paths=tiny_pipeline["truth"],
-                    observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"], threads=3)
+                    observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"], threads=3)
     assert [r["frame"] for r in par["frames"]] == list(range(6))
     assert par["frames"] == res["frames"] and par["summary"] == res["summary"]
 
@@ -286,7 +286,7 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evalu
         P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
         doc = score_frames(*_args(P), paths[-1], global_texture_path=P["global_texture"],
-                           truth_paths=P["truth"], tables_paths=P["tables"], block=block)
+                           truth_paths=P["truth"], data_term_paths=P["data_term"], block=block)
         assert doc["scored_frames"] == list(range(*block))
         assert not list(tmp_path.glob(f"block_{b}.json.partial*"))
     # the second block alone lacks frame 3, its first frame's predecessor
@@ -296,7 +296,7 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evalu
                      truth_paths=P["truth"], block=blocks[1])
     assert not (tmp_path / "bad.json").exists()
     merged = _evaluate(tiny_pipeline, tmp_path / "merged", truth_paths=tiny_pipeline["truth"],
-                       observations_path=tiny_pipeline["observations"], tables_paths=tiny_pipeline["tables"],
+                       observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"],
                        records_paths=paths[::-1])
     assert merged["frames"] == res["frames"] and merged["summary"] == res["summary"]
     assert merged["tables"] == res["tables"]
@@ -314,7 +314,7 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evalu
     # the figures' settings are the merge's own: other ones re-draw from the same records
     fig = _evaluate(tiny_pipeline, tmp_path / "m5", params={"figure_frame": 1, "dynamism_regions": 2},
                     truth_paths=tiny_pipeline["truth"], observations_path=tiny_pipeline["observations"],
-                    tables_paths=tiny_pipeline["tables"], records_paths=paths)
+                    data_term_paths=tiny_pipeline["data_term"], records_paths=paths)
     assert fig["frames"] == res["frames"] and fig["summary"] == res["summary"]
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(StoreError, match="junk.json"):
@@ -330,7 +330,7 @@ def _results_folder(tiny_pipeline, root):
     for name in ("scene", "template", "tracking", "projection", "labels", "observations",
                  "global_texture"):
         (root / f"{name}.zarr").symlink_to(tiny_pipeline[name])
-    for kind in ("frames", "masks", "truth", "tables", "volume", "corrected"):
+    for kind in ("frames", "masks", "truth", "data_term", "volume", "corrected"):
         (root / kind).mkdir()
         for b, path in enumerate(tiny_pipeline[kind]):
             (root / kind / f"block_{b:04d}.zarr").symlink_to(path)
@@ -511,11 +511,11 @@ def test_other_methods_from_the_settings_scored_in_blocks(tiny_pipeline, tmp_pat
         P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
         score_frames(*_args(P), paths[-1], params, global_texture_path=P["global_texture"],
-                     truth_paths=P["truth"], tables_paths=P["tables"], block=block)
+                     truth_paths=P["truth"], data_term_paths=P["data_term"], block=block)
     merged = _evaluate(tiny_pipeline, tmp_path / "merged", params=params, truth_paths=tiny_pipeline["truth"],
-                       tables_paths=tiny_pipeline["tables"], records_paths=paths)
+                       data_term_paths=tiny_pipeline["data_term"], records_paths=paths)
     direct = _evaluate(tiny_pipeline, tmp_path / "direct", truth_paths=tiny_pipeline["truth"],
-                       tables_paths=tiny_pipeline["tables"], others={"unc": tmp_path / "unc"})
+                       data_term_paths=tiny_pipeline["data_term"], others={"unc": tmp_path / "unc"})
     assert merged["methods"] == direct["methods"] == list(METHODS) + ["unc"]
     assert merged["params"]["other_methods"] == direct["params"]["other_methods"]
     assert merged["frames"] == direct["frames"] and merged["tables"] == direct["tables"]
@@ -524,7 +524,7 @@ def test_other_methods_from_the_settings_scored_in_blocks(tiny_pipeline, tmp_pat
     # records scored without the other method do not make up this evaluation
     with pytest.raises(ValueError, match="other evaluation settings .*other_methods"):
         _evaluate(tiny_pipeline, tmp_path / "m", truth_paths=tiny_pipeline["truth"],
-                  tables_paths=tiny_pipeline["tables"],
+                  data_term_paths=tiny_pipeline["data_term"],
                   records_paths=paths, others={"x": tmp_path / "unc"})
 
 
@@ -550,7 +550,7 @@ def test_blocks_score_every_stride_th_frame_of_the_scene(tiny_pipeline, tmp_path
 
 def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_path):
     tables = []
-    for k, p in enumerate(tiny_pipeline["tables"]):
+    for k, p in enumerate(tiny_pipeline["data_term"]):
         q = tmp_path / f"tables_{k}.zarr"
         shutil.copytree(p, q)
         zarr.open_group(str(q), mode="r+").attrs.update(source_frames=[0, 2, 4])
@@ -561,10 +561,10 @@ def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_pa
     write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], P["projection"], glob2,
                          {"source_stride": 2})
     with pytest.raises(ValueError, match="source_stride"):   # stride-1 global vs stride-2 tables
-        _evaluate(tiny_pipeline, tmp_path / "bad", tables_paths=tables, frames=[1, 2])
+        _evaluate(tiny_pipeline, tmp_path / "bad", data_term_paths=tables, frames=[1, 2])
     assert not (tmp_path / "bad").exists()
     res = _evaluate({**tiny_pipeline, "global_texture": glob2}, tmp_path / "eval",
-                    tables_paths=tables, frames=[1, 2])
+                    data_term_paths=tables, frames=[1, 2])
     assert [r["held_out"] for r in res["frames"]] == [True, False]
     assert res["source_frames"] == [0, 2, 4]
     assert res["seconds"]["global_texture"] == open_store(glob2, "global_texture").attrs["seconds"]
@@ -680,7 +680,7 @@ def test_pipeline_tables_rank_with_the_observed_strain(tiny_pipeline):
                            template["vertices"][...], template["faces"][...],
                            obs.attrs["params"]["strain_rings"])
     np.testing.assert_allclose(strain, expected, atol=1e-6)
-    tables = open_store(tiny_pipeline["tables"][0], "tables")
+    tables = open_store(tiny_pipeline["data_term"][0], "data_term")
     assert tables.attrs["params"]["omega_str"] > 0
     t = 0
     cand = np.asarray(tables["candidates"][t], np.int64)
@@ -695,12 +695,12 @@ def test_labeling_reads_the_tables_a_frame_at_a_time(tiny_pipeline):
     solves that frame (TableRows), instead of holding every frame's (T, F, K) rows; the rows and
     the labels are those of the whole arrays read at once."""
     from stex.labeling import TableRows, label_sequence, labeling_inputs
-    from stex.tables import unary_terms
+    from stex.data_term import unary_terms
 
-    args = labeling_inputs(tiny_pipeline["observations"], tiny_pipeline["tables"], tiny_pipeline["template"], {})
+    args = labeling_inputs(tiny_pipeline["observations"], tiny_pipeline["data_term"], tiny_pipeline["template"], {})
     args.pop("frame_ids"), args.pop("never_seen")
     assert isinstance(args["cand"], TableRows) and isinstance(args["unary"], TableRows)
-    blocks = [open_store(p, "tables") for p in tiny_pipeline["tables"]]
+    blocks = [open_store(p, "data_term") for p in tiny_pipeline["data_term"]]
     tp = blocks[0].attrs["params"]
     cand = np.concatenate([b["candidates"][...] for b in blocks])
     unary = np.concatenate([unary_terms(b["e_qual"][...], b["e_glo"][...], b["e_loc"][...],

@@ -63,7 +63,7 @@ def all_outputs():
         out += [f"{RESULTS}/previews/texcoords.png"]
     # every block store is a target: a deleted one (which `stex evaluate` and `stex export
     # --source volume` read) is rebuilt even when nothing after it changed
-    out += expand(f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["tables", "volume", "corrected"],
+    out += expand(f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["data_term", "volume", "corrected"],
                   block=BLOCK_IDS)
     out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
     out += [f"{RESULTS}/global_texture.zarr", f"{RESULTS}/evaluation"]

@@ -7,7 +7,7 @@ rule labeling:
         template=f"{RESULTS}/template.zarr",
         observations=f"{RESULTS}/observations.zarr",
         projection=f"{RESULTS}/projection.zarr",
-        tables=expand(f"{RESULTS}/tables/block_{{block}}.zarr", block=BLOCK_IDS),
+        data_term=expand(f"{RESULTS}/data_term/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/labels.zarr"),
     params:

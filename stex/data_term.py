@@ -1,4 +1,4 @@
-"""Tables stage: the data term of the labeling and each face's candidate source frames.
+"""Data-term stage: the data term of the labeling and each face's candidate source frames.
 
 For a block of target frames t and every face f, the candidates are the frames l in which f is
 visible (``observations`` face_visible), scored by the data term of the paper's Eq. 2
@@ -26,7 +26,7 @@ other terms (E_qual, E_glo, E_str), and the ``candidates`` best of those by the 
 E_loc ≥ −1, so a frame left out by the prefilter (pre-score ≥ P, the worst pre-score kept) scores
 at least P − (1 − ω_g); when the K-th best full score is below that, the pruning is provably exact
 for the face. The stage records the fraction of (target, face) pairs where this holds (attr
-``prefilter_exact``), and ``tests/test_tables.py`` checks that wherever it holds the pruned
+``prefilter_exact``), and ``tests/test_data_term.py`` checks that wherever it holds the pruned
 candidates equal those of the full ranking (``test_pruned_candidates_equal_full_ranking_where_exact``).
 
 ``similarity: global | local`` keeps only one geometric term (the paper's ablation): U = E_qual
@@ -41,10 +41,10 @@ import time
 
 import numpy as np
 
-log = logging.getLogger("stex.tables")
+log = logging.getLogger("stex.data_term")
 
 __all__ = ["prefilter_candidates", "select_candidates", "finish_candidates", "block_candidates",
-           "unary_terms", "source_mask", "write_tables"]
+           "unary_terms", "source_mask", "write_data_term"]
 
 SIMILARITY_MODES = ("both", "global", "local")
 
@@ -108,7 +108,7 @@ def prefilter_candidates(glo_row, face_visible, e_qual, omega_g: float, similari
 def unary_terms(e_qual, e_glo, e_loc, omega_g: float, similarity: str, e_str=None,
                 omega_str: float = 0.0) -> np.ndarray:
     """U = E_qual + ω_g E_glo + (1 − ω_g) E_loc + ω_str E_str (or one geometric term: module
-    docstring). ``e_str`` None (tables written without it) counts as 0."""
+    docstring). ``e_str`` None (stores written without it) counts as 0."""
     strain = 0.0 if e_str is None or not omega_str else omega_str * e_str
     if similarity == "both":
         return e_qual + omega_g * e_glo + (1.0 - omega_g) * e_loc + strain
@@ -220,24 +220,24 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
 
 def source_mask(n_frames: int, stride: int) -> np.ndarray:
     """The frames that may texture anything under the held-out protocol: (T,) bool, True at the
-    sequence positions 0, k, 2k, ... (k = ``stride`` >= 1, the ``tables.source_stride`` setting;
-    used by :func:`write_tables` and the global-texture baseline)."""
+    sequence positions 0, k, 2k, ... (k = ``stride`` >= 1, the ``data_term.source_stride`` setting;
+    used by :func:`write_data_term` and the global-texture baseline)."""
     k = int(stride)
     if k < 1:
         raise ValueError(f"source_stride must be >= 1, got {stride}")
     return np.arange(int(n_frames)) % k == 0
 
 
-def write_tables(scene_path, template_path, tracking_path, poses_path, observations_path,
+def write_data_term(scene_path, template_path, tracking_path, poses_path, observations_path,
                  positions, params: dict, out) -> None:
-    """Tables stage for one block of target frames: write a ``tables`` store.
+    """Data-term stage for one block of target frames: write a ``data_term`` store.
 
     Args:
         scene_path: ``scene`` store (depth intrinsics). template_path: ``template`` (faces).
         tracking_path: ``tracking`` (vertices [T, V, 3]). poses_path: ``poses`` (K_{t→l}).
         observations_path: ``observations`` (face_visible, blur_cost, slanted, descriptors, strain).
         positions: [start, stop) sequence positions of the target frames.
-        params: the ``tables`` config section.
+        params: the ``data_term`` config section.
         out: path of the store.
     """
     from stex.camera import Calibration
@@ -245,9 +245,9 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     from stex.io import create_store, open_store, position_range
     from stex.similarity import global_similarity
 
-    p = section_params("tables", params)
+    p = section_params("data_term", params)
     if p["prefilter"] < p["candidates"]:
-        raise ValueError(f"tables.prefilter ({p['prefilter']}) must be >= tables.candidates "
+        raise ValueError(f"data_term.prefilter ({p['prefilter']}) must be >= data_term.candidates "
                          f"({p['candidates']})")
     scene = open_store(scene_path, "scene")
     template = open_store(template_path, "template")
@@ -274,24 +274,24 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
     strain = None
     if p["omega_str"] > 0 and p["similarity"] != "global":
         if "strain" not in obs:
-            raise ValueError(f"{observations_path}: no strain table, needed by tables.omega_str > 0 "
+            raise ValueError(f"{observations_path}: no strain table, needed by data_term.omega_str > 0 "
                              f"(re-run the observations stage)")
         strain = np.asarray(obs["strain"][...], np.float32)
     if p["similarity"] != "global" and descriptors is None:
         raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
-                         f"tables.similarity={p['similarity']!r}")
+                         f"data_term.similarity={p['similarity']!r}")
     t0 = time.perf_counter()
     targets = list(range(start, stop))
     glo = global_similarity(vertices, faces, poses, cal.depth.K, cal.depth.width,
                             cal.depth.height, targets=targets, clip_m=p["glo_clip_m"],
                             scale=p["glo_scale"])
-    log.info("tables: E_glo rows %d..%d in %.1f s", start, stop - 1, time.perf_counter() - t0)
+    log.info("data_term: E_glo rows %d..%d in %.1f s", start, stop - 1, time.perf_counter() - t0)
     K = int(p["candidates"])
     nT, nF = len(targets), len(faces)
     exact = []
     attrs = {"frame_ids": ids[start:stop], "sequence_frame_ids": ids,
              "source_frames": [int(i) for i in np.asarray(ids)[sources]]}
-    with create_store(out, "tables", attrs=attrs, params=p) as store:
+    with create_store(out, "data_term", attrs=attrs, params=p) as store:
         store.write("glo", glo.astype(np.float32))
         arrays = {name: store.create(name, (nT, nF, K))
                   for name in ("candidates", "e_glo", "e_loc", "e_qual", "e_str")}
@@ -305,5 +305,5 @@ def write_tables(scene_path, template_path, tracking_path, poses_path, observati
             exact.append(float(res["exact"].mean()))
         store.attrs["prefilter_exact"] = [round(x, 5) for x in exact]
         store.attrs["seconds"] = round(time.perf_counter() - t0, 3)
-    log.info("tables: %d targets in %.1f s; pruning provably exact for %.2f %% of (target, face)",
+    log.info("data_term: %d targets in %.1f s; pruning provably exact for %.2f %% of (target, face)",
              nT, time.perf_counter() - t0, 100 * float(np.mean(exact)))

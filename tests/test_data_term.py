@@ -6,8 +6,8 @@ from stex.camera import Calibration, Intrinsics
 from stex.io import create_store, open_store
 
 from stex.similarity import face_strain, local_similarity_faces, strain_similarity
-from stex.tables import (block_candidates, finish_candidates, prefilter_candidates, select_candidates,
-                         unary_terms, write_tables)
+from stex.data_term import (block_candidates, finish_candidates, prefilter_candidates, select_candidates,
+                         unary_terms, write_data_term)
 
 
 def test_select_candidates_lowest_ascending_padded():
@@ -213,7 +213,7 @@ def test_strain_term_prefers_the_source_with_the_targets_compression():
 
 
 def _stores(d, blur, slanted, vis):
-    """The input stores of :func:`write_tables` for a static square (2 faces) seen from 1 m, with
+    """The input stores of :func:`write_data_term` for a static square (2 faces) seen from 1 m, with
     identity poses (E_glo = 0) and the given blur_cost, slanted and face_visible (T, 2)."""
     T = len(blur)
     ids = list(range(10, 10 + T))
@@ -262,9 +262,9 @@ def test_write_tables_quality_term_and_source_stride(tmp_path):
     paths = _stores(tmp_path, blur, slanted, vis)
     for stride, want in ((1, [[1, 5], [2, 3]]), (2, [[0, 4], [0, 2]])):
         out = tmp_path / f"tables_{stride}.zarr"
-        write_tables(*paths, [0, 6], {"similarity": "global", "candidates": 2, "prefilter": 2,
+        write_data_term(*paths, [0, 6], {"similarity": "global", "candidates": 2, "prefilter": 2,
                                       "omega_str": 0.0, "source_stride": stride}, out)
-        tab = open_store(out, "tables")
+        tab = open_store(out, "data_term")
         assert tab.attrs["source_frames"] == [10, 11, 12, 13, 14, 15][::stride]
         assert (tab["glo"][...] == 0).all()
         for t in range(6):                      # E_glo = 0: the same candidates for every target

@@ -20,7 +20,7 @@ What it computes
   is per texel (Σ_t w_t(f) of its face), so normalising per face first changes nothing.
 - :func:`write_global_texture` — the ``global_texture`` pipeline stage: :func:`global_texture`
   over the source frames of the held-out protocol (sequence positions 0, k, 2k, ... with
-  k = ``tables.source_stride``, :func:`source_mask`), weighted by the projection's ``face_cos``,
+  k = ``data_term.source_stride``, :func:`source_mask`), weighted by the projection's ``face_cos``,
   written to a ``global_texture`` store that the evaluation reads.
 - :func:`projection_texture` — the naive per-frame projection: only what frame t sees, the rest
   black and uncovered (:func:`stex.dynamism.partial_texture`).
@@ -41,10 +41,10 @@ import numpy as np
 from numba import njit
 
 from stex.dynamism import _as_sampler, _load_checked, partial_texture
-from stex.tables import source_mask
+from stex.data_term import source_mask
 from stex.volume import fill_gutter
 
-log = logging.getLogger("stex.baseline")
+log = logging.getLogger("stex.global_texture")
 
 __all__ = ["global_texture", "projection_texture", "write_global_texture"]
 
@@ -145,8 +145,8 @@ def projection_texture(sampler_or_maps, xi_t, face_visible_t, image_t):
 def global_texture_params(params: dict | None = None) -> dict:
     """The settings of :func:`write_global_texture`: the schema's ``global_texture`` section
     (``min_weight``) completed with its defaults, plus ``source_stride`` (frames; not a key of
-    that section: the workflow passes ``tables.source_stride`` so that the baseline uses the
-    tables' source frames; default the ``tables`` section's default). Unknown keys and bad values
+    that section: the workflow passes ``data_term.source_stride`` so that the baseline uses the
+    data term's source frames; default the ``data_term`` section's default). Unknown keys and bad values
     raise ValueError."""
     from stex.config import section_params
 
@@ -154,8 +154,8 @@ def global_texture_params(params: dict | None = None) -> dict:
     stride = params.pop("source_stride", None)
     p = section_params("global_texture", params)
     if stride is None:
-        stride = section_params("tables", {})["source_stride"]
-    p["source_stride"] = section_params("tables", {"source_stride": stride})["source_stride"]
+        stride = section_params("data_term", {})["source_stride"]
+    p["source_stride"] = section_params("data_term", {"source_stride": stride})["source_stride"]
     return p
 
 
@@ -165,7 +165,7 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     a ``global_texture`` store.
 
     Source frames are the sequence positions 0, k, 2k, ... (k = ``params['source_stride']``, the
-    tables stage's setting, :func:`source_mask`). Each source frame t blends into the atlas with
+    data-term stage's setting, :func:`source_mask`). Each source frame t blends into the atlas with
     weight w_t(f) = projection ``face_cos[t, f]`` where ``face_visible[t, f]``; (t, f) with
     w_t(f) <= ``params['min_weight']`` are left out (:func:`global_texture`). Colours are sampled
     at the texture coordinates of ``coords_path`` (ξ or Φ, as the volume). Chart gutters are

@@ -1,5 +1,5 @@
 # Global texture: the comparison baseline of Kim et al. 2019, one texture for the whole sequence
-# blended from the source frames (the tables' source_stride), read by the evaluation.
+# blended from the source frames (the data term's source_stride), read by the evaluation.
 
 
 rule global_texture:
@@ -13,7 +13,7 @@ rule global_texture:
         directory(f"{RESULTS}/global_texture.zarr"),
     params:
         global_texture=config["global_texture"],
-        source_stride=config["tables"]["source_stride"],
+        source_stride=config["data_term"]["source_stride"],
     log:
         f"{RESULTS}/logs/global_texture.log",
     benchmark:

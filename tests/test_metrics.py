@@ -1,11 +1,11 @@
-"""Tests of stex.evaluate (the metric code of issue 7)."""
+"""Tests of stex.metrics (the metric code of issue 7)."""
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from stex import evaluate as ev
+from stex import metrics as ev
 from stex.camera import transform_points
 
 

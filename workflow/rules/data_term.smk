@@ -1,8 +1,8 @@
-# Tables: E_glo rows, E_loc of prefiltered frames, E_qual and the candidate source frames of
+# Data term: E_glo rows, E_loc of prefiltered frames, E_qual and the candidate source frames of
 # every face, one job per block of target frames.
 
 
-rule tables:
+rule data_term:
     input:
         scene=f"{RESULTS}/scene.zarr",
         template=f"{RESULTS}/template.zarr",
@@ -10,15 +10,15 @@ rule tables:
         poses=f"{RESULTS}/poses.zarr",
         observations=f"{RESULTS}/observations.zarr",
     output:
-        directory(f"{RESULTS}/tables/block_{{block}}.zarr"),
+        directory(f"{RESULTS}/data_term/block_{{block}}.zarr"),
     params:
-        tables=config["tables"],
+        data_term=config["data_term"],
         positions=block_range,
     log:
-        f"{RESULTS}/logs/tables_{{block}}.log",
+        f"{RESULTS}/logs/data_term_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/tables_{{block}}.tsv",
+        f"{RESULTS}/benchmarks/data_term_{{block}}.tsv",
     conda:
         ENV
     script:
-        "../scripts/tables.py"
+        "../scripts/data_term.py"
