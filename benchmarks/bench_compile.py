@@ -1,7 +1,7 @@
 """Benchmark the first-run numba compilation of a stage's kernels.
 
-A fresh install compiles stex's numba kernels on their first call and caches them (README, "Paper
-scale on this machine"). This times that first call, in a new interpreter with an empty
+A fresh install compiles stex's numba kernels on their first call and caches them (docs/benchmarks.md, "The
+numba kernels' first compile"). This times that first call, in a new interpreter with an empty
 ``NUMBA_CACHE_DIR`` each run, so nothing is loaded from a cache: ``--runs`` runs, median.
 
 - ``poses``: :func:`stex.poses.pose_table` on 3 frames of 200 random points (RANSAC, the inlier

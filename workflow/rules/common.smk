@@ -19,7 +19,7 @@ BLOCK_IDS = [f"{b:04d}" for b in range(len(BLOCKS))]
 ENV = "../../envs/stex.yaml"
 # Wall time (minutes) asked of a cluster by the jobs that run over the whole sequence (a local run
 # ignores it; other jobs get the profile's default). At paper scale, 265 frames: tracking 6.1,
-# texcoords 1.9, the sampling table 12.1, labeling 3.9 min (README); 240 leaves room for a few
+# texcoords 1.9, the sampling table 12.1, labeling 3.9 min (docs/paper_scale.md); 240 leaves room for a few
 # thousand frames. In the rules rather than the profile, so that it holds for prefixed rule names
 # too (workflow/dataset.smk).
 SEQUENCE_RUNTIME_MIN = 240
