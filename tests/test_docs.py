@@ -96,3 +96,77 @@ def test_readme_is_a_page_a_newcomer_reads():
     assert len(readme.splitlines()) <= 150
     for doc in re.findall(r"\]\(((?:docs|config)/[^)#]+)", readme):  # every linked doc exists
         assert (REPO / doc).exists(), doc
+
+
+def _results_page():
+    """benchmarks/results_page.py as a module (benchmarks/ is a folder of scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("results_page", REPO / "benchmarks" / "results_page.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_results_page_is_generated_from_the_recorded_runs():
+    """docs/results.md is what `python benchmarks/results_page.py` builds from docs/runs/*.json:
+    the figures it shows are the recorded runs', not typed in."""
+    rp = _results_page()
+    records = rp.load_records()
+    assert records, "no run recorded in docs/runs/"
+    assert (REPO / "docs" / "results.md").read_text() == rp.page(records), \
+        "docs/results.md is stale: python benchmarks/results_page.py"
+    demo = next(r for r in records if r["scene"] == "demo")
+    assert demo["summary"]["all"]["ours"]["psnr"]["mean"] > 0 and demo["stage_seconds"]["labeling"] > 0
+
+
+def _fake_run(root, psnr_ours=31.25):
+    """A run folder as the workflow leaves it, reduced to what a record reads: one frame block."""
+    run = root / "results" / "tiny"
+    (run / "evaluation").mkdir(parents=True)
+    (run / "benchmarks").mkdir()
+    (run / "scene.zarr").mkdir()
+    (run / "scene.zarr" / "zarr.json").write_text('{"attributes": {"frame_blocks": [[0, 6]]}}')
+    stat = {"mean": psnr_ours, "median": 31.0, "min": 30.0, "max": 33.0, "n": 6, "n_total": 6}
+    summary = {"all": {"ours": {"psnr": stat, "blur": dict(stat, mean=None, n=0)},
+                       "global": {"psnr": dict(stat, mean=28.5)}},
+               "source": {}, "held_out": {}, "n_frames": 6, "n_held_out": 0,
+               "held_out_label": "", "blur_interior_px": 3}
+    (run / "evaluation" / "evaluation.json").write_text(
+        '{"scene": "tiny", "summary": %s, "sampling": null, "libraries": {"numpy": "2.4.6"}}'
+        % __import__("json").dumps(summary))
+    head = "s\th:m:s\tmax_rss\tmax_vms\n"
+    (run / "benchmarks" / "masks_0000.tsv").write_text(head + "2.5\t0:00:02\t120.0\t900\n")
+    (run / "benchmarks" / "masks_0001.tsv").write_text(head + "99.0\t0:01:39\t999.0\t900\n")  # an older, longer run's block
+    (run / "benchmarks" / "labeling.tsv").write_text(head + "60.0\t0:01:00\t-\t900\n")
+    return run
+
+
+def test_a_record_holds_the_runs_scores_and_times(tmp_path):
+    rp = _results_page()
+    run = _fake_run(tmp_path)
+    rec = rp.record(run, machine="test machine", commit="abc")
+    assert rec["scene"] == "tiny" and rec["commit"] == "abc" and rec["machine"] == "test machine"
+    assert rec["summary"]["all"]["ours"]["psnr"] == {"mean": 31.25, "n": 6, "n_total": 6}  # means only
+    # the block the scene store does not list is left out
+    assert rec["stage_seconds"] == {"labeling": 60.0, "masks": 2.5}
+    assert rec["stage_jobs"] == {"labeling": {"jobs": 1, "max_rss_mb": None}, "masks": {"jobs": 1, "max_rss_mb": 120.0}}
+    text = rp.page([rec])
+    assert "| tiny | " in text and "31.25" in text and "28.50" in text and "| numpy | 2.4.6 |" in text
+    assert "1.00" in text  # labeling's minute in the timing table
+
+    # --add writes the record and the page; --check then passes, and fails once a score changes
+    runs, out = tmp_path / "runs", tmp_path / "results.md"
+    args = ["--runs", str(runs), "--out", str(out), "--machine", "m", "--commit", "c"]
+    assert rp.main(["--add", str(run), *args]) == 0
+    assert (runs / "tiny.json").is_file() and "31.25" in out.read_text()
+    assert rp.main(["--check", *args]) == 0
+    _fake_run(tmp_path / "again", psnr_ours=20.0)
+    assert rp.main(["--add", str(tmp_path / "again" / "results" / "tiny"), *args, "--out", str(tmp_path / "x.md")]) == 0
+    assert rp.main(["--check", *args]) == 1
+
+
+def test_a_run_without_an_evaluation_is_refused_by_name(tmp_path):
+    rp = _results_page()
+    with pytest.raises(FileNotFoundError, match="evaluation.json: no evaluation"):
+        rp.record(tmp_path)
