@@ -44,9 +44,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_labeling import gt_error, true_face_colours  # noqa: E402
 from stex.evaluation import write_evaluation  # noqa: E402
 from stex.io import open_store  # noqa: E402
-from stex.labeling import write_labels  # noqa: E402
-from stex.data_term import write_data_term  # noqa: E402
-from stex.volume import write_volume  # noqa: E402
+from stex.stages.labeling import write_labels  # noqa: E402
+from stex.stages.data_term import write_data_term  # noqa: E402
+from stex.stages.volume import write_volume  # noqa: E402
 
 # name -> (tables overrides, labeling overrides); the first is the main run's configuration
 VARIANTS = {

@@ -38,7 +38,7 @@ def main(argv=None):
     from stex.camera import Calibration
     from stex.evaluation import Atlas, score_frame, truth_views
     from stex.io import FrameSequence, open_store
-    from stex.volume import TexelSampler
+    from stex.sampling import TexelSampler
 
     R = Path(a.results)
     scene = open_store(R / "scene.zarr", "scene")

@@ -35,7 +35,8 @@ except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from stex.io import FrameSequence, open_store
-from stex.labeling import EdgeFeatures, frame_problem, labeling_inputs, write_labels
+from stex.labeling import EdgeFeatures, frame_problem
+from stex.stages.labeling import labeling_inputs, write_labels
 from stex.render import sample_bilinear
 
 
@@ -157,7 +158,7 @@ def main(argv=None):
                                           energy=float(g["energy"][-1]))
             print(name, json.dumps(res["ablations"][name]), flush=True)
     if args.prune_check:
-        from stex.data_term import write_data_term
+        from stex.stages.data_term import write_data_term
         blocks = open_store(R / "scene.zarr", "scene").attrs["frame_blocks"]
         T = vis.shape[0]
         tp = dict(open_store(sorted((R / "data_term").glob("block_*.zarr"))[0], "data_term").attrs["params"])

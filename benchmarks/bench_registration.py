@@ -68,7 +68,7 @@ def main(argv=None):
     from stex.evaluation import Atlas, frame_views, method_views, truth_views
     from stex.io import FrameSequence, open_store
     from stex.template import transfer_vertices
-    from stex.volume import TexelSampler
+    from stex.sampling import TexelSampler
 
     R = a.results
     scene = open_store(R / "scene.zarr", "scene")

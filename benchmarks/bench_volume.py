@@ -109,7 +109,8 @@ def _labels(V, F, n_patches, n_frames, rng):
 
 
 def run_volume(args):
-    from stex.volume import TexelSampler, volume_slice
+    from stex.sampling import TexelSampler
+    from stex.volume import volume_slice
 
     d = _atlas(args.size, args.gutter)
     rng = np.random.default_rng(0)

@@ -96,7 +96,7 @@ label-dependent, so this solve runs scipy CG on (A + D) preconditioned by the *f
 hierarchy of A (still no per-slice setup). Default μ: ``temporal_length`` = 1/256 of the atlas
 side; ``temporal_length=None`` disables it.
 
-After the solve the gutter is re-filled from the corrected texels (:func:`stex.volume.fill_gutter`).
+After the solve the gutter is re-filled from the corrected texels (:func:`stex.sampling.fill_gutter`).
 """
 
 from __future__ import annotations
@@ -108,12 +108,12 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
-from stex.volume import fill_gutter
+from stex.sampling import fill_gutter
+from stex.template import face_adjacency, texel_map, uv_charts
 
 log = logging.getLogger("stex.correction")
 
-__all__ = ["CorrectionSystem", "label_boundary_step", "interior_change", "seam_step",
-           "write_corrected"]
+__all__ = ["CorrectionSystem", "label_boundary_step", "interior_change", "seam_step"]
 
 
 BOUNDARY_GRADIENTS = ("zero", "one_sided")
@@ -215,6 +215,7 @@ class _Graph:
         solve a system of their own, so a block of such slices never needs it (about 2 s for
         the demo's 558k unknowns)."""
         if self._ml is None:
+            # pyamg is slow to import; only the solve needs it
             import pyamg
 
             t0 = time.perf_counter()
@@ -301,7 +302,7 @@ class _Graph:
         if kept is not None and kept.any():
             # c = 0 on the kept unknowns: the system of the free ones (their coupling to the kept
             # ones only leaves the diagonal), with an AMG hierarchy of its own, since which
-            # unknowns are free changes with every slice
+            # unknowns are free changes with every slice (pyamg is imported here: slow to import)
             import pyamg
 
             idx = np.flatnonzero(~kept)
@@ -524,8 +525,6 @@ class CorrectionSystem:
                  temporal_length: float | None = 1 / 256, tol: float = 1e-4, maxiter: int = 50,
                  gutter_px: int = 4, amg_kwargs: dict | None = None,
                  boundary_gradient: str = "one_sided", keep_own_frame: bool = True):
-        from stex.template import face_adjacency, texel_map, uv_charts
-
         tf = np.asarray(texel_face)
         if tf.ndim != 2 or tf.shape[0] != tf.shape[1]:
             raise ValueError(f"texel_face must be (W, W), got {tf.shape}")
@@ -699,7 +698,7 @@ def interior_change(before, after, label_map, margin: int) -> float:
     """Mean absolute change (grey levels, channel mean) over labelled texels farther than
     ``margin`` texels (chessboard) from any label boundary (a 4-neighbour of another label,
     including -1: unlabelled texels, gutter). NaN if there is none."""
-    from scipy import ndimage
+    from scipy import ndimage  # only this metric needs scipy.ndimage, slow to import
 
     lm = np.asarray(label_map)
     bnd = np.zeros(lm.shape, bool)
@@ -727,71 +726,3 @@ def seam_step(image, system: CorrectionSystem) -> float:
         return float("nan")
     f = np.asarray(image, np.float64).reshape(-1, 3)[g.index]
     return float(np.abs(g.S @ f).mean())
-
-
-# --------------------------------------------------------------------------------------------
-# the stage writer
-# --------------------------------------------------------------------------------------------
-
-def write_corrected(template_path, volume_path, params: dict, out, previous_path=None) -> None:
-    """Correction stage for one block: write a ``corrected`` store from a ``volume`` store.
-
-    Args:
-        template_path: ``template`` store (atlas, adjacency, charts).
-        volume_path: the block's ``volume`` store (texture, label_map).
-        params: the ``correction`` config section.
-        out: path of the store.
-        previous_path: the previous block's ``corrected`` store; with the temporal coupling on,
-            its last slice is the first slice's ``previous`` (blocks then run in sequence).
-    """
-    from stex.config import section_params
-    from stex.io import create_store, open_store
-    from stex.template import check_atlas
-
-    p = section_params("correction", params)
-    template = open_store(template_path, "template")
-    volume = open_store(volume_path, "volume")
-    digest = check_atlas([(volume_path, volume)], template, template_path)
-    ids = list(volume.attrs["frame_ids"])
-    temporal = p["temporal_length"] if p["temporal"] else None
-    W = int(template.attrs["atlas_size"])
-    factor = max(1, W // int(p["solve_size"]))
-    if W % factor:
-        raise ValueError(f"correction.solve_size {p['solve_size']}: atlas side {W} is not divisible "
-                         f"by the factor {factor}")
-    t0 = time.perf_counter()
-    system = CorrectionSystem(
-        template["texel/face_id"][...], template["texcoords"][...],
-        template["texcoord_faces"][...], template["faces"][...],
-        template["adjacency/pairs"][...], template["adjacency/edges"][...],
-        template["face_chart"][...], factor=factor, screen_length=p["screen_length"],
-        seam_weight=p["seam_weight"], temporal_length=temporal, tol=p["tol"],
-        boundary_gradient=p["boundary_gradient"], keep_own_frame=p["keep_own_frame"],
-        gutter_px=int(volume.attrs["gutter_px"]))
-    log.info("correction: system of %d unknowns built in %.1f s", system.n_unknowns,
-             time.perf_counter() - t0)
-    prev = None
-    if temporal is not None and previous_path is not None:
-        previous = open_store(previous_path, "corrected")
-        check_atlas([(previous_path, previous)], template, template_path)
-        prev = previous["texture"][-1]
-    W = system.W
-    attrs = {"frame_ids": ids, "gutter_px": int(volume.attrs["gutter_px"]),
-             "atlas_digest": digest}
-    first = int(volume.attrs["first_position"])
-    chart = (system.texel_face, system.face_chart)
-    steps = []
-    with create_store(out, "corrected", attrs=attrs, params=p) as store:
-        a_tex = store.create("texture", (len(ids), W, W, 3))
-        for k, fid in enumerate(ids):
-            tex = volume["texture"][k]
-            lm = np.asarray(volume["label_map"][k], np.int32)
-            # labels are sequence positions: texels labelled with the slice's own are not borrowed
-            res = system.correct(tex, lm, previous=prev, frame=first + k)
-            a_tex[k] = res
-            prev = res if temporal is not None else None
-            steps.append([round(label_boundary_step(tex, lm, *chart), 4),
-                          round(label_boundary_step(res, lm, *chart), 4)])
-            log.info("correction: slice %d (%d/%d) %.2f s, label-boundary step %.2f -> %.2f",
-                     fid, k + 1, len(ids), system.last_stats["total_s"], steps[-1][0], steps[-1][1])
-        store.attrs["label_boundary_step"] = steps

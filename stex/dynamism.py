@@ -78,7 +78,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from stex.volume import TexelSampler
+from stex.image import grey
+from stex.sampling import as_sampler, checked_frame
 
 log = logging.getLogger("stex.dynamism")
 
@@ -86,7 +87,6 @@ __all__ = [
     "THETA_OMEGA",
     "AUTHORS_STATIC_THETA",
     "partial_texture",
-    "grey",
     "ssim_window_radius",
     "face_ssim",
     "dynamism_rows",
@@ -114,26 +114,15 @@ _MODES = ("paper", "authors")
 # partial textures
 # --------------------------------------------------------------------------------------------
 
-def _as_sampler(sampler_or_maps) -> TexelSampler:
-    if isinstance(sampler_or_maps, TexelSampler):
-        return sampler_or_maps
-    try:
-        texel_face, texel_bary, faces = sampler_or_maps
-    except (TypeError, ValueError):
-        raise ValueError("sampler_or_maps must be a stex.volume.TexelSampler or a tuple "
-                         "(texel_face (W, W), texel_bary (W, W, 3), faces (F, 3))") from None
-    return TexelSampler(texel_face, texel_bary, faces)
-
-
 def partial_texture(sampler_or_maps, xi_t, face_visible_t, image_t):
     """The visible part of one frame copied into the atlas (the paper's incomplete texture slice).
 
     Every texel of a face visible at t takes the colour of frame t's image at the position
     interpolated from ξ_t over the face's corners (bilinear lookup, as the texture volume:
-    :meth:`stex.volume.TexelSampler.slice`); all other texels are black and not covered.
+    :meth:`stex.sampling.TexelSampler.slice`); all other texels are black and not covered.
 
     Args:
-        sampler_or_maps: a :class:`stex.volume.TexelSampler` of the atlas (build it once for a
+        sampler_or_maps: a :class:`stex.sampling.TexelSampler` of the atlas (build it once for a
             sequence), or a tuple (texel_face (W, W) int, texel_bary (W, W, 3) float, faces (F, 3) int).
         xi_t: (V, 2) float colour-image coordinates of the vertices at t (px; u column, v row;
             integer = pixel centre). Non-finite rows leave their faces' texels uncovered.
@@ -144,7 +133,7 @@ def partial_texture(sampler_or_maps, xi_t, face_visible_t, image_t):
         (texture (W, W, 3) uint8, 0 where not covered; covered (W, W) bool, texels sampled from
         frame t).
     """
-    sampler = _as_sampler(sampler_or_maps)
+    sampler = as_sampler(sampler_or_maps)
     vis = np.asarray(face_visible_t)
     if vis.shape != (len(sampler.faces),):
         raise ValueError(f"face_visible_t must have shape ({len(sampler.faces)},), got {vis.shape}")
@@ -166,20 +155,6 @@ def partial_texture(sampler_or_maps, xi_t, face_visible_t, image_t):
 # --------------------------------------------------------------------------------------------
 # SSIM per face
 # --------------------------------------------------------------------------------------------
-
-_GREY = np.array([0.299, 0.587, 0.114], np.float64)
-
-
-def grey(image) -> np.ndarray:
-    """(H, W) float64 grey levels of an (H, W, 3) RGB or (H, W) image, in the input's units
-    (0..255 for uint8, unchanged scale for float): 0.299 R + 0.587 G + 0.114 B."""
-    a = np.asarray(image)
-    if a.ndim == 2:
-        return a.astype(np.float64)
-    if a.ndim != 3 or a.shape[2] != 3:
-        raise ValueError(f"image must be (H, W, 3) RGB or (H, W) grey, got {a.shape}")
-    return a.astype(np.float64) @ _GREY
-
 
 def ssim_window_radius(sigma: float) -> int:
     """Radius (texels) of scikit-image's Gaussian SSIM window: int(3.5 sigma + 0.5)."""
@@ -275,6 +250,7 @@ def face_ssim(tex_a, covered_a, tex_b, covered_b, texel_face, n_faces: int, data
     valid = _erode(ca & cb & (tf >= 0), r)
     smap = np.full((W, W), np.nan, np.float32)
     if valid.any():
+        # scikit-image is slow to import and only the SSIM needs it
         from skimage.metrics import structural_similarity
 
         # only the bounding box of the valid texels (plus a margin wider than the window)
@@ -314,18 +290,6 @@ def face_ssim(tex_a, covered_a, tex_b, covered_b, texel_face, n_faces: int, data
 # the table
 # --------------------------------------------------------------------------------------------
 
-def _load_checked(load, t, n_faces):
-    out = load(t)
-    try:
-        image, xi, vis = out
-    except (TypeError, ValueError):
-        raise ValueError(f"load({t}) must return (image, xi_t, face_visible_t)") from None
-    vis = np.asarray(vis)
-    if vis.shape != (n_faces,):
-        raise ValueError(f"frame {t}: face_visible_t must have shape ({n_faces},), got {vis.shape}")
-    return image, xi, vis.astype(np.bool_, copy=False)
-
-
 def dynamism_rows(load: Callable, frames, sampler_or_maps, data_range=None, sigma: float = 1.5,
                   erode_px: int | None = None, mode: str = "paper", min_map: np.ndarray | None = None,
                   progress: bool = False):
@@ -348,7 +312,7 @@ def dynamism_rows(load: Callable, frames, sampler_or_maps, data_range=None, sigm
     Returns:
         (len(frames), F) float32.
     """
-    sampler = _as_sampler(sampler_or_maps)
+    sampler = as_sampler(sampler_or_maps)
     frames = np.asarray(list(frames), np.int64)
     F = len(sampler.faces)
     if frames.size == 0:
@@ -361,11 +325,11 @@ def dynamism_rows(load: Callable, frames, sampler_or_maps, data_range=None, sigm
     if min_map is not None and (min_map.shape != tf.shape or min_map.dtype != np.float32):
         raise ValueError(f"min_map must be {tf.shape} float32, got {min_map.shape} {min_map.dtype}")
     out = np.empty((len(frames), F), np.float32)
-    img, xi, vis = _load_checked(load, int(frames[0]) - 1, F)
+    img, xi, vis = checked_frame(load, int(frames[0]) - 1, F)
     prev = partial_texture(sampler, xi, vis, img)
     t0 = time.perf_counter()
     for i, t in enumerate(frames):
-        img, xi, vis = _load_checked(load, int(t), F)
+        img, xi, vis = checked_frame(load, int(t), F)
         cur = partial_texture(sampler, xi, vis, img)
         del img  # one colour image in memory at a time
         res = face_ssim(prev[0], prev[1], cur[0], cur[1], tf, F, data_range=data_range, sigma=sigma,
@@ -401,7 +365,7 @@ def dynamism_table(load: Callable, n_frames: int, sampler_or_maps, data_range=No
     Args:
         load: ``load(t) -> (image (Hc, Wc, 3) uint8, xi_t (V, 2) float px, face_visible_t (F,) bool)``.
         n_frames: T.
-        sampler_or_maps: the atlas at the SSIM resolution (:class:`stex.volume.TexelSampler` or
+        sampler_or_maps: the atlas at the SSIM resolution (:class:`stex.sampling.TexelSampler` or
             (texel_face, texel_bary, faces)); e.g. ``stex.template.texel_map(texcoords,
             texcoord_faces, 512)``.
         data_range, sigma, erode_px, mode: as :func:`face_ssim`.
@@ -412,7 +376,7 @@ def dynamism_table(load: Callable, n_frames: int, sampler_or_maps, data_range=No
     Returns:
         S (T, F) float32, and with ``return_min_map`` the minimum map.
     """
-    sampler = _as_sampler(sampler_or_maps)
+    sampler = as_sampler(sampler_or_maps)
     T = int(n_frames)
     if T < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
@@ -420,7 +384,7 @@ def dynamism_table(load: Callable, n_frames: int, sampler_or_maps, data_range=No
     min_map = np.ones((sampler.W, sampler.W), np.float32) if return_min_map else None
     S = np.full((T, F), np.nan, np.float32)
     if T == 1:
-        _load_checked(load, 0, F)  # still validate the one frame
+        checked_frame(load, 0, F)  # still validate the one frame
     else:
         S[1:] = dynamism_rows(load, range(1, T), sampler, data_range=data_range, sigma=sigma,
                               erode_px=erode_px, mode=mode, min_map=min_map, progress=progress)

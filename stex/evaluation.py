@@ -20,7 +20,7 @@ What it computes
   :func:`frame_views`, :func:`method_views` — the pieces of :func:`score_frame`, for callers
   that score other images.
 - :func:`write_evaluation` — the stage: reads the Kim 2019 global texture over the source
-  frames (the ``global_texture`` store, :func:`stex.global_texture.write_global_texture`), builds the
+  frames (the ``global_texture`` store, :func:`stex.stages.global_texture.write_global_texture`), builds the
   naive per-frame projection baseline, scores ``ours`` (corrected volume),
   ``ours_uncorrected`` (volume), ``global`` and ``projection`` on the chosen frames, temporal
   flicker in borrowed regions, and writes ``evaluation.json``, one CSV per table, ``tables.rst``
@@ -960,9 +960,9 @@ class _Inputs:
                  projection_path, labels_path, volume_paths, corrected_paths, params, *,
                  global_texture_path, truth_paths, coords_path, data_term_paths, frames, block):
         from stex.io import FrameSequence, StoreError, open_store
-        from stex.observations import open_coordinates
+        from stex.stages.observations import open_coordinates
         from stex.template import check_atlas
-        from stex.volume import TexelSampler
+        from stex.sampling import TexelSampler
 
         self.p = p = evaluation_params(params)
         self.scene_path, self.template_path = scene_path, template_path
@@ -1356,7 +1356,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
             (``ours_uncorrected`` / ``ours``).
         params: the evaluation settings (:func:`evaluation_params`).
         global_texture_path: (keyword, required) ``global_texture`` store, the ``global``
-            method (:func:`stex.global_texture.write_global_texture`: texture (W, W, 3) uint8,
+            method (:func:`stex.stages.global_texture.write_global_texture`: texture (W, W, 3) uint8,
             face_textured (F,) bool, attrs source_frames and seconds); its source frames must be
             the tables' source frames.
         truth_paths: ``truth`` block stores (synthetic scenes) -> ground-truth scores and flicker.
@@ -1371,7 +1371,7 @@ def write_evaluation(scene_path, frames_paths, masks_paths, template_path, track
         records_paths: :func:`score_frames` files whose records together cover the frames to
             score (checked: same settings, frames and sources): merged instead of scoring here.
         timing: ``{stage: seconds}`` for the timing table, or None.
-        sampling_path: :func:`stex.texcoords.write_sampling_table`'s JSON -> the paper's
+        sampling_path: :func:`stex.stages.texcoords.write_sampling_table`'s JSON -> the paper's
             sampling table (``sampling`` in ``evaluation.json``, ``table_sampling.csv``), or None.
         threads: frames scored at once (runs of consecutive frames, one per thread); the
             result does not depend on it.
@@ -1739,6 +1739,6 @@ def _picture_side_by_side(path, t, ids, photos, masks, textures, V, atlas, cal, 
 def _picture_label_map(path, label_map, frame_id):
     from PIL import Image
 
-    from stex.volume import label_colors
+    from stex.sampling import label_colors
 
     Image.fromarray(label_colors(np.asarray(label_map))).save(path)

@@ -26,20 +26,16 @@ touch an image again:
   every data_term block.
 
 Texture coordinates are the optimised ξ of the ``texcoords`` store when the workflow runs that
-stage, or Φ of the ``projection`` store otherwise (:func:`open_coordinates`).
+stage, or Φ of the ``projection`` store otherwise (:func:`stex.stages.observations.open_coordinates`).
 
 Angle rule. The paper writes χ_θn(1 − n·c) with θ_n = 0.3, i.e. a face is slanted when
 cos ≤ 0.7; the authors' code tests cos ≤ 0.3 (``official_code_notes.md`` §2.4). Both are offered
-(``angle_rule: paper | authors``); the default is the authors' rule: on the demo scene the paper's
-flags 67 % of the visible (frame, face) pairs as slanted, which drives labels away from the target
-frame and raised the ground-truth error of the labeling from 3.14 to 4.38 grey levels
-(``benchmarks/bench_labeling.py``).
+(``angle_rule: paper | authors``); the default is the authors' rule: the paper's flags most
+visible (frame, face) pairs of the demo as slanted, which drives labels away from the target
+frame (docs/decisions/observations.md).
 """
 
 from __future__ import annotations
-
-import logging
-import time
 
 import numpy as np
 from numba import njit
@@ -47,24 +43,13 @@ from numba import njit
 from stex.render import bilinear_taps
 from stex.texcoords import SAMPLE_BARY
 
-log = logging.getLogger("stex.observations")
-
 __all__ = ["EDGE_SAMPLES", "PAPER_COLOR_WIDTH", "BLUR_RULES", "UNSEEN_NEIGHBOURS",
-           "theta_b_for_width", "grey", "face_samples", "edge_samples", "face_motion",
-           "blurred_faces", "blur_cost",
-           "slanted_faces", "open_coordinates", "write_observations"]
+           "theta_b_for_width", "face_samples", "edge_samples", "face_motion",
+           "blurred_faces", "blur_cost", "slanted_faces"]
 
 #: samples along a shared edge (the authors' e_samnum = 9, at s/8)
 EDGE_SAMPLES = 9
 ANGLE_RULES = ("paper", "authors")
-
-
-def grey(image: np.ndarray) -> np.ndarray:
-    """(H, W) float32 luma (ITU-R 601 weights, 0..255) of an (H, W, 3) uint8 RGB image."""
-    img = np.asarray(image)
-    if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"image must be (H, W, 3) RGB, got shape {img.shape}")
-    return (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]).astype(np.float32)
 
 
 @njit(cache=True, nogil=True)
@@ -111,7 +96,7 @@ def face_samples(grey_image, coords, faces, face_visible, n_samples: int = 15) -
     """Grey values at the 15 barycentric samples of every visible face.
 
     Args:
-        grey_image: (H, W) float grey image (0..255), e.g. :func:`grey`.
+        grey_image: (H, W) float grey image (0..255), e.g. :func:`stex.image.grey_float32`.
         coords: (V, 2) texture coordinates of the vertices on that image (px, u column, v row,
             integer = pixel centre), ξ or Φ.
         faces: (F, 3) int triangles.
@@ -282,117 +267,3 @@ def slanted_faces(face_cos, theta_n: float = 0.3, rule: str = "paper") -> np.nda
     if rule == "authors":
         return cos <= theta_n
     raise ValueError(f"angle_rule must be one of {ANGLE_RULES}, got {rule!r}")
-
-
-def open_coordinates(path):
-    """The texture coordinates the later stages use: ``(coords, valid, kind)``.
-
-    ``coords`` (T, V, 2) px and ``valid`` (T, V) bool are zarr arrays (read per frame): ξ and
-    ``valid`` of a ``texcoords`` store, or Φ and ``vertex_visible`` of a ``projection`` store.
-    """
-    import zarr
-
-    from stex.io import open_store
-
-    kind = zarr.open_group(str(path), mode="r").attrs.get("stex_artifact")
-    if kind == "texcoords":
-        g = open_store(path, "texcoords")
-        return g["xi"], g["valid"], kind
-    if kind == "projection":
-        g = open_store(path, "projection")
-        return g["phi"], g["vertex_visible"], kind
-    raise ValueError(f"{path}: expected a 'texcoords' or 'projection' store, found {kind!r}")
-
-
-def write_observations(template_path, tracking_path, projection_path, coords_path, frames_paths,
-                       params: dict, out) -> None:
-    """Observations stage: write the ``observations`` store (one pass over the colour frames).
-
-    Args:
-        template_path: ``template`` store (faces, adjacency, atlas).
-        tracking_path: ``tracking`` store (vertices [T, V, 3], for the SHOT descriptors and the
-            strain).
-        projection_path: ``projection`` store (face visibility and cosines).
-        coords_path: ``texcoords`` store (ξ) or the ``projection`` store itself (Φ).
-        frames_paths: ``frames`` block stores (colour images, read one frame at a time).
-        params: the ``observations`` config section.
-        out: path of the store to write.
-    """
-    from stex.config import section_params
-    from stex.dynamism import face_ssim, partial_texture
-    from stex.io import FrameSequence, create_store, open_store
-    from stex.similarity import face_strain, geodesic_neighbourhoods, mesh_resolution, shot_descriptors
-    from stex.template import texel_map
-    from stex.volume import TexelSampler
-
-    p = section_params("observations", params)
-    template = open_store(template_path, "template")
-    projection = open_store(projection_path, "projection")
-    faces = np.asarray(template["faces"][...], np.int64)
-    edges = np.asarray(template["adjacency/edges"][...], np.int64)
-    ids = list(projection.attrs["frame_ids"])
-    coords, valid, kind = open_coordinates(coords_path)
-    if coords.shape[0] != len(ids):
-        raise ValueError(f"{coords_path}: {coords.shape[0]} frames, {projection_path}: {len(ids)}")
-    frames = FrameSequence(list(frames_paths), "frames")
-    missing = [f for f in ids if f not in frames._where]
-    if missing:
-        raise ValueError(f"frames stores hold no colour image for frames {missing[:5]}")
-    T, nF, nE = len(ids), faces.shape[0], edges.shape[0]
-    face_visible = np.asarray(projection["face_visible"][...], bool)
-    face_cos = np.asarray(projection["face_cos"][...], np.float32)
-    centroids = np.empty((T, nF, 2))
-    verts = open_store(tracking_path, "tracking")["vertices"]
-    if verts.shape[0] != T:
-        raise ValueError(f"{tracking_path}: {verts.shape[0]} frames, {projection_path}: {T}")
-    t0 = time.perf_counter()
-    rest = np.asarray(template["vertices"][...], np.float64)
-    radius = float(p["shot_radius"]) * mesh_resolution(rest, faces)
-    nbh = geodesic_neighbourhoods(rest, faces, radius)      # fixed topology: once per sequence
-    small = texel_map(template["texcoords"][...], template["texcoord_faces"][...], int(p["ssim_size"]))
-    ssim_sampler = TexelSampler(small[0], small[1], faces)
-    log.info("observations: SHOT radius %.1f mm (%d neighbours per vertex on average), SSIM at "
-             "%d², set up in %.1f s", 1000 * radius, len(nbh[1]) // max(len(rest), 1),
-             int(p["ssim_size"]), time.perf_counter() - t0)
-    previous = None
-    attrs = {"frame_ids": ids, "coordinates": kind}
-    with create_store(out, "observations", attrs=attrs, params=p) as store:
-        a_face = store.create("face_samples", (T, nF, len(SAMPLE_BARY)))
-        a_edge = store.create("edge_samples", (T, nE, EDGE_SAMPLES))
-        a_dyn = store.create("dynamism", (T, nF))
-        a_desc = store.create("descriptors", (T, verts.shape[1], 352))
-        for k, fid in enumerate(ids):
-            xy = np.asarray(coords[k], np.float64)
-            ok = np.asarray(valid[k], bool)
-            color = frames.read("color", fid)
-            width = color.shape[1]
-            g = grey(color)
-            a_face[k] = face_samples(g, xy, faces, face_visible[k])
-            a_edge[k] = edge_samples(g, xy, edges, ok)
-            centroids[k] = face_centroids(xy, faces)
-            current = partial_texture(ssim_sampler, xy, face_visible[k], color)
-            if previous is not None:
-                a_dyn[k] = face_ssim(*previous, *current, small[0], nF)
-                if k == 1:          # frame 0 has no predecessor: its row copies row 1
-                    a_dyn[0] = a_dyn[1]
-            elif T == 1:
-                a_dyn[0] = np.full(nF, np.nan, np.float32)
-            previous = current
-            a_desc[k] = shot_descriptors(np.asarray(verts[k], np.float64), faces, nbh, radius).astype(np.float16)
-            if (k + 1) % 20 == 0 or k + 1 == T:
-                log.info("observations: frame %d (%d/%d, %.1f frames/s)", fid, k + 1, T,
-                         (k + 1) / (time.perf_counter() - t0))
-        theta_b = theta_b_for_width(p["theta_b_px"], width)
-        motion = face_motion(centroids, face_visible, p["unseen_neighbours"])
-        blurred = blur_cost(motion, face_visible, theta_b, "step") > 0   # for its fraction only
-        slanted = slanted_faces(face_cos, p["theta_n"], p["angle_rule"]) & face_visible
-        store.write("strain", face_strain(verts[...], rest, faces, int(p["strain_rings"])))
-        store.write("face_visible", face_visible)
-        store.create("motion", motion.shape)[...] = motion      # NaN = unknown, by design
-        store.write("blur_cost", blur_cost(motion, face_visible, theta_b, p["blur_rule"],
-                                           p["blur_cap"]))
-        store.write("slanted", slanted)
-        n_vis = max(int(face_visible.sum()), 1)
-        store.attrs["theta_b_px"] = theta_b
-        store.attrs["fractions"] = {"blurred": round(float(blurred.sum()) / n_vis, 5),
-                                    "slanted": round(float(slanted.sum()) / n_vis, 5)}

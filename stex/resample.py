@@ -232,7 +232,7 @@ class AtlasTransfer:
         """(W, W, 3) uint8: ``texture`` ((S, S, 3) uint8 in the other layout) in the run's atlas;
         texels that read nothing are black, and the run's gutter is filled from its charts."""
         from stex.template import texel_map
-        from stex.volume import fill_gutter
+        from stex.sampling import fill_gutter
 
         tex = np.asarray(texture)
         if tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or tex.shape[0] != tex.shape[1]:

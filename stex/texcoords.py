@@ -71,9 +71,9 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   residuals and weights as 'jacobi', but each photometric residual with its true Jacobian
   β_k g_t ∇C for every corner k, so corners j, k of a face are coupled by β_j β_k g_t² ∇C∇Cᵀ; the
   edge term adds the graph-Laplacian-like blocks. Per (frame, face) 6×6 blocks come from a numba
-  kernel (:func:`_face_blocks_kernel`) and are summed into one CSC matrix per frame through a
+  kernel (:func:`face_blocks_kernel`) and are summed into one CSC matrix per frame through a
   pattern built once per level; (H + λ (diag H + mean diag H) + 1e-4 I) δ = −g is solved by
-  SuperLU (:class:`_SparseSystems`). Levenberg–Marquardt: λ starts at ``lm_lambda`` each level,
+  SuperLU (:class:`SparseSystems`). Levenberg–Marquardt: λ starts at ``lm_lambda`` each level,
   follows Nielsen's rule on the gain ratio (actual / model decrease) after an accepted step and
   doubles (×2, ×4, ...) after a rejected one, up to ``backtracks`` re-solves. The step is clamped,
   gauge-projected and kept in the crop as above, and accepted only if neither E nor the objective
@@ -169,13 +169,14 @@ import numpy as np
 from numba import njit, prange
 
 from stex.config import section_params
+from stex.photometric import (PhotometricTerm, SparseSystems, edge_energy, face_blocks_kernel,
+                              gauge_weights, jacobi_step_kernel, vertex_used)
 
 log = logging.getLogger("stex.texcoords")
 
 __all__ = ["SAMPLE_BARY", "CropStack", "build_stack", "keyframe_positions",
            "interpolate_displacements", "photometric_energy", "optimize_level",
-           "optimize_texcoords", "write_texcoords", "texcoords_params", "displacement_picture",
-           "stage_inputs", "final_energy", "sampling_table", "write_sampling_table"]
+           "optimize_texcoords", "texcoords_params", "final_energy", "sampling_table"]
 
 #: the authors' 15 barycentric samples per face (Optimizer.cu L5-7), rows (w0, w1, w2)
 SAMPLE_BARY = np.array([
@@ -183,8 +184,6 @@ SAMPLE_BARY = np.array([
     (.5, .5, 0), (0, .5, .5), (.5, 0, .5), (.2, .2, .6), (.6, .2, .2), (.2, .6, .2),
     (.1, .5, .4), (.5, .4, .1), (.4, .1, .5)], dtype=np.float64)
 
-#: texcoords.face_photometric modes, in the order of the kernels' integer code
-FACE_PHOTOMETRIC = ("none", "offset", "affine")
 
 
 def texcoords_params(params: dict | None) -> dict:
@@ -289,357 +288,6 @@ def build_stack(load, frames, xi, valid, margin: int, width: int, height: int) -
                      arr[:, 0].copy(), arr[:, 1].copy(), 0)
 
 
-# --------------------------------------------------------------------------------------------
-# numba kernels
-# --------------------------------------------------------------------------------------------
-
-@njit(cache=True, nogil=True, inline="always")
-def _bilerp(buf, off, h, w, x, y):
-    x = min(max(x, 0.0), w - 1.0)
-    y = min(max(y, 0.0), h - 1.0)
-    c0 = int(x)
-    r0 = int(y)
-    c1 = min(c0 + 1, w - 1)
-    r1 = min(r0 + 1, h - 1)
-    a = x - c0
-    b = y - r0
-    return ((1.0 - a) * (1.0 - b) * buf[off + r0 * w + c0] + a * (1.0 - b) * buf[off + r0 * w + c1]
-            + (1.0 - a) * b * buf[off + r1 * w + c0] + a * b * buf[off + r1 * w + c1])
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _grad(buf, off, h, w, u, v, g):
-    """g · ∇C at (u, v): central differences of bilinear lookups 1 px apart (grey levels / px)."""
-    gx = 0.5 * g * (_bilerp(buf, off, h, w, u + 1.0, v) - _bilerp(buf, off, h, w, u - 1.0, v))
-    gy = 0.5 * g * (_bilerp(buf, off, h, w, u, v + 1.0) - _bilerp(buf, off, h, w, u, v - 1.0))
-    return gx, gy
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _edge_vectors(xi, phi, k, va, vb):
-    """(ξ_a − ξ_b, Φ_a − Φ_b) components (ex, ey, px, py) of the edge (va, vb) at frame k."""
-    return (xi[k, va, 0] - xi[k, vb, 0], xi[k, va, 1] - xi[k, vb, 1],
-            phi[k, va, 0] - phi[k, vb, 0], phi[k, va, 1] - phi[k, vb, 1])
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _sample_pos(bary, s, xi, k, faces, f, x0, y0):
-    """Crop-pixel position (u, v) of sample ``s`` of face ``f`` in frame ``k`` (through ξ)."""
-    a = faces[f, 0]
-    b = faces[f, 1]
-    c = faces[f, 2]
-    u = bary[s, 0] * xi[k, a, 0] + bary[s, 1] * xi[k, b, 0] + bary[s, 2] * xi[k, c, 0] - x0[k]
-    v = bary[s, 0] * xi[k, a, 1] + bary[s, 1] * xi[k, b, 1] + bary[s, 2] * xi[k, c, 1] - y0[k]
-    return u, v
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _sample_kernel(buf, mbuf, off, hh, ww, x0, y0, xi, faces, pk, pf, bary, C, inside):
-    """C[q, s] = C_k(p) (grey levels, float32) and inside[q, s] = foreground mask ≥ 0.999 at p, for
-    every visible (frame, face) pair q = (pk[q], pf[q]) and sample s (bilinear in the crops)."""
-    Q = pk.shape[0]
-    S = bary.shape[0]
-    for q in prange(Q):
-        k = pk[q]
-        f = pf[q]
-        o = off[k]
-        h = hh[k]
-        w = ww[k]
-        for s in range(S):
-            u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-            C[q, s] = _bilerp(buf, o, h, w, u, v)
-            inside[q, s] = _bilerp(mbuf, o, h, w, u, v) >= 0.999
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _proxy_kernel(C, inside, order, fstart, pk, wq, gain, bg_weight, proxy):
-    """proxy[f, s] = Σ_q w·g_k·C[q, s] / Σ_q w over the pairs q = order[fstart[f]:fstart[f + 1]] of
-    face f (0 if none), w = wq[q] (face cosine × robust weight) × (1 inside the mask, bg_weight
-    outside), g_k = gain[pk[q]]."""
-    nF = proxy.shape[0]
-    S = proxy.shape[1]
-    for f in prange(nF):
-        num = np.zeros(S)
-        den = np.zeros(S)
-        for i in range(fstart[f], fstart[f + 1]):
-            q = order[i]
-            w = wq[q]
-            gw = w * gain[pk[q]]
-            for s in range(S):
-                if inside[q, s]:
-                    num[s] += gw * C[q, s]
-                    den[s] += w
-                else:
-                    num[s] += bg_weight * gw * C[q, s]
-                    den[s] += bg_weight * w
-        for s in range(S):
-            proxy[f, s] = num[s] / den[s] if den[s] > 0 else 0.0
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _face_err_kernel(C, pk, pf, gain, proxy, face_model, out):
-    """out[q] = Σ_s (a·g_k·C[q, s] − P[pf[q], s] − m)² (grey levels²), (a, m) the pair's fit by
-    ``face_model`` (:func:`_face_fit`; (1, 0) for 'none')."""
-    Q = C.shape[0]
-    S = C.shape[1]
-    for q in prange(Q):
-        g = gain[pk[q]]
-        f = pf[q]
-        a, m = _face_fit(C, q, f, g, proxy, face_model)
-        e = 0.0
-        for s in range(S):
-            r = a * g * C[q, s] - proxy[f, s] - m
-            e += r * r
-        out[q] = e
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _face_fit(C, q, f, g, proxy, face_model):
-    """(a, m) of the residuals a·g·C_s − P_s − m of pair q (face f) by ``face_photometric``
-    (index in FACE_PHOTOMETRIC): none (1, 0); offset: m their mean; affine: also a, the
-    least-squares contrast of the face's samples to the proxy's, clamped to [0.5, 2]."""
-    S = C.shape[1]
-    if face_model == 0:
-        return 1.0, 0.0
-    a = 1.0
-    if face_model == 2:
-        xm = 0.0
-        ym = 0.0
-        for s in range(S):
-            xm += g * C[q, s]
-            ym += proxy[f, s]
-        xm /= S
-        ym /= S
-        sxy = 0.0
-        sxx = 0.0
-        for s in range(S):
-            dx = g * C[q, s] - xm
-            sxy += dx * (proxy[f, s] - ym)
-            sxx += dx * dx
-        if sxx > 1e-9:
-            a = min(max(sxy / sxx, 0.5), 2.0)
-    m = 0.0
-    for s in range(S):
-        m += a * g * C[q, s] - proxy[f, s]
-    return a, m / S
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _gn_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, fvis, omega, gain, bary, proxy, C, qs,
-               edge_w, edge_vec, clamp, face_model, step):
-    """step[k, v] = the clamped 2×2 Gauss-Newton step of every vertex (neighbours fixed); the
-    photometric residuals g_k·C_k(p) − P of face f at frame k (with ``face_model`` > 0, the
-    face's fitted residuals, :func:`_face_fit`) are weighted by omega[k, f].
-    C (Q, S): the samples at ``xi`` of the visible pairs, frame-major (:func:`_sample_kernel`),
-    frame k's pairs at qs[k]..qs[k + 1] in face order."""
-    K, V = xi.shape[0], xi.shape[1]
-    nF = faces.shape[0]
-    S = bary.shape[0]
-    for k in prange(K):
-        A = np.zeros((V, 3))   # a11, a12, a22
-        g = np.zeros((V, 2))
-        M = np.zeros((3, 2))   # a face's mean corner Jacobians (face_model > 0)
-        o = off[k]
-        h = hh[k]
-        w = ww[k]
-        gk = gain[k]
-        q = qs[k] - 1
-        for f in range(nF):
-            if not fvis[k, f]:
-                continue
-            q += 1
-            om = omega[k, f]
-            if face_model:
-                # residuals a·g·C_s − P_s − m (:func:`_face_fit`): exact Gauss-Newton blocks of
-                # the corners, whose Jacobians are a β_sj ∇C_s − M_j, M_j = mean_s a β_sj ∇C_s
-                # (a held fixed for the step)
-                a, m = _face_fit(C, q, f, gk, proxy, face_model)
-                M[...] = 0.0
-                for s in range(S):
-                    u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                    gx, gy = _grad(buf, o, h, w, u, v, a * gk)
-                    r = a * gk * C[q, s] - proxy[f, s] - m
-                    for j in range(3):
-                        b = bary[s, j]
-                        vi = faces[f, j]
-                        A[vi, 0] += om * b * b * gx * gx
-                        A[vi, 1] += om * b * b * gx * gy
-                        A[vi, 2] += om * b * b * gy * gy
-                        g[vi, 0] += om * b * gx * r
-                        g[vi, 1] += om * b * gy * r
-                        M[j, 0] += b * gx / S
-                        M[j, 1] += b * gy / S
-                for j in range(3):
-                    vi = faces[f, j]
-                    A[vi, 0] -= om * S * M[j, 0] * M[j, 0]
-                    A[vi, 1] -= om * S * M[j, 0] * M[j, 1]
-                    A[vi, 2] -= om * S * M[j, 1] * M[j, 1]
-            else:
-                for s in range(S):
-                    u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-                    r = gk * C[q, s] - proxy[f, s]
-                    gx, gy = _grad(buf, o, h, w, u, v, gk)
-                    for j in range(3):
-                        bj = om * bary[s, j]
-                        if bj <= 0.0:
-                            continue
-                        vi = faces[f, j]
-                        A[vi, 0] += bj * gx * gx
-                        A[vi, 1] += bj * gx * gy
-                        A[vi, 2] += bj * gy * gy
-                        g[vi, 0] += bj * gx * r
-                        g[vi, 1] += bj * gy * r
-            if edge_w > 0.0:
-                for j in range(3):
-                    vi = faces[f, j]
-                    for dj in range(1, 3):
-                        vk = faces[f, (j + dj) % 3]
-                        ex, ey, px, py = _edge_vectors(xi, phi, k, vi, vk)
-                        if edge_vec:
-                            # edge vectors: the displacement ξ − Φ is smooth over the mesh
-                            A[vi, 0] += edge_w * edge_w
-                            A[vi, 2] += edge_w * edge_w
-                            g[vi, 0] += edge_w * edge_w * (ex - px)
-                            g[vi, 1] += edge_w * edge_w * (ey - py)
-                            continue
-                        L = np.sqrt(ex * ex + ey * ey)
-                        if L < 1e-9:
-                            continue
-                        L0 = np.sqrt(px * px + py * py)
-                        re = edge_w * (L - L0)
-                        jx = edge_w * ex / L
-                        jy = edge_w * ey / L
-                        A[vi, 0] += jx * jx
-                        A[vi, 1] += jx * jy
-                        A[vi, 2] += jy * jy
-                        g[vi, 0] += jx * re
-                        g[vi, 1] += jy * re
-        for vi in range(V):
-            a11 = A[vi, 0]
-            a12 = A[vi, 1]
-            a22 = A[vi, 2]
-            det = a11 * a22 - a12 * a12
-            if det < 1e-4:
-                a11 += 1e-4
-                a22 += 1e-4
-                det = a11 * a22 - a12 * a12
-            dx = -(a22 * g[vi, 0] - a12 * g[vi, 1]) / det
-            dy = -(-a12 * g[vi, 0] + a11 * g[vi, 1]) / det
-            if not (dx == dx):
-                dx = 0.0
-            if not (dy == dy):
-                dy = 0.0
-            step[k, vi, 0] = min(max(dx, -clamp), clamp)
-            step[k, vi, 1] = min(max(dy, -clamp), clamp)
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _face_blocks_kernel(buf, off, hh, ww, x0, y0, xi, phi, faces, pk, pf, omega, gain, bary, proxy,
-                        C, edge_w, edge_vec, Hq, gq):
-    """Full Gauss-Newton blocks of every visible (frame, face) pair q = (pk[q], pf[q]).
-
-    The unknowns of face f at frame k are its corners' (u, v), ordered (u0, v0, u1, v1, u2, v2).
-    Hq[q] (6, 6) = JᵀJ and gq[q] (6,) = Jᵀr of the residuals that live on that face: its S
-    photometric residuals g_k·C_k(p) − P_fs (grey levels, weighted by omega[k, f]; corner a's
-    Jacobian β_a g_k ∇C, so corners a, b are coupled by β_a β_b g_k² ∇C∇Cᵀ) and its 3 edge
-    residuals, each edge (a, b) with the weight the Jacobi kernel gives it (vector: edge_w ·
-    ((ξ_a − ξ_b) − (Φ_a − Φ_b)); length: edge_w · (|ξ_a − ξ_b| − |Φ_a − Φ_b|)). Summed over the faces this is the normal matrix of E·255² +
-    edge term (:func:`_edge_energy_kernel`).
-    """
-    Q = pk.shape[0]
-    S = bary.shape[0]
-    for q in prange(Q):
-        k = pk[q]
-        f = pf[q]
-        o = off[k]
-        h = hh[k]
-        w = ww[k]
-        gk = gain[k]
-        om = omega[k, f]
-        for i in range(6):
-            gq[q, i] = 0.0
-            for j in range(6):
-                Hq[q, i, j] = 0.0
-        for s in range(S):
-            u, v = _sample_pos(bary, s, xi, k, faces, f, x0, y0)
-            r = gk * C[q, s] - proxy[f, s]
-            gx, gy = _grad(buf, o, h, w, u, v, gk)
-            for a in range(3):
-                ba = om * bary[s, a]
-                if ba == 0.0:
-                    continue
-                gq[q, 2 * a] += ba * gx * r
-                gq[q, 2 * a + 1] += ba * gy * r
-                for b in range(3):
-                    bb = ba * bary[s, b]
-                    if bb == 0.0:
-                        continue
-                    Hq[q, 2 * a, 2 * b] += bb * gx * gx
-                    Hq[q, 2 * a, 2 * b + 1] += bb * gx * gy
-                    Hq[q, 2 * a + 1, 2 * b] += bb * gy * gx
-                    Hq[q, 2 * a + 1, 2 * b + 1] += bb * gy * gy
-        if edge_w <= 0.0:
-            continue
-        w2 = edge_w * edge_w
-        for a in range(3):
-            b = (a + 1) % 3
-            va = faces[f, a]
-            vb = faces[f, b]
-            ex, ey, px, py = _edge_vectors(xi, phi, k, va, vb)
-            if edge_vec:
-                dx = ex - px
-                dy = ey - py
-                for c in range(2):
-                    Hq[q, 2 * a + c, 2 * a + c] += w2
-                    Hq[q, 2 * b + c, 2 * b + c] += w2
-                    Hq[q, 2 * a + c, 2 * b + c] -= w2
-                    Hq[q, 2 * b + c, 2 * a + c] -= w2
-                gq[q, 2 * a] += w2 * dx
-                gq[q, 2 * a + 1] += w2 * dy
-                gq[q, 2 * b] -= w2 * dx
-                gq[q, 2 * b + 1] -= w2 * dy
-                continue
-            L = np.sqrt(ex * ex + ey * ey)
-            if L < 1e-9:
-                continue
-            L0 = np.sqrt(px * px + py * py)
-            re = edge_w * (L - L0)
-            jj = (edge_w * ex / L, edge_w * ey / L)
-            for c in range(2):
-                gq[q, 2 * a + c] += jj[c] * re
-                gq[q, 2 * b + c] -= jj[c] * re
-                for d in range(2):
-                    t = jj[c] * jj[d]
-                    Hq[q, 2 * a + c, 2 * a + d] += t
-                    Hq[q, 2 * b + c, 2 * b + d] += t
-                    Hq[q, 2 * a + c, 2 * b + d] -= t
-                    Hq[q, 2 * b + c, 2 * a + d] -= t
-
-
-@njit(cache=True, nogil=True, parallel=True)
-def _edge_energy_kernel(xi, phi, faces, fvis, edge_w, edge_vec, out):
-    """out[k] = Σ_{f visible at k} Σ_{edges (a, b) of f} |edge residual / 255|² (the residuals
-    of the Gauss-Newton kernels: 3 per visible face, an edge shared by two visible faces counts
-    twice, as it does in the Jacobi kernel)."""
-    K = xi.shape[0]
-    nF = faces.shape[0]
-    for k in prange(K):
-        e = 0.0
-        for f in range(nF):
-            if not fvis[k, f]:
-                continue
-            for a in range(3):
-                va = faces[f, a]
-                vb = faces[f, (a + 1) % 3]
-                ex, ey, px, py = _edge_vectors(xi, phi, k, va, vb)
-                if edge_vec:
-                    r2 = (ex - px) ** 2 + (ey - py) ** 2
-                else:
-                    r2 = (np.sqrt(ex * ex + ey * ey) - np.sqrt(px * px + py * py)) ** 2
-                e += r2 * (edge_w / 255.0) ** 2
-        out[k] = e
-
-
 @njit(cache=True, nogil=True, parallel=True)
 def _interp_kernel(delta_key, key_pos, valid, out):
     T, V = valid.shape
@@ -717,143 +365,6 @@ def interpolate_displacements(delta_key, key_pos, valid) -> np.ndarray:
     return out
 
 
-class _Photometric:
-    """The photometric term of one level: samples, proxy colours, per-(frame, face) errors, weights.
-
-    E(ξ) = Σ_{k, f visible at k} ρ(e_kf) / 255², e_kf = Σ_s (g_k·C_k(p_kfs) − P_fs)² (grey
-    levels²), with the proxy P recomputed at ξ. ``robust_grey`` c = 0: ρ(e) = e and every weight
-    is 1 — Eq. 1 exactly. c > 0: ρ(e) = S c² e / (S c² + e) (Geman-McClure on the face's
-    residuals; ≈ e while their RMS is well under c, bounded by S c² above), and both the
-    Gauss-Newton residuals and the proxy are weighted by ω_kf = ρ'(e_kf) = (1 + e_kf / (S c²))⁻²
-    — a face whose appearance at k disagrees with the other frames (a wrinkle, a tint, a
-    specularity) stops pulling ξ and stops colouring the proxy; the proxy is the weighted mean
-    after one reweighting pass (weights from the residuals against the unweighted proxy), so E
-    stays a function of ξ. g_k = ``gain`` [k] (1 unless ``gain`` 'frame', see :meth:`set_gain`).
-
-    Each evaluation samples the crops once (C and the mask test for every visible pair and
-    sample, :func:`_sample_kernel`); proxies and errors are reductions of those samples.
-    """
-
-    def __init__(self, stack: CropStack, faces, fvis, fw, bary, params):
-        self.stack, self.faces, self.fvis, self.bary = stack, faces, fvis, bary
-        self.bg = float(params["background_weight"])
-        c = float(params.get("robust_grey", 0.0))
-        self.c2 = c * c * bary.shape[0]
-        self.gain_mode = params.get("gain", "none")
-        self.face_model = FACE_PHOTOMETRIC.index(params.get("face_photometric", "none"))
-        self.gain = np.ones(fvis.shape[0])
-        # visible (frame, face) pairs, frame-major; and the same pairs grouped by face
-        self.pk, self.pf = (a.astype(np.int64) for a in np.nonzero(fvis))
-        self.qs = np.searchsorted(self.pk, np.arange(fvis.shape[0] + 1)).astype(np.int64)  # frame k's
-        self.order = np.argsort(self.pf, kind="stable").astype(np.int64)
-        self.fstart = np.searchsorted(self.pf[self.order], np.arange(faces.shape[0] + 1)).astype(np.int64)
-        self.fw = np.ascontiguousarray(fw[self.pk, self.pf], np.float64)
-        self.ones = np.ones(len(self.pk))
-
-    def samples(self, xi):
-        """(C (Q, S) float32 grey levels, inside (Q, S) bool) at ``xi`` (K, V, 2)."""
-        st = self.stack
-        Q, S = len(self.pk), self.bary.shape[0]
-        C = np.zeros((Q, S), np.float32)
-        inside = np.zeros((Q, S), np.bool_)
-        if Q:
-            _sample_kernel(st.blur, st.mask, st.off, st.h, st.w, st.x0, st.y0, xi, self.faces,
-                           self.pk, self.pf, self.bary, C, inside)
-        return C, inside
-
-    def proxy(self, C, inside, omega_q) -> np.ndarray:
-        P = np.zeros((self.faces.shape[0], self.bary.shape[0]))
-        if len(self.pk):
-            _proxy_kernel(C, inside, self.order, self.fstart, self.pk, self.fw * omega_q, self.gain,
-                          self.bg, P)
-        return P
-
-    def face_err(self, C, P) -> np.ndarray:
-        e = np.zeros(len(self.pk))
-        if len(self.pk):
-            _face_err_kernel(C, self.pk, self.pf, self.gain, P, self.face_model, e)
-        return e
-
-    def weights(self, e) -> np.ndarray:
-        """(Q,) robust weights of the pairs from their errors e (Q,)."""
-        return self.ones if self.c2 <= 0 else 1.0 / (1.0 + e / self.c2) ** 2
-
-    def dense(self, omega_q) -> np.ndarray:
-        """(K, F) weights (0 where the face is not visible) from the (Q,) pair weights."""
-        out = np.zeros(self.fvis.shape)
-        out[self.pk, self.pf] = omega_q
-        return out
-
-    def evaluate(self, xi):
-        """(P (F, S) proxy, E float, omega (K, F) weights, C (Q, S) samples) at ``xi`` (K, V, 2)."""
-        C, inside = self.samples(xi)
-        P = self.proxy(C, inside, self.ones)
-        if self.c2 > 0:
-            P = self.proxy(C, inside, self.weights(self.face_err(C, P)))
-        e = self.face_err(C, P)
-        rho = e if self.c2 <= 0 else self.c2 * e / (self.c2 + e)
-        return P, float(rho.sum()) / 255.0**2, self.dense(self.weights(e)), C
-
-    def set_gain(self, xi, max_iterations: int = 100, tol: float = 1e-5) -> None:
-        """``gain`` 'frame': alternate g_k = the half-sample mode over the frame's visible faces
-        (all samples inside the foreground mask) of Σ_s P_fs / Σ_s C_k(p) with the face sums
-        Σ_s P_fs recomputed from the new gains (weighted mean of g_k Σ_s C_k over those pairs),
-        normalised to geometric mean 1 over the frames (frames with fewer than 10 such faces
-        take 1 before that normalisation, so they share its factor), until no gain moves by more
-        than ``tol``. An exposure /
-        white-balance change of the whole frame then stops looking like motion, while a local
-        change of appearance (a wrinkle, a tint: a minority of the faces) does not move the mode.
-        Starts from ``stack.gain`` when it holds one per frame and stores the result there.
-
-        Run to convergence, not a fixed two rounds: each face's proxy averages the frames that
-        see it, which are neighbours in time, so a gain error spreads to the neighbouring frames'
-        estimates and decays slowly (demo, 120 frames with exposure drift: 1.8 % RMS gain error
-        after 2 rounds, converged after ~45; bench_texcoords drift reduction 55.7 % -> 63.5 %,
-        and 65.0 % with the mode instead of the median)."""
-        K = self.fvis.shape[0]
-        g0 = self.stack.gain
-        if self.gain_mode != "frame" or not len(self.pk):
-            self.gain = np.ones(K)
-            return
-        self.gain = np.array(g0, np.float64) if g0 is not None and len(g0) == K else np.ones(K)
-        C, inside = self.samples(xi)
-        a = C.sum(1, dtype=np.float64)
-        use = inside.all(1) & (a > 0)
-        # face-level sums: Σ_s P_fs over the fully inside pairs, so one round costs O(pairs)
-        wq = np.where(use, self.fw, 0.0)
-        F = self.faces.shape[0]
-        den = np.bincount(self.pf, wq, F)
-        for _ in range(int(max_iterations)):
-            b = (np.bincount(self.pf, wq * self.gain[self.pk] * a, F) / np.maximum(den, 1e-300))[self.pf]
-            ok = use & (b > 0)
-            g = np.ones(K)
-            ratio = np.where(ok, b / np.where(a > 0, a, 1.0), np.nan)
-            for k in range(K):
-                r = ratio[self.qs[k]:self.qs[k + 1]]
-                r = r[np.isfinite(r)]
-                if len(r) >= 10:
-                    g[k] = _half_sample_mode(r)
-            g /= np.exp(np.mean(np.log(g)))
-            change = float(np.abs(g - self.gain).max())
-            self.gain = g
-            if change < tol:
-                break
-        self.stack.gain = self.gain.copy()
-
-
-def _half_sample_mode(x) -> float:
-    """Half-sample mode (Bickel & Frühwirth 2006) of a 1-D sample, the densest value: the shortest
-    half of the sorted sample, halved again until 3 values remain, averaged. Unlike the median it
-    is not dragged by a large minority that moved one way (wrinkles darkening a third of the
-    visible faces)."""
-    v = np.sort(np.asarray(x, np.float64))
-    while len(v) > 3:
-        h = (len(v) + 1) // 2
-        i = int(np.argmin(v[h - 1:] - v[:len(v) - h + 1]))
-        v = v[i:i + h]
-    return float(v.mean())
-
-
 def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, params=None):
     """The photometric energy of the stage's frames at ``xi``, with the proxy recomputed there.
 
@@ -865,7 +376,7 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
 
     Returns:
         (E, proxy): E float = Σ ((C − P)/255)² over visible faces and samples (Eq. 1; its robust,
-        gain-compensated form if ``robust_grey`` > 0 / ``gain`` 'frame', see :class:`_Photometric`);
+        gain-compensated form if ``robust_grey`` > 0 / ``gain`` 'frame', see :class:`PhotometricTerm`);
         proxy (F, S) grey levels.
     """
     p = texcoords_params(params)
@@ -874,108 +385,10 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
     faces = np.ascontiguousarray(faces, np.int64)
     fvis = np.ascontiguousarray(face_visible, np.bool_)
     fw = np.ascontiguousarray(face_weight, np.float64)
-    ph = _Photometric(stack, faces, fvis, fw, bary, p)
+    ph = PhotometricTerm(stack, faces, fvis, fw, bary, p)
     ph.set_gain(xi)
     P, E, _, _ = ph.evaluate(xi)
     return E, P
-
-
-def _vertex_used(fvis, faces, n_vertices):
-    """(K, V) bool: the vertex is a corner of a face visible at that frame."""
-    used = np.zeros((fvis.shape[0], n_vertices), bool)
-    for j in range(3):
-        for k in range(fvis.shape[0]):
-            used[k, faces[fvis[k], j]] = True
-    return used
-
-
-def _gauge_weights(fvis, fw, faces, used, gauge: str) -> np.ndarray:
-    """(K, V) float64 weight of each (frame, vertex) in the gauge's mean displacement: 1 where
-    the vertex is ``used`` (a corner of a visible face; 'mean'), or the mean proxy weight (cosine)
-    of its visible faces ('weighted'); 0 elsewhere."""
-    if gauge != "weighted":
-        return used.astype(np.float64)
-    K, V = used.shape
-    num = np.zeros((K, V))
-    cnt = np.zeros((K, V))
-    w = np.where(fvis, fw, 0.0)
-    for j in range(3):
-        for k in range(K):
-            num[k] += np.bincount(faces[:, j], w[k], V)
-            cnt[k] += np.bincount(faces[:, j], fvis[k], V)
-    return num / np.maximum(cnt, 1)
-
-
-def _edge_energy(xi, phi, faces, fvis, edge_w, edge_vec) -> float:
-    """The edge term of the Gauss-Newton kernels, / 255² (:func:`_edge_energy_kernel`)."""
-    out = np.zeros(xi.shape[0])
-    if faces.shape[0] and xi.shape[0] and edge_w > 0:
-        _edge_energy_kernel(xi, phi, faces, fvis, float(edge_w), bool(edge_vec), out)
-    return float(out.sum())
-
-
-class _SparseSystems:
-    """Per-frame sparse Gauss-Newton systems of one level (fixed pattern, values per step).
-
-    Frame k's unknowns are the (u, v) of the vertices used at k (corner of a visible face), in
-    vertex order: unknown 2·loc[k, v] + c. The (frame, face) blocks of :func:`_face_blocks_kernel`
-    are summed into one CSC matrix per frame through a pattern built once per level.
-    """
-
-    def __init__(self, faces, pk, pf, qs, used):
-        K = used.shape[0]
-        self.pk, self.pf, self.qs = pk, pf, qs   # the visible pairs, frame-major (_Photometric)
-        self.verts = [np.flatnonzero(used[k]) for k in range(K)]
-        loc = np.full(used.shape, -1, np.int64)
-        for k in range(K):
-            loc[k, self.verts[k]] = np.arange(len(self.verts[k]))
-        corner = loc[self.pk[:, None], faces[self.pf]]                       # (Q, 3)
-        rows6 = (2 * corner[:, :, None] + np.arange(2)).reshape(-1, 6)       # (Q, 6)
-        self.pattern = []
-        for k in range(K):
-            n = 2 * len(self.verts[k])
-            r6 = rows6[self.qs[k]:self.qs[k + 1]]
-            rr = np.broadcast_to(r6[:, :, None], (len(r6), 6, 6)).ravel()
-            cc = np.broadcast_to(r6[:, None, :], (len(r6), 6, 6)).ravel()
-            key, inv = np.unique(cc * max(n, 1) + rr, return_inverse=True)   # column-major
-            indices = (key % max(n, 1)).astype(np.int32)
-            indptr = np.searchsorted(key // max(n, 1), np.arange(n + 1)).astype(np.int32)
-            diag = np.flatnonzero(indices == (key // max(n, 1)))
-            self.pattern.append((n, inv, indices, indptr, diag, r6.ravel()))
-        self.factorisations = 0
-
-    def solve(self, Hq, gq, lam: float, out) -> None:
-        """out[k, verts[k]] = −(H_k + lam·(D_k + mean(D_k)·I) + 1e-4·I)⁻¹ g_k for every frame k,
-        D_k = diag(H_k) (Levenberg-Marquardt damping; the mean term also damps vertices whose
-        own diagonal is tiny — untextured, barely constrained; 1e-4 as the Jacobi kernel's
-        singularity guard). Hq (Q, 6, 6), gq (Q, 6): :func:`_face_blocks_kernel`. Direct sparse
-        LU (SuperLU, symmetric mode, minimum-degree ordering on A + Aᵀ), one frame at a time:
-        reusing a frame's factors as the preconditioner of later solves needed fewer
-        factorisations but kept K factors in memory (≈ 3.6 GB at 64 paper-scale frames) and did
-        not make the stage faster."""
-        from scipy.sparse import csc_matrix
-        from scipy.sparse.linalg import splu
-
-        for k, (n, inv, indices, indptr, diag, r6) in enumerate(self.pattern):
-            if n == 0:
-                continue
-            q0, q1 = self.qs[k], self.qs[k + 1]
-            data = np.bincount(inv, weights=Hq[q0:q1].ravel(), minlength=len(indices))
-            b = -np.bincount(r6, weights=gq[q0:q1].ravel(), minlength=n)
-            d = data[diag]
-            data[diag] = d + lam * (d + d.mean()) + 1e-4
-            A = csc_matrix((data, indices, indptr), shape=(n, n))
-            lu = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options={"SymmetricMode": True})
-            self.factorisations += 1
-            out[k, self.verts[k]] = lu.solve(b).reshape(-1, 2)
-
-    def model_decrease(self, Hq, gq, faces, step) -> float:
-        """−(2 gᵀs + sᵀHs) / 255²: the decrease of the objective Σ r² / 255² that the Gauss-Newton
-        model r + Js (proxy and weights fixed; g = Jᵀr, H = JᵀJ) predicts for ``step`` (K, V, 2)."""
-        sq = step[self.pk[:, None], faces[self.pf]].reshape(-1, 6)
-        d = -(2.0 * np.einsum("qi,qi->", gq, sq) + np.einsum("qi,qij,qj->", sq, Hq, sq))
-        return float(d) / 255.0**2
 
 
 def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight, params,
@@ -1015,8 +428,8 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     edge_w = float(p["edge_weight"])
     clamp = float(p["step_clamp_px"])
     sparse = p.get("solver", "jacobi") == "sparse"
-    used = _vertex_used(fvis, faces, xi.shape[1])
-    gauge_w = _gauge_weights(fvis, fw, faces, used, p["gauge"])
+    used = vertex_used(fvis, faces, xi.shape[1])
+    gauge_w = gauge_weights(fvis, fw, faces, used, p["gauge"])
     gauge_norm = np.maximum(gauge_w.sum(0), 1e-12)[:, None]
 
     def finish(step_xi):
@@ -1027,18 +440,18 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
             cand = cand - used[..., None] * (dsp.sum(0) / gauge_norm)[None]
         return np.clip(cand, lo, hi)
 
-    photo = _Photometric(stack, faces, fvis, fw, bary, p)
+    photo = PhotometricTerm(stack, faces, fvis, fw, bary, p)
     photo.set_gain(xi)
 
     def evaluate(x):
         Px, Ex, om, Cx = photo.evaluate(x)
-        return Px, Ex, Ex + _edge_energy(x, phi, faces, fvis, edge_w, edge_vec), om, Cx
+        return Px, Ex, Ex + edge_energy(x, phi, faces, fvis, edge_w, edge_vec), om, Cx
 
     P, E, J, omega, C = evaluate(xi)
     energies, objectives = [E], [J]
     step = np.zeros_like(xi)
     if sparse:
-        systems = _SparseSystems(faces, photo.pk, photo.pf, photo.qs, used)
+        systems = SparseSystems(faces, photo.pk, photo.pf, photo.qs, used)
         Q = len(systems.pk)
         Hq = np.zeros((Q, 6, 6))
         gq = np.zeros((Q, 6))
@@ -1053,7 +466,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
             # full Gauss-Newton of every frame (proxy and weights fixed), Levenberg-Marquardt
             # damped; λ follows the gain ratio (Nielsen's rule: shrinks when the model predicted
             # the decrease well, grows ×2, ×4, ... on each rise)
-            _face_blocks_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi,
+            face_blocks_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi,
                                 phi, faces, systems.pk, systems.pf, omega, photo.gain, bary, P,
                                 C, edge_w, edge_vec, Hq, gq)
             for _b in range(int(p["backtracks"]) + 1):
@@ -1078,7 +491,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
                 break
             rel = (J - Jc) / J
         else:
-            _gn_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
+            jacobi_step_kernel(stack.blur, stack.off, stack.h, stack.w, stack.x0, stack.y0, xi, phi,
                        faces, fvis, omega, photo.gain, bary, P, C, photo.qs, edge_w, edge_vec, clamp,
                        photo.face_model, step)
             # the step length adapts: halved on a rise, doubled (up to 1) after an accepted step
@@ -1192,70 +605,6 @@ def optimize_texcoords(load, phi, vertex_visible, face_visible, face_weight, fac
             "objective": objective, "keyframes": keys, "stages": stages}
 
 
-def stage_inputs(scene, template, projection, frames_paths, masks_paths) -> dict:
-    """What :func:`optimize_texcoords` reads, from a run's stores.
-
-    Args:
-        scene: the ``scene`` store (calibration: colour image size).
-        template: the ``template`` store (faces).
-        projection: the ``projection`` store (phi, vertex_visible, face_visible, face_cos, frame_ids).
-        frames_paths: the ``frames`` block stores (colour images, read one frame at a time).
-        masks_paths: the ``masks`` block stores (foreground masks for the proxy weights); empty =
-            every pixel counts as foreground.
-
-    Returns:
-        dict with the keyword arguments of :func:`optimize_texcoords` (``load``, ``phi``,
-        ``vertex_visible``, ``face_visible``, ``face_weight``, ``faces``, ``image_size``) and
-        ``frame_ids``.
-    """
-    from stex.camera import Calibration
-    from stex.io import FrameSequence, open_store
-
-    sc = open_store(scene, "scene")
-    cal = Calibration.from_dict(sc.attrs["calibration"])
-    W, H = cal.color.width, cal.color.height
-    proj = open_store(projection, "projection")
-    ids = [int(i) for i in proj.attrs["frame_ids"]]
-    frames = FrameSequence(list(frames_paths), "frames")
-    masks = FrameSequence(list(masks_paths), "masks") if masks_paths else None
-
-    def load(t):
-        fid = ids[t]
-        grey = cv2.cvtColor(np.asarray(frames.read("color", fid)), cv2.COLOR_RGB2GRAY)
-        m = np.asarray(masks.read("mask", fid), bool) if masks is not None else np.ones((H, W), bool)
-        return grey, m
-
-    return {"load": load, "phi": np.asarray(proj["phi"][...], np.float64),
-            "vertex_visible": np.asarray(proj["vertex_visible"][...], bool),
-            "face_visible": np.asarray(proj["face_visible"][...], bool),
-            "face_weight": np.asarray(proj["face_cos"][...], np.float64),
-            "faces": np.asarray(open_store(template, "template")["faces"][...], np.int64),
-            "image_size": (W, H), "frame_ids": ids}
-
-
-def write_texcoords(scene, template, projection, frames_paths, masks_paths, params: dict, out) -> None:
-    """Texture-coordinate stage: write the ``texcoords`` store (arguments: :func:`stage_inputs`;
-    ``params``: the ``texcoords`` config section; ``out``: path of the store to write)."""
-    from stex.io import create_store
-
-    p = texcoords_params(params)
-    inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
-    ids = inputs.pop("frame_ids")
-    t0 = time.perf_counter()
-    r = optimize_texcoords(params=p, **inputs)
-    seconds = time.perf_counter() - t0
-    attrs = {"frame_ids": ids, "keyframes": [ids[k] for k in r["keyframes"]],
-             "color_size": list(inputs["image_size"]), "stages": r["stages"], "seconds": round(seconds, 2),
-             "energy_rows": [s["name"] for s in r["stages"]]}
-    with create_store(out, "texcoords", attrs=attrs, params=p) as store:
-        a = store.create("xi", r["xi"].shape)
-        for k in range(len(ids)):
-            a[k] = r["xi"][k]
-        store.write("valid", r["valid"])
-        e = store.create("energy", r["energy"].shape)
-        e[...] = r["energy"]
-
-
 # --------------------------------------------------------------------------------------------
 # the paper's sampling table
 # --------------------------------------------------------------------------------------------
@@ -1304,102 +653,3 @@ def sampling_table(inputs: dict, params: dict | None, steps) -> list[dict]:
         row["error_ratio"] = row["energy"] / ref["energy"] if ref["energy"] > 0 else math.nan
         row["speedup"] = ref["seconds"] / row["seconds"] if row["seconds"] > 0 else math.nan
     return rows
-
-
-def write_sampling_table(scene, template, projection, frames_paths, masks_paths, params: dict,
-                         steps, out_json) -> None:
-    """:func:`sampling_table` of a run's stores (:func:`stage_inputs`), written as JSON
-    ``{"steps": [rows], "params": the texcoords settings}`` to ``out_json`` (written under a
-    temporary name and renamed when complete: :func:`stex.io.write_json`)."""
-    from stex.io import write_json
-
-    inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
-    rows = sampling_table(inputs, params, steps)
-    write_json(out_json, {"steps": rows, "params": texcoords_params(params)})
-
-
-# --------------------------------------------------------------------------------------------
-# picture
-# --------------------------------------------------------------------------------------------
-
-def displacement_picture(color: np.ndarray, phi, xi, valid, scale: float = 10.0,
-                         spacing_px: float = 12.0, max_px: float | None = None) -> np.ndarray:
-    """The optimised displacements ξ − Φ of one frame as arrows over its colour image.
-
-    Each drawn vertex gets an arrow from Φ to Φ + ``scale`` · (ξ − Φ), coloured by |ξ − Φ|
-    (colormap turbo: dark blue 0 → dark red ``max_px``); the image is dimmed so the arrows
-    read. At most one vertex per ``spacing_px`` × ``spacing_px`` cell is drawn (the first
-    visible one in vertex order), so dense meshes do not turn into a smear.
-
-    Args:
-        color: (Hc, Wc, 3) uint8 RGB colour image of the frame.
-        phi: (V, 2) float Φ, colour px (u = column, v = row; integer = pixel centre).
-        xi: (V, 2) float ξ, colour px.
-        valid: (V,) bool vertices to draw (visible in the frame).
-        scale: arrow magnification (1 = true length).
-        spacing_px: side of the cells that thin the arrows out (colour px; 0 = every vertex).
-        max_px: displacement (px) at the top of the colormap; None = the largest drawn one.
-
-    Returns:
-        (Hc, Wc, 3) uint8 RGB picture with a caption giving ``scale`` and ``max_px``.
-    """
-    from stex.preview import _label
-
-    color = np.asarray(color)
-    if color.ndim != 3 or color.shape[2] != 3 or color.dtype != np.uint8:
-        raise ValueError(f"displacement_picture: color must be (H, W, 3) uint8, got {color.shape} {color.dtype}")
-    phi = np.asarray(phi, np.float64)
-    xi = np.asarray(xi, np.float64)
-    valid = np.asarray(valid, bool)
-    if phi.ndim != 2 or phi.shape[1] != 2 or xi.shape != phi.shape or valid.shape != phi.shape[:1]:
-        raise ValueError(f"displacement_picture: phi {phi.shape}, xi {xi.shape}, valid {valid.shape}: "
-                         "expected (V, 2), (V, 2), (V,)")
-    if not scale > 0:
-        raise ValueError(f"displacement_picture: scale must be > 0, got {scale}")
-    H, W = color.shape[:2]
-    ok = valid & np.isfinite(phi).all(1) & np.isfinite(xi).all(1)
-    ok &= (phi[:, 0] >= 0) & (phi[:, 0] <= W - 1) & (phi[:, 1] >= 0) & (phi[:, 1] <= H - 1)
-    idx = np.flatnonzero(ok)
-    if spacing_px > 0 and len(idx):
-        cell = np.floor(phi[idx] / spacing_px).astype(np.int64)
-        _, first = np.unique(cell, axis=0, return_index=True)
-        idx = idx[np.sort(first)]
-    d = xi[idx] - phi[idx]
-    mag = np.linalg.norm(d, axis=1)
-    top = float(max_px) if max_px is not None else float(mag.max()) if len(mag) else 1.0
-    top = top if top > 0 else 1.0
-    img = (color.astype(np.float32) * 0.5).astype(np.uint8)
-    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
-    col = lut[np.clip(np.round(mag / top * 255), 0, 255).astype(int)]
-    a = np.round(phi[idx]).astype(int)
-    b = np.round(phi[idx] + scale * d).astype(int)
-    thick = max(1, round(min(H, W) / 600))
-    for p0, p1, c in zip(a, b, col):  # a few thousand arrows at most: preview only
-        cv2.arrowedLine(img, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])),
-                        tuple(int(t) for t in c), thick, cv2.LINE_AA, tipLength=0.3)
-    return _label(img, f"xi - phi x{scale:g}, colour 0..{top:.2f} px, {len(idx)} vertices")
-
-
-def preview_texcoords(frames_paths, projection_path, texcoords_path, out, n_show: int = 3) -> None:
-    """:func:`displacement_picture` of a few frames spread over the sequence, cropped to the
-    object, side by side (the paper's figure of displacements)."""
-    from stex.io import FrameSequence, open_store
-    from stex.preview import _label, montage, write_png
-
-    frames = FrameSequence(list(frames_paths), "frames")
-    proj = open_store(projection_path, "projection")
-    tc = open_store(texcoords_path, "texcoords")
-    ids = list(tc.attrs["frame_ids"])
-    tiles = []
-    for k in np.linspace(0, len(ids) - 1, min(n_show, len(ids))).round().astype(int):
-        valid = np.asarray(tc["valid"][k], bool)
-        phi, xi = np.asarray(proj["phi"][k]), np.asarray(tc["xi"][k])
-        img = displacement_picture(frames.read("color", ids[k]), phi, xi, valid)
-        pts = phi[valid]
-        if len(pts):
-            (u0, v0), (u1, v1) = np.floor(pts.min(0)).astype(int) - 40, np.ceil(pts.max(0)).astype(int) + 40
-            img = img[max(v0, 0):v1, max(u0, 0):u1]
-        med = float(np.median(np.linalg.norm(xi[valid] - phi[valid], axis=1))) if valid.any() else 0.0
-        tiles.append(_label(cv2.resize(img, (360, 360), interpolation=cv2.INTER_AREA),
-                            f"frame {ids[k]}: median |xi - phi| {med:.2f} px"))
-    write_png(out, montage(tiles, columns=len(tiles), width=360 * len(tiles)))

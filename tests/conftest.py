@@ -142,14 +142,14 @@ def run_pipeline(cfg: dict, d) -> dict:
     and the global texture (at Φ, the tables' source_stride) through the real stage writers.
     Returns the store paths of :func:`run_stages` plus poses, observations, tables, labels,
     volume and corrected (lists per block) and global_texture."""
-    from stex.global_texture import write_global_texture
-    from stex.correction import write_corrected
+    from stex.stages.global_texture import write_global_texture
+    from stex.stages.correction import write_corrected
     from stex.io import open_store
-    from stex.labeling import write_labels
-    from stex.observations import write_observations
+    from stex.stages.labeling import write_labels
+    from stex.stages.observations import write_observations
     from stex.poses import write_pose_table
-    from stex.data_term import write_data_term
-    from stex.volume import write_volume
+    from stex.stages.data_term import write_data_term
+    from stex.stages.volume import write_volume
 
     P = run_stages(cfg, d)
     P["poses"] = d / "poses.zarr"

@@ -312,10 +312,10 @@ def test_temporal_coupling_pulls_only_borrowed_texels(small_quad):
 
 
 def test_gutter_is_refilled_from_the_corrected_texels(small_quad):
-    """After the solve the gutter holds the corrected colours (stex.volume.fill_gutter of the
+    """After the solve the gutter holds the corrected colours (stex.sampling.fill_gutter of the
     covered texels), not the uncorrected ones it had: bilinear lookups at chart edges would
     otherwise bring the removed step back."""
-    from stex.volume import fill_gutter
+    from stex.sampling import fill_gutter
 
     F, tc, face = small_quad
     cov = face >= 0

@@ -7,7 +7,8 @@ from stex.io import create_store, open_store
 
 from stex.similarity import face_strain, local_similarity_faces, strain_similarity
 from stex.data_term import (block_candidates, finish_candidates, prefilter_candidates, select_candidates,
-                         unary_terms, write_data_term)
+                            unary_terms)
+from stex.stages.data_term import write_data_term
 
 
 def test_select_candidates_lowest_ascending_padded():

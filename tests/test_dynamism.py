@@ -8,7 +8,7 @@ from stex.dynamism import (authors_dynamic_faces, dynamism_rows, dynamism_table,
                            temporal_gate, temporal_pair_weight)
 from conftest import grid_atlas
 from stex.template import texel_map
-from stex.volume import TexelSampler
+from stex.sampling import TexelSampler
 
 W = 64  # atlas side, texels
 N = 9   # grid vertices per side: 2 * 8 * 8 = 128 faces
@@ -330,7 +330,7 @@ def test_non_finite_texels_and_float_indices_are_refused():
 def test_grey_is_bt601():
     """SSIM is computed on 0.299 R + 0.587 G + 0.114 B (module docstring); a swapped R and B
     (BGR order) changed no other test."""
-    from stex.dynamism import grey
+    from stex.image import grey
 
     img = np.zeros((1, 3, 3), np.uint8)
     img[0, 0, 0] = img[0, 1, 1] = img[0, 2, 2] = 200

@@ -13,7 +13,7 @@ from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dyn
                              rst_tables, score_frame, score_frames, score_methods, truth_views,
                              vertex_motion,
                              write_evaluation)
-from stex.global_texture import write_global_texture
+from stex.stages.global_texture import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
 
 
@@ -605,7 +605,7 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, t
 
     import zarr
 
-    from stex.correction import write_corrected
+    from stex.stages.correction import write_corrected
     from stex.evaluation import evaluate_results
     from stex.export import _Results
     from stex.template import atlas_digest, template_atlas_digest
@@ -694,7 +694,8 @@ def test_labeling_reads_the_tables_a_frame_at_a_time(tiny_pipeline):
     """The labeling reads each frame's candidates and data term from the tables blocks when it
     solves that frame (TableRows), instead of holding every frame's (T, F, K) rows; the rows and
     the labels are those of the whole arrays read at once."""
-    from stex.labeling import TableRows, label_sequence, labeling_inputs
+    from stex.labeling import TableRows, label_sequence
+    from stex.stages.labeling import labeling_inputs
     from stex.data_term import unary_terms
 
     args = labeling_inputs(tiny_pipeline["observations"], tiny_pipeline["data_term"], tiny_pipeline["template"], {})

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
+from stex.image import grey_float32 as grey
 from stex.observations import (blur_cost, blurred_faces, edge_samples, face_centroids, face_motion,
-                               face_samples, grey, slanted_faces, theta_b_for_width)
+                               face_samples, slanted_faces, theta_b_for_width)
 from stex.texcoords import SAMPLE_BARY
 
 

@@ -7,11 +7,13 @@ import pytest
 from conftest import TINY_SYNTHETIC, run_stages
 from stex.camera import Calibration, transform_points
 from stex.config import load_config
+import stex.photometric as pm
 from stex.io import open_store
 from stex.synth.scene import SyntheticScene
 from stex.template import transfer_vertices
 from stex.texcoords import (build_stack, interpolate_displacements, keyframe_positions,
-                            optimize_texcoords, photometric_energy, texcoords_params, write_texcoords)
+                            optimize_texcoords, photometric_energy, texcoords_params)
+from stex.stages.texcoords import write_texcoords
 
 #: fewer iterations: the test budget (the defaults are the authors' 300 per level). On the tiny
 #: drifted scene 25 left ξ half-way (median |ξ−consensus| 1.07 px after 25, 0.61 after 100,
@@ -218,28 +220,28 @@ def test_sparse_system_solves_the_quadratic_part_exactly():
     F = np.ascontiguousarray(F, np.int64)
     fv = np.ascontiguousarray(fvis)
     used = np.ones(valid.shape, bool)
-    photo = tc._Photometric(st, F, fv, np.ones(fv.shape), bary, texcoords_params({}))
-    sy = tc._SparseSystems(F, photo.pk, photo.pf, photo.qs, used)
+    photo = pm.PhotometricTerm(st, F, fv, np.ones(fv.shape), bary, texcoords_params({}))
+    sy = pm.SparseSystems(F, photo.pk, photo.pf, photo.qs, used)
     Q = len(sy.pk)
     Hq, gq = np.zeros((Q, 6, 6)), np.zeros((Q, 6))
     P = np.full((len(F), len(bary)), 128.0)
     om, gain = np.ones(fv.shape), np.ones(2)
     C = np.full((Q, len(bary)), 128.0, np.float32)
-    tc._face_blocks_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, sy.pk, sy.pf, om, gain,
+    pm.face_blocks_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, sy.pk, sy.pf, om, gain,
                            bary, P, C, 3.0, True, Hq, gq)
-    e0 = tc._edge_energy(xi, phi, F, fv, 3.0, True)
+    e0 = pm.edge_energy(xi, phi, F, fv, 3.0, True)
     step = np.zeros_like(xi)
     sy.solve(Hq, gq, 0.0, step)
     d = xi + step - phi
     assert np.abs(d - d.mean(1, keepdims=True)).max() < 1e-3
-    assert tc._edge_energy(xi + step, phi, F, fv, 3.0, True) < 1e-6 * e0
+    assert pm.edge_energy(xi + step, phi, F, fv, 3.0, True) < 1e-6 * e0
     # the model decrease is exact for a quadratic objective
-    assert sy.model_decrease(Hq, gq, F, step) == pytest.approx(e0 - tc._edge_energy(xi + step, phi, F, fv, 3.0, True), rel=1e-6)
+    assert sy.model_decrease(Hq, gq, F, step) == pytest.approx(e0 - pm.edge_energy(xi + step, phi, F, fv, 3.0, True), rel=1e-6)
     jstep = np.zeros_like(xi)
     qs = np.searchsorted(sy.pk, np.arange(3)).astype(np.int64)
-    tc._gn_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, fv, om, gain, bary, P, C, qs, 3.0,
+    pm.jacobi_step_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, fv, om, gain, bary, P, C, qs, 3.0,
                   True, 5.0, 0, jstep)
-    assert tc._edge_energy(xi + jstep, phi, F, fv, 3.0, True) > 0.01 * e0
+    assert pm.edge_energy(xi + jstep, phi, F, fv, 3.0, True) > 0.01 * e0
 
 
 def test_gain_and_robust_weights():
@@ -257,9 +259,9 @@ def test_gain_and_robust_weights():
     bary = np.ascontiguousarray(tc.SAMPLE_BARY)
     F = np.ascontiguousarray(F, np.int64)
     args = (st, F, np.ascontiguousarray(fvis), np.ascontiguousarray(fcos, np.float64), bary)
-    plain = tc._Photometric(*args, texcoords_params({"gain": "none", "robust_grey": 0.0,
+    plain = pm.PhotometricTerm(*args, texcoords_params({"gain": "none", "robust_grey": 0.0,
                                                      "face_photometric": "none"}))
-    ph = tc._Photometric(*args, texcoords_params({"gain": "frame", "robust_grey": 4.0,
+    ph = pm.PhotometricTerm(*args, texcoords_params({"gain": "frame", "robust_grey": 4.0,
                                                   "face_photometric": "none"}))
     ph.set_gain(phi)
     assert ph.gain[0] / ph.gain[1] == pytest.approx(1.1, abs=0.02)
@@ -326,7 +328,7 @@ def test_gain_alternation_converges_over_a_sliding_view():
     errs = {}
     for rounds in (2, 100):
         st.gain = None
-        ph = tc._Photometric(st, *args, texcoords_params({"gain": "frame"}))
+        ph = pm.PhotometricTerm(st, *args, texcoords_params({"gain": "frame"}))
         ph.set_gain(phi, max_iterations=rounds)
         errs[rounds] = float(np.abs(ph.gain / truth - 1).max())
     print("gain error after 2 / 100 rounds:", errs)
@@ -335,7 +337,7 @@ def test_gain_alternation_converges_over_a_sliding_view():
     # half-sample mode vs median: 55 % of the faces agree, 45 % changed one way
     rng = np.random.default_rng(0)
     x = np.concatenate([rng.normal(1.0, 0.01, 550), rng.uniform(1.05, 1.6, 450)])
-    assert abs(tc._half_sample_mode(x) - 1.0) < 0.004 and abs(np.median(x) - 1.0) > 0.01
+    assert abs(pm._half_sample_mode(x) - 1.0) < 0.004 and abs(np.median(x) - 1.0) > 0.01
 
 
 def test_sparse_closer_to_the_truth(drifted, tmp_path):
@@ -421,7 +423,8 @@ def test_sampling_table(drifted, tmp_path):
     import json
 
     from stex.evaluation import rst_tables, sampling_rows
-    from stex.texcoords import final_energy, write_sampling_table
+    from stex.texcoords import final_energy
+    from stex.stages.texcoords import write_sampling_table
 
     d = drifted["dir"]
     out = tmp_path / "sampling.json"
@@ -448,7 +451,7 @@ def test_sampling_table(drifted, tmp_path):
 
 
 def test_displacement_picture():
-    from stex.texcoords import displacement_picture
+    from stex.stages.texcoords import displacement_picture
     color = np.full((120, 160, 3), 200, np.uint8)
     phi = np.array([[40.0, 60.0], [120.0, 60.0], [80.0, 100.0]])
     xi = phi + np.array([[2.0, 0.0], [0.0, -1.0], [0.0, 0.0]])
@@ -468,7 +471,7 @@ def test_displacement_picture():
 
 
 def _reference_evaluate(imgs, masks, phi, F, fw, gain, bg, c, model):
-    """The documented energy (module docstring, :class:`_Photometric`) computed directly: samples
+    """The documented energy (module docstring, :class:`stex.photometric.PhotometricTerm`) computed directly: samples
     by scipy's bilinear ``map_coordinates``, the proxy as the weighted mean (weight face cosine ×
     (1 inside the mask, ``bg`` outside) × robust weight), one reweighting pass, the face model's
     (a, m), ρ and ω. Returns (P (F, S), E, omega (K, F))."""
@@ -533,7 +536,7 @@ def test_energy_matches_the_documented_formulas(robust_grey, model):
     gain = np.array([0.9, 1.1])
     st = build_stack(lambda t: ((g0, g1)[t], (m0, m1)[t]), [0, 1], phi, valid, 8, 160, 120)
     p = texcoords_params({"gain": "none", "robust_grey": robust_grey, "face_photometric": model})
-    ph = tc._Photometric(st, np.ascontiguousarray(F, np.int64), fvis, fw, np.ascontiguousarray(tc.SAMPLE_BARY), p)
+    ph = pm.PhotometricTerm(st, np.ascontiguousarray(F, np.int64), fvis, fw, np.ascontiguousarray(tc.SAMPLE_BARY), p)
     ph.gain = gain
     P, E, om, _ = ph.evaluate(phi)
     P_ref, E_ref, om_ref = _reference_evaluate((g0, g1), (m0, m1), phi, F, fw, gain,
@@ -601,9 +604,9 @@ def test_jacobi_step_is_the_documented_gauss_newton_step(model):
     st = build_stack(lambda t: (img, np.ones((120, 160), bool)), [0], xi, valid[:1], 8, 160, 120)
     fv = np.ones((1, len(F)), bool)
     step = np.zeros_like(xi)
-    tc._gn_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, xi.copy(), F, fv, np.ones(fv.shape),
+    pm.jacobi_step_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, xi.copy(), F, fv, np.ones(fv.shape),
                   np.array([g]), np.ascontiguousarray(tc.SAMPLE_BARY), P, C.astype(np.float32),
-                  np.array([0, len(F)], np.int64), 0.0, True, 1e3, tc.FACE_PHOTOMETRIC.index(model), step)
+                  np.array([0, len(F)], np.int64), 0.0, True, 1e3, pm.FACE_PHOTOMETRIC.index(model), step)
     assert np.abs(step_ref).max() > 0.1
     np.testing.assert_allclose(step[0], step_ref, rtol=1e-6, atol=1e-8)
 
@@ -644,7 +647,7 @@ def test_jacobi_edge_step_is_the_gauss_newton_step_and_clamped(edge_mode):
     fv = np.ones((1, len(F)), bool)
     bary = np.ascontiguousarray(tc.SAMPLE_BARY)
     step = np.zeros_like(xi)
-    tc._gn_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, fv, np.ones(fv.shape), np.ones(1),
+    pm.jacobi_step_kernel(st.blur, st.off, st.h, st.w, st.x0, st.y0, xi, phi, F, fv, np.ones(fv.shape), np.ones(1),
                   bary, np.full((len(F), 15), 128.0), np.full((len(F), 15), 128.0, np.float32),
                   np.array([0, len(F)], np.int64), w, edge_mode == "vector", clamp, 0, step)
     clipped = np.abs(ref) > clamp
@@ -657,8 +660,8 @@ def test_half_sample_mode_by_hand():
     [2, 4, 4.25, 4.75] (width 2.75), the shortest of 2 in it [4, 4.25]: 4.125."""
     import stex.texcoords as tc
     x = [9.0, 4.25, 0.0, 4.75, 1.0, 4.0, 2.0]
-    assert tc._half_sample_mode(x) == pytest.approx(4.125)
-    assert tc._half_sample_mode([3.0, 1.0]) == pytest.approx(2.0)
+    assert pm._half_sample_mode(x) == pytest.approx(4.125)
+    assert pm._half_sample_mode([3.0, 1.0]) == pytest.approx(2.0)
 
 
 def test_gauge_weights_by_hand():
@@ -669,11 +672,11 @@ def test_gauge_weights_by_hand():
     F = np.array([[0, 1, 2], [1, 3, 2]])
     fvis = np.array([[True, True], [True, False]])
     fw = np.array([[0.8, 0.4], [0.6, 0.9]])
-    used = tc._vertex_used(fvis, F, 4)
+    used = pm.vertex_used(fvis, F, 4)
     np.testing.assert_array_equal(used, [[1, 1, 1, 1], [1, 1, 1, 0]])
-    np.testing.assert_allclose(tc._gauge_weights(fvis, fw, F, used, "weighted"),
+    np.testing.assert_allclose(pm.gauge_weights(fvis, fw, F, used, "weighted"),
                                [[0.8, 0.6, 0.6, 0.4], [0.6, 0.6, 0.6, 0.0]])
-    np.testing.assert_array_equal(tc._gauge_weights(fvis, fw, F, used, "mean"), used)
+    np.testing.assert_array_equal(pm.gauge_weights(fvis, fw, F, used, "mean"), used)
 
 
 def test_gain_needs_ten_faces_per_frame():
@@ -691,7 +694,7 @@ def test_gain_needs_ten_faces_per_frame():
         fvis = np.ones((2, len(F)), bool)
         fvis[1, n_faces:] = False
         st.gain = None
-        ph = tc._Photometric(st, F, fvis, np.ones(fvis.shape), np.ascontiguousarray(tc.SAMPLE_BARY),
+        ph = pm.PhotometricTerm(st, F, fvis, np.ones(fvis.shape), np.ascontiguousarray(tc.SAMPLE_BARY),
                              texcoords_params({"gain": "frame"}))
         ph.set_gain(phi)
         assert ph.gain[0] / ph.gain[1] == pytest.approx(ratio, abs=0.01)
@@ -727,8 +730,8 @@ def test_jacobi_line_search_halves_then_doubles(monkeypatch):
     def fake_evaluate(self, x):
         return None, float(np.mean((x[..., 0] - phi[..., 0] - 0.3) ** 2 + (x[..., 1] - phi[..., 1]) ** 2)), None, None
 
-    monkeypatch.setattr(tc, "_gn_kernel", fake_kernel)
-    monkeypatch.setattr(tc._Photometric, "evaluate", fake_evaluate)
+    monkeypatch.setattr(tc, "jacobi_step_kernel", fake_kernel)
+    monkeypatch.setattr(pm.PhotometricTerm, "evaluate", fake_evaluate)
     p = texcoords_params(dict(FAST, gauge="none", edge_weight=0.0, gain="none", rel_tol=0.0))
     xi, en, _ = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 2, 160, 120)
     np.testing.assert_allclose(en, [0.09, 0.005625, 0.000225], rtol=1e-9)
@@ -746,8 +749,8 @@ def test_sparse_solve_matches_a_dense_solve():
     fvis[1, 40:] = False                                  # frame 1: only some faces
     pk, pf = (a.astype(np.int64) for a in np.nonzero(fvis))
     qs = np.searchsorted(pk, np.arange(3)).astype(np.int64)
-    used = tc._vertex_used(fvis, F, phi.shape[1])
-    sy = tc._SparseSystems(F, pk, pf, qs, used)
+    used = pm.vertex_used(fvis, F, phi.shape[1])
+    sy = pm.SparseSystems(F, pk, pf, qs, used)
     rng = np.random.default_rng(4)
     Jq = rng.normal(0, 1, (len(pk), 4, 6))
     Hq = np.einsum("qri,qrj->qij", Jq, Jq)
@@ -814,7 +817,7 @@ def test_sparse_damping_follows_nielsens_rule(monkeypatch):
     st = build_stack(load, [0, 1], phi, valid, 8, 160, 120)
     st.set_blur(2)
     lams, preds = [], []
-    solve, decrease = tc._SparseSystems.solve, tc._SparseSystems.model_decrease
+    solve, decrease = pm.SparseSystems.solve, pm.SparseSystems.model_decrease
 
     def rec_solve(self, Hq, gq, lam, out):
         lams.append(lam)
@@ -824,8 +827,8 @@ def test_sparse_damping_follows_nielsens_rule(monkeypatch):
         preds.append(decrease(self, *args))
         return preds[-1]
 
-    monkeypatch.setattr(tc._SparseSystems, "solve", rec_solve)
-    monkeypatch.setattr(tc._SparseSystems, "model_decrease", rec_decrease)
+    monkeypatch.setattr(pm.SparseSystems, "solve", rec_solve)
+    monkeypatch.setattr(pm.SparseSystems, "model_decrease", rec_decrease)
     p = texcoords_params(dict(FAST, solver="sparse", face_photometric="none", gain="none",
                               robust_grey=0.0, rel_tol=0.0, lm_lambda=0.01))
     _, _, ob = tc.optimize_level(st, phi, phi, F, fvis, fcos, p, 4, 160, 120)

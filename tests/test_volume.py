@@ -4,7 +4,8 @@ import pytest
 
 from stex.render import sample_bilinear
 from stex.template import build_atlas, texel_map
-from stex.volume import TexelSampler, fill_gutter, label_colors, nearest_seen_texels, volume_slice
+from stex.sampling import TexelSampler, fill_gutter, label_colors, nearest_seen_texels
+from stex.volume import volume_slice
 
 W = 128
 GUTTER = 3
@@ -269,7 +270,7 @@ def test_own_frame_texels_are_read_at_phi_and_the_others_at_xi(tiny_pipeline, tm
     label maps are the ones the labels give (the stand-in label T + t never leaks out). ξ here is
     Φ moved by (0.7, -0.4) px, so ξ and Φ give different colours on the own frame's texels."""
     from stex.io import open_store
-    from stex.volume import write_volume
+    from stex.stages.volume import write_volume
 
     P = tiny_pipeline
     xi = _shifted_coordinates(P, tmp_path / "xi.zarr", (0.7, -0.4))

@@ -1,5 +1,5 @@
-"""Thin adapter: rule correction -> stex.correction.write_corrected."""
-from stex.correction import write_corrected
+"""Thin adapter: rule correction -> stex.stages.correction.write_corrected."""
+from stex.stages.correction import write_corrected
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

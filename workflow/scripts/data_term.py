@@ -1,6 +1,6 @@
-"""Thin adapter: rule data_term -> stex.data_term.write_data_term."""
+"""Thin adapter: rule data_term -> stex.stages.data_term.write_data_term."""
 from stex.logs import setup_logging
-from stex.data_term import write_data_term
+from stex.stages.data_term import write_data_term
 
 setup_logging(snakemake.log[0])
 write_data_term(snakemake.input.scene, snakemake.input.template, snakemake.input.tracking,

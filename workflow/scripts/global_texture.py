@@ -1,5 +1,5 @@
-"""Thin adapter: rule global_texture -> stex.global_texture.write_global_texture."""
-from stex.global_texture import write_global_texture
+"""Thin adapter: rule global_texture -> stex.stages.global_texture.write_global_texture."""
+from stex.stages.global_texture import write_global_texture
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

@@ -1,5 +1,5 @@
-"""Thin adapter: rule labeling -> stex.labeling.write_labels."""
-from stex.labeling import write_labels
+"""Thin adapter: rule labeling -> stex.stages.labeling.write_labels."""
+from stex.stages.labeling import write_labels
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

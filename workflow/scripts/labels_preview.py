@@ -1,5 +1,5 @@
-"""Thin adapter: rule labels_preview -> stex.labeling.preview_labels."""
-from stex.labeling import preview_labels
+"""Thin adapter: rule labels_preview -> stex.stages.labeling.preview_labels."""
+from stex.stages.labeling import preview_labels
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

@@ -1,6 +1,6 @@
-"""Thin adapter: rule observations -> stex.observations.write_observations."""
+"""Thin adapter: rule observations -> stex.stages.observations.write_observations."""
 from stex.logs import setup_logging
-from stex.observations import write_observations
+from stex.stages.observations import write_observations
 
 setup_logging(snakemake.log[0])
 write_observations(snakemake.input.template, snakemake.input.tracking, snakemake.input.projection, snakemake.input.coords,

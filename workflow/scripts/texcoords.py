@@ -1,6 +1,6 @@
-"""Thin adapter: rule texcoords -> stex.texcoords.write_texcoords."""
+"""Thin adapter: rule texcoords -> stex.stages.texcoords.write_texcoords."""
 from stex.logs import setup_logging
-from stex.texcoords import write_texcoords
+from stex.stages.texcoords import write_texcoords
 
 setup_logging(snakemake.log[0])
 write_texcoords(snakemake.input.scene, snakemake.input.template, snakemake.input.projection,

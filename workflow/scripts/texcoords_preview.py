@@ -1,6 +1,6 @@
-"""Thin adapter: rule texcoords_preview -> stex.texcoords.preview_texcoords."""
+"""Thin adapter: rule texcoords_preview -> stex.stages.texcoords.preview_texcoords."""
 from stex.logs import setup_logging
-from stex.texcoords import preview_texcoords
+from stex.stages.texcoords import preview_texcoords
 
 setup_logging(snakemake.log[0])
 preview_texcoords(list(snakemake.input.frames), snakemake.input.projection,

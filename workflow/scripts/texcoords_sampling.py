@@ -1,6 +1,6 @@
-"""Thin adapter: rule texcoords_sampling -> stex.texcoords.write_sampling_table."""
+"""Thin adapter: rule texcoords_sampling -> stex.stages.texcoords.write_sampling_table."""
 from stex.logs import setup_logging
-from stex.texcoords import write_sampling_table
+from stex.stages.texcoords import write_sampling_table
 
 setup_logging(snakemake.log[0])
 i = snakemake.input

@@ -1,6 +1,6 @@
-"""Thin adapter: rule volume -> stex.volume.write_volume."""
+"""Thin adapter: rule volume -> stex.stages.volume.write_volume."""
 from stex.logs import setup_logging
-from stex.volume import write_volume
+from stex.stages.volume import write_volume
 
 setup_logging(snakemake.log[0])
 write_volume(snakemake.input.template, snakemake.input.labels, snakemake.input.coords,

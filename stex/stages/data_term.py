@@ -1,0 +1,95 @@
+"""Data-term stage's artifacts: the ``data_term`` store of one block of target frames
+(:mod:`stex.data_term`)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from stex.camera import Calibration
+from stex.config import section_params
+from stex.data_term import block_candidates, source_mask
+from stex.io import create_store, open_store, position_range
+from stex.similarity import global_similarity
+
+log = logging.getLogger("stex.data_term")
+
+__all__ = ["write_data_term"]
+
+
+def write_data_term(scene_path, template_path, tracking_path, poses_path, observations_path,
+                 positions, params: dict, out) -> None:
+    """Data-term stage for one block of target frames: write a ``data_term`` store.
+
+    Args:
+        scene_path: ``scene`` store (depth intrinsics). template_path: ``template`` (faces).
+        tracking_path: ``tracking`` (vertices [T, V, 3]). poses_path: ``poses`` (K_{t→l}).
+        observations_path: ``observations`` (face_visible, blur_cost, slanted, descriptors, strain).
+        positions: [start, stop) sequence positions of the target frames.
+        params: the ``data_term`` config section.
+        out: path of the store.
+    """
+    p = section_params("data_term", params)
+    if p["prefilter"] < p["candidates"]:
+        raise ValueError(f"data_term.prefilter ({p['prefilter']}) must be >= data_term.candidates "
+                         f"({p['candidates']})")
+    scene = open_store(scene_path, "scene")
+    template = open_store(template_path, "template")
+    obs = open_store(observations_path, "observations")
+    ids = list(obs.attrs["frame_ids"])
+    start, stop = position_range(positions, len(ids), "target")
+    faces = np.asarray(template["faces"][...], np.int64)
+    vertices = np.asarray(open_store(tracking_path, "tracking")["vertices"][...], np.float32)
+    poses_store = open_store(poses_path, "poses")
+    if list(poses_store.attrs["frame_ids"]) != ids:
+        raise ValueError(f"{poses_path} and {observations_path} hold different frames")
+    poses = np.asarray(poses_store["poses"][...], np.float64)
+    cal = Calibration.from_dict(scene.attrs["calibration"])
+    face_visible = np.asarray(obs["face_visible"][...], bool)
+    # held-out protocol: only every k-th frame may texture anything, every frame is a target
+    sources = source_mask(len(ids), p["source_stride"])
+    face_visible = face_visible & sources[:, None]
+    if "blur_cost" not in obs:
+        raise ValueError(f"{observations_path}: no blur_cost table (written by the observations "
+                         f"stage since it offers blur_rule; re-run the observations stage)")
+    e_qual = (np.asarray(obs["blur_cost"][...], np.float32)
+              + np.asarray(obs["slanted"][...], np.float32))
+    descriptors = obs["descriptors"] if "descriptors" in obs else None   # streamed by frame
+    strain = None
+    if p["omega_str"] > 0 and p["similarity"] != "global":
+        if "strain" not in obs:
+            raise ValueError(f"{observations_path}: no strain table, needed by data_term.omega_str > 0 "
+                             f"(re-run the observations stage)")
+        strain = np.asarray(obs["strain"][...], np.float32)
+    if p["similarity"] != "global" and descriptors is None:
+        raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
+                         f"data_term.similarity={p['similarity']!r}")
+    t0 = time.perf_counter()
+    targets = list(range(start, stop))
+    glo = global_similarity(vertices, faces, poses, cal.depth.K, cal.depth.width,
+                            cal.depth.height, targets=targets, clip_m=p["glo_clip_m"],
+                            scale=p["glo_scale"])
+    log.info("data_term: E_glo rows %d..%d in %.1f s", start, stop - 1, time.perf_counter() - t0)
+    K = int(p["candidates"])
+    nT, nF = len(targets), len(faces)
+    exact = []
+    attrs = {"frame_ids": ids[start:stop], "sequence_frame_ids": ids,
+             "source_frames": [int(i) for i in np.asarray(ids)[sources]]}
+    with create_store(out, "data_term", attrs=attrs, params=p) as store:
+        store.write("glo", glo.astype(np.float32))
+        arrays = {name: store.create(name, (nT, nF, K))
+                  for name in ("candidates", "e_glo", "e_loc", "e_qual", "e_str")}
+        results = block_candidates(targets, glo, face_visible, e_qual, descriptors, faces,
+                                   p["omega_g"], p["similarity"], K, int(p["prefilter"]),
+                                   int(p["median_hops"]), strain=strain,
+                                   omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]))
+        for k, res in enumerate(results):
+            for name, arr in arrays.items():
+                arr[k] = res[name]
+            exact.append(float(res["exact"].mean()))
+        store.attrs["prefilter_exact"] = [round(x, 5) for x in exact]
+        store.attrs["seconds"] = round(time.perf_counter() - t0, 3)
+    log.info("data_term: %d targets in %.1f s; pruning provably exact for %.2f %% of (target, face)",
+             nT, time.perf_counter() - t0, 100 * float(np.mean(exact)))
