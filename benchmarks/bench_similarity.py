@@ -35,12 +35,14 @@ from pathlib import Path
 import numpy as np
 
 try:
+    from stex import shot
     from stex import similarity as S
     from stex.config import load_config
     from stex.poses import invert_rigid
     from stex.synth.scene import SyntheticScene
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from stex import shot
     from stex import similarity as S
     from stex.config import load_config
     from stex.poses import invert_rigid
@@ -123,20 +125,20 @@ def main(argv=None):
               f"{np.median(G[off]):.3f} max {G[off].max():.3f}; peak RSS {rss_gb():.2f} GiB")
 
     # 2. neighbourhoods + SHOT ----------------------------------------------------------------
-    res = S.mesh_resolution(X[0], F)
+    res = shot.mesh_resolution(X[0], F)
     radius = args.radius_res * res
-    S.geodesic_neighbourhoods(X[0, :3], [[0, 1, 2]], radius)  # warm-up on a tiny piece
+    shot.geodesic_neighbourhoods(X[0, :3], [[0, 1, 2]], radius)  # warm-up on a tiny piece
     t1 = time.perf_counter()
-    nbh = S.geodesic_neighbourhoods(X[0], F, radius)
+    nbh = shot.geodesic_neighbourhoods(X[0], F, radius)
     t_nbh = time.perf_counter() - t1
     print(f"geodesic neighbourhoods: R = {radius * 100:.2f} cm ({args.radius_res} x mesh resolution "
           f"{res * 100:.2f} cm), {np.diff(nbh.ptr).mean():.1f} neighbours per vertex, {t_nbh:.3f} s (once)")
-    S.shot_descriptors(X[0], F, nbh, radius_m=radius)  # warm-up
-    desc = np.empty((T, V, S.SHOT_DIM), np.float16)
+    shot.shot_descriptors(X[0], F, nbh, radius_m=radius)  # warm-up
+    desc = np.empty((T, V, shot.SHOT_DIM), np.float16)
     times, ctimes = [], []
     for t in range(T):
         w0, c0 = time.perf_counter(), time.process_time()
-        dt = S.shot_descriptors(X[t], F, nbh, radius_m=radius)
+        dt = shot.shot_descriptors(X[t], F, nbh, radius_m=radius)
         times.append(time.perf_counter() - w0)
         ctimes.append(time.process_time() - c0)
         desc[t] = dt
@@ -184,10 +186,10 @@ def main(argv=None):
     # 4. float16 vs float32 storage -----------------------------------------------------------
     pairs = np.stack([np.repeat(np.arange(0, T, max(1, T // 8)), 4),
                       np.tile([1, 17, 60, 131], len(range(0, T, max(1, T // 8))))], axis=1) % T
-    d32 = {int(t): S.shot_descriptors(X[t], F, nbh, radius_m=radius) for t in np.unique(pairs)}
+    d32 = {int(t): shot.shot_descriptors(X[t], F, nbh, radius_m=radius) for t in np.unique(pairs)}
 
     class Lazy:  # float32 descriptors of the needed frames only
-        shape = (T, V, S.SHOT_DIM)
+        shape = (T, V, shot.SHOT_DIM)
 
         def __getitem__(self, t):
             return d32[int(t)]

@@ -391,6 +391,31 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
     return E, P
 
 
+def _crop_bounds(stack: CropStack, width: int, height: int):
+    """(lo, hi) (K, 1, 2) float64 bounds of ξ: it stays inside each frame's crop (and so inside
+    the image)."""
+    lo = np.stack([stack.x0, stack.y0], 1).astype(np.float64)[:, None, :]
+    hi = (np.stack([stack.x0 + stack.w, stack.y0 + stack.h], 1) - 1).astype(np.float64)[:, None, :]
+    hi = np.minimum(hi, np.array([width - 1.0, height - 1.0]))
+    return lo, hi
+
+
+def _step_finisher(gauge: bool, gauge_w, used, phi, lo, hi):
+    """The map from a stepped ξ (K, V, 2) to the candidate: with ``gauge``, every vertex's
+    (``gauge_w``-weighted) mean displacement over its frames removed, then clipped to [lo, hi]."""
+    gauge_norm = np.maximum(gauge_w.sum(0), 1e-12)[:, None]
+
+    def finish(step_xi):
+        cand = step_xi
+        if gauge:
+            # hold every vertex's (weighted) mean displacement over its frames: Eq. 1 cannot see it
+            dsp = gauge_w[..., None] * (cand - phi)
+            cand = cand - used[..., None] * (dsp.sum(0) / gauge_norm)[None]
+        return np.clip(cand, lo, hi)
+
+    return finish
+
+
 def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight, params,
                    iterations: int, width: int, height: int):
     """Gauss-Newton iterations of one level on the frames of ``stack``.
@@ -419,10 +444,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     fvis = np.ascontiguousarray(face_visible, np.bool_)
     fw = np.ascontiguousarray(face_weight, np.float64)
     K = xi.shape[0]
-    # ξ stays inside each frame's crop (and so inside the image)
-    lo = np.stack([stack.x0, stack.y0], 1).astype(np.float64)[:, None, :]
-    hi = (np.stack([stack.x0 + stack.w, stack.y0 + stack.h], 1) - 1).astype(np.float64)[:, None, :]
-    hi = np.minimum(hi, np.array([width - 1.0, height - 1.0]))
+    lo, hi = _crop_bounds(stack, width, height)
     gauge = p["gauge"] != "none"
     edge_vec = p["edge_mode"] == "vector"
     edge_w = float(p["edge_weight"])
@@ -430,15 +452,7 @@ def optimize_level(stack: CropStack, xi0, phi, faces, face_visible, face_weight,
     sparse = p.get("solver", "jacobi") == "sparse"
     used = vertex_used(fvis, faces, xi.shape[1])
     gauge_w = gauge_weights(fvis, fw, faces, used, p["gauge"])
-    gauge_norm = np.maximum(gauge_w.sum(0), 1e-12)[:, None]
-
-    def finish(step_xi):
-        cand = step_xi
-        if gauge:
-            # hold every vertex's (weighted) mean displacement over its frames: Eq. 1 cannot see it
-            dsp = gauge_w[..., None] * (cand - phi)
-            cand = cand - used[..., None] * (dsp.sum(0) / gauge_norm)[None]
-        return np.clip(cand, lo, hi)
+    finish = _step_finisher(gauge, gauge_w, used, phi, lo, hi)
 
     photo = PhotometricTerm(stack, faces, fvis, fw, bary, p)
     photo.set_gain(xi)

@@ -7,7 +7,7 @@ import pytest
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import maximum_flow
 
-from stex import mrf
+from stex import maxflow, mrf
 
 # --------------------------------------------------------------------------------------------
 # helpers
@@ -130,7 +130,7 @@ def test_min_cut_matches_scipy_max_flow():
         cs = rng.integers(0, 20, n) * (rng.random(n) < 0.4)
         ct = rng.integers(0, 20, n) * (rng.random(n) < 0.4)
         cij, cji = rng.integers(0, 15, ei.size), rng.integers(0, 15, ei.size)
-        flow, side = mrf.min_cut(n, cs, ct, ei, ej, cij, cji)
+        flow, side = maxflow.min_cut(n, cs, ct, ei, ej, cij, cji)
 
         s, t = n, n + 1
         rows = np.r_[np.full(n, s), np.arange(n), ei, ej]
@@ -151,7 +151,7 @@ def test_min_cut_float_capacities_cut_equals_flow():
         ei, ej = ei[keep], ej[keep]
         cs, ct = rng.exponential(1.0, n), rng.exponential(1.0, n)
         cij, cji = rng.exponential(0.5, ei.size), rng.exponential(0.5, ei.size)
-        flow, side = mrf.min_cut(n, cs, ct, ei, ej, cij, cji)
+        flow, side = maxflow.min_cut(n, cs, ct, ei, ej, cij, cji)
         assert cut_cost(side, cs, ct, ei, ej, cij, cji) == pytest.approx(flow, rel=1e-12)
         # no other cut is cheaper
         for _ in range(50):
@@ -161,13 +161,13 @@ def test_min_cut_float_capacities_cut_equals_flow():
 
 def test_min_cut_small_cases():
     # no pairs: each node pays the smaller terminal capacity, and goes where that is cheaper
-    flow, side = mrf.min_cut(3, [5.0, 1.0, 2.0], [1.0, 4.0, 2.0], [], [], [], [])
+    flow, side = maxflow.min_cut(3, [5.0, 1.0, 2.0], [1.0, 4.0, 2.0], [], [], [], [])
     assert flow == 1.0 + 1.0 + 2.0
     assert side.tolist() == [0, 1, 1]   # ties (node 2) go to the sink side
-    flow, side = mrf.min_cut(0, [], [], [], [], [], [])
+    flow, side = maxflow.min_cut(0, [], [], [], [], [], [])
     assert flow == 0.0 and side.shape == (0,)
     # s -> 0 -> 1 -> t chain with a bottleneck in the middle
-    flow, side = mrf.min_cut(2, [3.0, 0.0], [0.0, 3.0], [0], [1], [1.0], [0.0])
+    flow, side = maxflow.min_cut(2, [3.0, 0.0], [0.0, 3.0], [0], [1], [1.0], [0.0])
     assert flow == 1.0 and side.tolist() == [0, 1]
 
 
@@ -184,7 +184,7 @@ def test_min_cut_bad_input(kwargs, match):
     args = dict(n=2, source_cap=[1.0, 0.0], sink_cap=[0.0, 1.0], edge_i=[0], edge_j=[1], cap_ij=[1.0], cap_ji=[0.0])
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        mrf.min_cut(**args)
+        maxflow.min_cut(**args)
 
 
 # --------------------------------------------------------------------------------------------

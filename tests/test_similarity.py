@@ -5,6 +5,7 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
+from stex import shot
 from stex import similarity as S
 from stex.camera import transform_points
 from stex.render import rasterize
@@ -136,8 +137,8 @@ def test_global_similarity_bad_input(sequence):
 
 def test_geodesic_neighbourhoods_match_scipy_and_exceed_euclidean(blob):
     V, F = blob
-    R = 4.0 * S.mesh_resolution(V, F)
-    ptr, idx, dist = S.geodesic_neighbourhoods(V, F, R)
+    R = 4.0 * shot.mesh_resolution(V, F)
+    ptr, idx, dist = shot.geodesic_neighbourhoods(V, F, R)
     assert ptr.dtype == np.int64 and idx.dtype == np.int32 and dist.dtype == np.float32
     assert ptr.shape == (V.shape[0] + 1,)
     rows = np.repeat(np.arange(V.shape[0]), np.diff(ptr))
@@ -176,21 +177,21 @@ def test_vertex_rings_are_k_hop_sets():
 @pytest.fixture(scope="module")
 def shot_setup(blob):
     V, F = blob
-    R = 5.0 * S.mesh_resolution(V, F)
-    nbh = S.geodesic_neighbourhoods(V, F, R)
-    return V, F, R, nbh, S.shot_descriptors(V, F, nbh, radius_m=R)
+    R = 5.0 * shot.mesh_resolution(V, F)
+    nbh = shot.geodesic_neighbourhoods(V, F, R)
+    return V, F, R, nbh, shot.shot_descriptors(V, F, nbh, radius_m=R)
 
 
 def test_shot_unit_and_rigid_invariant(shot_setup):
     V, F, R, nbh, d = shot_setup
-    assert d.shape == (V.shape[0], S.SHOT_DIM) and d.dtype == np.float32
+    assert d.shape == (V.shape[0], shot.SHOT_DIM) and d.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
     assert d.min() >= 0.0
     M = np.eye(4)
     c, s = np.cos(0.7), np.sin(0.7)
     M[:3, :3] = _rot_y(1.1) @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
     M[:3, 3] = [0.3, -0.2, 0.5]
-    d2 = S.shot_descriptors(transform_points(M, V), F, nbh, radius_m=R)
+    d2 = shot.shot_descriptors(transform_points(M, V), F, nbh, radius_m=R)
     diff = np.linalg.norm(d - d2, axis=1)
     assert np.median(diff) < 1e-5
     assert np.mean(diff > 1e-3) < 0.02   # only sign-tie vertices may flip
@@ -208,7 +209,7 @@ def test_shot_changes_near_a_local_bend_only(shot_setup):
     n = V[0] - V.mean(axis=0)
     n /= np.linalg.norm(n)
     Vb = V - (0.05 * np.clip(1 - r / 0.1, 0, None) ** 2)[:, None] * n
-    d2 = S.shot_descriptors(Vb, F, nbh, radius_m=R)
+    d2 = shot.shot_descriptors(Vb, F, nbh, radius_m=R)
     diff = np.linalg.norm(d - d2, axis=1)
     edge = np.linalg.norm(V[F[:, 0]] - V[F[:, 1]], axis=1).max()
     far = r > 0.1 + R + 2 * edge         # no moved vertex in the support nor in a neighbour's 1-ring
@@ -219,15 +220,15 @@ def test_shot_changes_near_a_local_bend_only(shot_setup):
 
 def test_shot_radius_float_and_bad_input(shot_setup):
     V, F, R, nbh, d = shot_setup
-    np.testing.assert_array_equal(S.shot_descriptors(V, F, R), S.shot_descriptors(V, F, nbh, radius_m=R))
+    np.testing.assert_array_equal(shot.shot_descriptors(V, F, R), shot.shot_descriptors(V, F, nbh, radius_m=R))
     with pytest.raises(ValueError, match="neighbourhoods ptr"):
-        S.shot_descriptors(V[:-1], F[np.all(F < len(V) - 1, axis=1)], nbh, radius_m=R)
+        shot.shot_descriptors(V[:-1], F[np.all(F < len(V) - 1, axis=1)], nbh, radius_m=R)
     with pytest.raises(ValueError, match="radius_m is required"):
-        S.shot_descriptors(V, F, nbh)
+        shot.shot_descriptors(V, F, nbh)
     with pytest.raises(ValueError, match="radius_m"):
-        S.geodesic_neighbourhoods(V, F, 0.0)
+        shot.geodesic_neighbourhoods(V, F, 0.0)
     with pytest.raises(ValueError, match="vertices"):
-        S.shot_descriptors(V[:, :2], F, nbh, radius_m=R)
+        shot.shot_descriptors(V[:, :2], F, nbh, radius_m=R)
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,11 +238,11 @@ def test_shot_radius_float_and_bad_input(shot_setup):
 @pytest.fixture(scope="module")
 def desc_seq(blob):
     V, F = blob
-    R = 5.0 * S.mesh_resolution(V, F)
-    nbh = S.geodesic_neighbourhoods(V, F, R)
+    R = 5.0 * shot.mesh_resolution(V, F)
+    nbh = shot.geodesic_neighbourhoods(V, F, R)
     c = V.mean(axis=0)
     X = [V, _bend(V, c, 0.02), _bend(V, c, 0.06), transform_points(np.diag([1, 1, 1, 1.0]), V) + 0.1]
-    return F, np.stack([S.shot_descriptors(x, F, nbh, radius_m=R) for x in X])
+    return F, np.stack([shot.shot_descriptors(x, F, nbh, radius_m=R) for x in X])
 
 
 def _brute_loc(D, F, rings, t, l):
@@ -349,7 +350,7 @@ def test_geodesic_neighbourhood_includes_the_radius():
     reaches its two edge neighbours (1), the diagonal (√2) and the vertices two edges away (2)
     with R = 2, but nothing further (1 + √2)."""
     V, F = _grid(3)
-    ptr, idx, dist = S.geodesic_neighbourhoods(V, F, 2.0)
+    ptr, idx, dist = shot.geodesic_neighbourhoods(V, F, 2.0)
     got = dict(zip(idx[ptr[0]:ptr[1]].tolist(), dist[ptr[0]:ptr[1]].tolist()))
     assert got == pytest.approx({0: 0.0, 1: 1.0, 3: 1.0, 4: np.sqrt(2), 2: 2.0, 6: 2.0})
 
@@ -360,7 +361,7 @@ def test_shot_needs_three_neighbours_in_the_support():
     other three within R (at 1, 1 and √2), vertices 1 and 2 only two (the opposite corner is
     2 edges away)."""
     V, F = _grid(2, 0.01)                                   # 0 (0,0), 1 (1,0), 2 (0,1), 3 (1,1)
-    d = S.shot_descriptors(V, F, 0.015)
+    d = shot.shot_descriptors(V, F, 0.015)
     np.testing.assert_allclose(np.linalg.norm(d[[0, 3]], axis=1), 1.0, atol=1e-6)
     assert not d[[1, 2]].any()
 
@@ -369,7 +370,7 @@ def test_shot_flat_patch_fills_the_cos_one_bin_only():
     """SHOT's 11 bins per volume hold cos(neighbour normal, z) from -1 (bin 0) to 1 (bin 10):
     on a flat patch every normal is z, so all the mass is in bin 10 of the volumes."""
     V, F = _grid(7, 0.01)
-    d = S.shot_descriptors(V, F, 0.035)
+    d = shot.shot_descriptors(V, F, 0.035)
     centre = 3 * 7 + 3
     h = d[centre].reshape(32, 11)
     assert h.sum() > 0 and not h[:, :10].any()
@@ -414,7 +415,7 @@ def test_shot_splits_a_neighbour_between_the_radial_shells(d_over_r, outer_share
                         np.stack([np.cos(ring), np.sin(ring), np.zeros(8)], 1) * d_over_r * R])
     F = np.array([[0, 1 + k, 1 + (k + 1) % 8] for k in range(8)])      # a fan facing +z
     nbh = (np.array([0, 8] + [8] * 8), np.arange(1, 9))                  # vertex 0's neighbours only
-    desc = S.shot_descriptors(V, F, nbh, radius_m=R)[0].astype(np.float64)
+    desc = shot.shot_descriptors(V, F, nbh, radius_m=R)[0].astype(np.float64)
     assert desc.sum() > 0
     volume = np.arange(desc.size) // 11                                   # 32 volumes x 11 cosine bins
     outer = (volume // 2) % 2 == 1                                        # volume = sector·4 + shell·2 + up

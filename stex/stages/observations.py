@@ -17,7 +17,8 @@ from stex.io import FrameSequence, create_store, open_store
 from stex.observations import (EDGE_SAMPLES, blur_cost, edge_samples, face_centroids, face_motion,
                                face_samples, slanted_faces, theta_b_for_width)
 from stex.sampling import TexelSampler
-from stex.similarity import face_strain, geodesic_neighbourhoods, mesh_resolution, shot_descriptors
+from stex.shot import geodesic_neighbourhoods, mesh_resolution, shot_descriptors
+from stex.similarity import face_strain
 from stex.template import texel_map
 from stex.texcoords import SAMPLE_BARY
 
