@@ -22,9 +22,7 @@ a screened Poisson solve over the covered texels, per colour channel:
      - ``'one_sided'`` (default): g_pq = the mean of the same-label gradients along the same axis
        just before p and just after q (those that exist and are not themselves across a
        boundary), 0 if neither does. The ramp continues through the boundary and only the step
-       between the sources is removed. Measured on the Fox (every frame, factor 2): label-boundary
-       step after correction 1.8 → 1.3, blur of the renders 0.3647 → 0.3627, input-view
-       patch-shift PSNR 26.13 → 26.17 dB; see ``docs/metrics.md``;
+       between the sources is removed (measured in docs/decisions/correction.md);
   2. seam couplings: each 3-D edge shared by two faces whose UV edges differ is sampled at about
      one point per texel of its UV length; each sample gives a row (bilinear value of f at the
      point in chart 1) − (bilinear value at the same 3-D point in chart 2) with target 0
@@ -38,10 +36,8 @@ a screened Poisson solve over the covered texels, per colour channel:
   atlas** and reused for every channel and slice (set up on first use: with ``keep_own_frame``
   a slice with texels of its own frame solves a smaller system of its own, below). Classical rather than smoothed aggregation:
   its setup is deterministic (smoothed aggregation estimates a spectral radius from a random
-  vector, so two runs of 4 slices differed by 1 grey level in 25 / 107 of their 50 / 201
-  million values on the demo / paper scene), 2x faster to set up and about 25 % faster per
-  solve at the same 4 iterations a channel (demo block 5 / paper block 6, median of 4 slices:
-  1.71 / 1.67 s a slice -> 1.28 / 1.33 s; the two solvers' slices within 1 grey level).
+  vector, so two runs differ), and it is faster to set up and per solve
+  (docs/decisions/correction.md).
   Per slice only the right-hand side changes: the solve is for the correction c = f − f0,
   ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour differences of boundary pairs minus
   their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a relative residual
@@ -74,14 +70,11 @@ Slice t is the texture at time t, and where frame t itself saw the surface it is
 observation. With ``correct(..., frame=t)`` the texels labelled t are held at c = 0 (a Dirichlet
 boundary instead of the screening towards f0 alone) and only the borrowed texels are solved for,
 so each step at a boundary of the own frame's region goes entirely to the borrowed side. The free
-texels change with every slice, so their system gets an AMG hierarchy of its own per slice (about
-0.4 s a slice at 1024²). At k > 1 a coarse texel is kept when its majority label is t, and every
-fine texel labelled t is skipped by the upsampling. The screened solve of both sides (the paper's)
-pulled the observed texels half-way towards their borrowed neighbours: on the Fox (69 % of the
-visible faces labelled with their own frame) input-view patch-shift PSNR 26.22 → 26.83 dB, PSNR
-against the true appearance in the input view 26.11 → 26.49 dB, in the novel view's unseen
-regions 17.42 → 17.40 dB; on the demo (45 %) 33.02 → 33.18, 29.82 → 29.81, 20.77 → 20.77 dB
-(``docs/metrics.md``). Slices whose frame is not a source (held-out frames) have no own texels
+texels change with every slice, so their system gets an AMG hierarchy of its own per slice. At
+k > 1 a coarse texel is kept when its majority label is t, and every fine texel labelled t is
+skipped by the upsampling. The screened solve of both sides (the paper's) pulled the observed
+texels half-way towards their borrowed neighbours; keeping them raised the input-view PSNR
+(docs/decisions/correction.md). Slices whose frame is not a source (held-out frames) have no own texels
 and are solved as before.
 
 Temporal coupling (option)
@@ -212,8 +205,7 @@ class _Graph:
     @property
     def ml(self):
         """A's AMG hierarchy, set up on first use: slices with texels kept at their own frame
-        solve a system of their own, so a block of such slices never needs it (about 2 s for
-        the demo's 558k unknowns)."""
+        solve a system of their own, so a block of such slices never needs it."""
         if self._ml is None:
             # pyamg is slow to import; only the solve needs it
             import pyamg

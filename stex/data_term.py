@@ -166,7 +166,7 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
     """Candidates of a block of target frames (E_loc for the prefiltered frames of
     ``target_group`` targets at once: the descriptors stream through memory once per group, and
     the (target, face, source) triples of a group — F · prefilter per target, 0.8 M at paper
-    scale — bound the memory: 16 targets at once peaked at 2.9 GB on the paper scene).
+    scale — bound the memory; docs/decisions/data_term.md).
 
     Args:
         targets: (n,) target frames (sequence positions); glo: (n, T) their E_glo rows.

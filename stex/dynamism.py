@@ -23,8 +23,8 @@ Conventions
 - Textures are atlas slices (W, W, 3) uint8 RGB in the template's texel grid (row 0 = v 0);
   ``texel_face`` (W, W) int32 is the face under each texel (-1 = empty), from
   :func:`stex.template.texel_map` at the (reduced) SSIM resolution. The authors compute SSIM at
-  500² (4000² sub-atlases resized); a few hundred texels are enough and keep one SSIM map
-  ~50 ms.
+  500² (4000² sub-atlases resized); a few hundred texels are enough and keep an SSIM map cheap
+  (docs/decisions/dynamism.md).
 - SSIM is dimensionless, <= 1 (1 = identical). Grey = 0.299 R + 0.587 G + 0.114 B (BT.601, as
   OpenCV), computed in float so uint8 textures keep their precision.
 - **NaN in S** means "face not seen in both frames" (no common texel after erosion). The gates
@@ -359,8 +359,7 @@ def dynamism_table(load: Callable, n_frames: int, sampler_or_maps, data_range=No
 
     Frames stream: ``load(t)`` is called once per frame, in order, and only two partial textures
     are held (the paper scene's 265 colour images of 2048 x 1536 are never all in memory).
-    Cost: T bilinear samplings of the covered texels plus T-1 SSIM maps of W² texels
-    (~50 ms each at W = 512).
+    Cost: T bilinear samplings of the covered texels plus T-1 SSIM maps of W² texels.
 
     Args:
         load: ``load(t) -> (image (Hc, Wc, 3) uint8, xi_t (V, 2) float px, face_visible_t (F,) bool)``.

@@ -22,8 +22,8 @@ at time t, minimising
   ``spatial_selective`` multiplies E_spa on an edge by 2 − (χ(S_m(f)) + χ(S_m(f')))/2 with
   S_m(f) = min over the face's visible frames of S(f, ·) — the paper's rule, which the authors'
   code intends but never applies (a by-value loop, ``official_code_notes.md`` §2.4); off by
-  default, since on the demo ground truth it made the labeling slightly worse (2.872 vs 2.847
-  grey levels, ``benchmarks/bench_labeling.py --ablations``). NaN
+  default, since on the demo ground truth it made the labeling slightly worse
+  (docs/decisions/labeling.md). NaN
   dynamism (face not seen in two consecutive frames) gives no evidence of change and counts as
   static (χ = 1).
 
@@ -36,8 +36,8 @@ of frame t are unary terms of its MRF (the authors fold them the same way), so e
 the frame's energy falls) warm-started from its current labels: the total energy never rises.
 Frames of one parity do not interact, so they are solved in parallel threads (numba releases the
 GIL). A frame's candidates and data term are read from the data_term stores when it is solved
-(:class:`TableRows`), not held for every frame: at paper scale the stage's peak is 0.85 GB instead
-of 1.59 GB, for 10 % more time (252 against 229 s), the same labels.
+(:class:`TableRows`), not held for every frame: the stage's peak memory falls for a little more
+time and the same labels (docs/decisions/labeling.md).
 
 Faces never visible have no candidate. Those that some source frame glimpses (``projection``
 ``face_glimpsed``: the face's own test passes there, but a corner fails the vertex rule, e.g. on

@@ -72,27 +72,8 @@ the feature row of (candidate, slot) is tabulated once per call (``_Graph``); a 
 and their neighbours have not changed since it was last tried is skipped (its move would be the
 same binary problem). The kernels are serial and release the GIL.
 
-Measured speed (``python benchmarks/bench_mrf.py --runs 5``; the shared 2-core project machine
-with a load average of about 5 from other jobs, so wall time ran at about 2x the process CPU
-time; medians of 5 runs after a warm-up call). Problem: 20,480 faces / 30,720 edges of a bumpy
-icosphere, 265 frame labels, 19.6 labels per node, K = 17:
-
-======================================================  ========  =======  ===============
-case                                                    wall      CPU      energy
-======================================================  ========  =======  ===============
-α-expansion from the unary argmin, tol 1e-3 (3 cycles)  1.15 s    0.57 s   18316 -> 15879
-α-expansion warm start, perturbed unaries (3 cycles)    1.13 s    0.56 s   26046 -> 24227
-α-expansion to convergence, tol 0 (5 cycles, 1 run)     1.56 s    0.77 s   15878.4
-ICM from the unary argmin                               0.11 s    0.055 s  16045
-ICM warm start                                          0.11 s    0.055 s  24320
-======================================================  ========  =======  ===============
-
-With 47.9 labels per node (``--window 35 --second 15``): 4.35 s wall / 2.16 s CPU cold
-(4 cycles), 3.31 s / 1.64 s warm (3 cycles); ICM 0.22 s / 0.11 s.
-
-Most of a cycle is memory traffic for the feature rows (visiting the labels in ascending order
-instead of a random one halved the time of a first cycle in one measurement, 0.13 s against
-0.25 s CPU, at a slightly higher energy after that cycle); the max-flow itself is a few per cent.
+Most of a cycle is memory traffic for the feature rows; the max-flow itself is a small part. The
+measured speed is in docs/decisions/labeling.md.
 """
 
 from __future__ import annotations
@@ -369,8 +350,8 @@ def _feat_row(feat_ptr, feat_label, e, lab):
     return lo
 
 
-# reassociation lets LLVM vectorise the K-term sum (about 1.6x faster, measured); the result
-# differs from the sequential sum only by rounding and is the same on every call
+# reassociation lets LLVM vectorise the K-term sum; the result differs from the sequential sum
+# only by rounding and is the same on every call
 @njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _l1(feat, r0, r1):
     """sum_k |feat[r0, k] - feat[r1, k]| in float64 (0 when r0 == r1)."""

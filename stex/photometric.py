@@ -460,9 +460,7 @@ class PhotometricTerm:
 
         Run to convergence, not a fixed two rounds: each face's proxy averages the frames that
         see it, which are neighbours in time, so a gain error spreads to the neighbouring frames'
-        estimates and decays slowly (demo, 120 frames with exposure drift: 1.8 % RMS gain error
-        after 2 rounds, converged after ~45; bench_texcoords drift reduction 55.7 % -> 63.5 %,
-        and 65.0 % with the mode instead of the median)."""
+        estimates and decays slowly (docs/decisions/texcoords.md)."""
         K = self.fvis.shape[0]
         g0 = self.stack.gain
         if self.gain_mode != "frame" or not len(self.pk):
@@ -578,8 +576,8 @@ class SparseSystems:
         singularity guard). Hq (Q, 6, 6), gq (Q, 6): :func:`face_blocks_kernel`. Direct sparse
         LU (SuperLU, symmetric mode, minimum-degree ordering on A + Aᵀ), one frame at a time:
         reusing a frame's factors as the preconditioner of later solves needed fewer
-        factorisations but kept K factors in memory (≈ 3.6 GB at 64 paper-scale frames) and did
-        not make the stage faster."""
+        factorisations but kept K factors in memory and did not make the stage faster
+        (docs/decisions/texcoords.md)."""
         for k, (n, inv, indices, indptr, diag, r6) in enumerate(self.pattern):
             if n == 0:
                 continue

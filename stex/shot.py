@@ -207,7 +207,7 @@ def geodesic_neighbourhoods(vertices, faces, radius_m: float) -> Neighbourhoods:
         vertices: (V, 3) float positions, metres (normally the template's).
         faces: (F, 3) int.
         radius_m: geodesic radius, metres. Edge-path distances overestimate the true geodesic
-            distance (by ~7 % median on a 1.4 cm-edge mesh, building_blocks_measured §3).
+            distance (docs/decisions/similarity.md).
 
     Returns:
         :class:`Neighbourhoods` ``(ptr (V+1,) int64, idx int32, dist float32)``; each list starts

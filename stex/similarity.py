@@ -40,7 +40,7 @@ non-negative and unit length); −1 means identical local shape.
   is fixed); positions and normals come from each frame. A neighbour counts for a frame's
   descriptor only while it lies within the support radius R in that frame (SHOT's spherical
   support), so a stretched region loses neighbours and a bent one keeps them. Edge-graph
-  distances overestimate the true geodesic (+6.7 % median at R = 5 cm, building_blocks §3).
+  distances overestimate the true geodesic a little (docs/decisions/similarity.md).
 - **SHOT as in the reference implementation** (Tombari's code, as in PCL
   ``SHOTEstimation::interpolateSingleChannel``): local reference frame from the covariance of
   the neighbours around the vertex weighted by (R − d); x = largest eigenvector, signed by the
@@ -61,8 +61,8 @@ non-negative and unit length); −1 means identical local shape.
   measure is not recoverable from their binary (``official_code_notes.md`` §2.3). It is
   symmetric, 1 for identical descriptors and what the paper's "τ_j · τ_j'" writes.
 - **Memory / streaming**: descriptors are (T, V, 352) — 3.7 GB in float32 at 10k vertices and
-  265 frames, 1.9 GB in float16, which changes E_loc by < 1e-3 (measured:
-  ``benchmarks/bench_similarity.py``). The E_loc functions accept any array-like indexed by
+  265 frames, 1.9 GB in float16, which changes E_loc little (docs/decisions/similarity.md). The E_loc
+  functions accept any array-like indexed by
   frame (numpy, zarr; float16, float32 or float64). They hold the targets of a call in chunks
   of ``target_chunk`` frames and load each source frame once per chunk, as float32 (numba has
   no float16; float16 is widened by a bit-exact numba kernel, ~3x faster than numpy's), so
@@ -80,13 +80,8 @@ of cloth and skin follow how the surface is *compressed or stretched*. Only diff
 s_f(t) − s_f(l) enter, so the rest shape cancels; the smoothing averages the tracking noise of
 single edges out. The tracked mesh gives s_f(t) also where the camera does not see f at t,
 which is where the data term matters most (the source of a face unseen at t is chosen by shape
-alone). On the demo, without it, the back of frame 12 (smooth at t, unseen) was textured from
-frames 60-89, where the bent body compresses it into wrinkles: E_glo and E_loc rank those frames
-first. On the demo ground truth (its former inputs: colour noise σ 2, no motion blur;
-``benchmarks/bench_labeling.py``) the labels' error on faces
-unseen at t drops from 4.82 to 4.28 grey levels with ω_str = 1 (labels chosen by E_qual
-alone: 4.72), and the novel-view PSNR of the region unseen at t rises from 20.61 to 21.29 dB (the
-sweep is in ``stex/schema.yaml``).
+alone); on the demo it chooses better sources for the faces unseen at t than E_glo and E_loc
+(docs/decisions/similarity.md).
 
 Conventions: vertices in metres in depth-camera coordinates; poses 4x4 float64 with
 poses[t, l] mapping frame t's vertices onto frame l (x' = R x + t, :mod:`stex.poses`).
@@ -440,8 +435,8 @@ def _check_rings(rings, n_vertices):
 def _half_bits_to_float(h, out):
     """float16 bit patterns (uint16, any shape, C order) -> float32 values (out: uint32 bits).
 
-    numpy's float16 -> float32 conversion of one 10k x 352 frame takes ~7 ms, which at ~280
-    frame loads per target block would rival the E_loc kernels; this is the classic shift and
+    numpy's float16 -> float32 conversion at every frame load of a target block would rival
+    the E_loc kernels (docs/decisions/similarity.md); this is the classic shift and
     rescale (exact for normals and subnormals), vectorised by LLVM. Inf / NaN map to NaN."""
     hf = h.ravel()
     ob = out.ravel()

@@ -77,10 +77,9 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   follows Nielsen's rule on the gain ratio (actual / model decrease) after an accepted step and
   doubles (×2, ×4, ...) after a rejected one, up to ``backtracks`` re-solves. The step is clamped,
   gauge-projected and kept in the crop as above, and accepted only if neither E nor the objective
-  it minimises, O = E + edge term (/ 255²), rises. Measured (bench_texcoords): the same or a lower
-  O in 3-8x fewer steps, each 4-8x dearer (one LU per frame and trial: ≈ 7 ms at 3 000 unknowns,
-  ≈ 75 ms at 7 000), the same accuracy — the stage is not convergence-limited — so 'jacobi'
-  stays the default.
+  it minimises, O = E + edge term (/ 255²), rises. It reaches the same accuracy in fewer but
+  dearer steps (the stage is not convergence-limited), so 'jacobi' stays the default
+  (docs/decisions/texcoords.md).
 - **Monotone energy**: a level stops when no halving / re-solve helps, when the relative decrease
   is below ``rel_tol`` (the authors: 1e-5; default 1e-4, same accuracy, half the time), or after
   ``iterations`` steps (the authors: 300). The recorded E is non-increasing within every level
@@ -89,17 +88,14 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   ξ of a vertex the same way (sliding the texture over the surface) leaves it unchanged, so the
   per-vertex mean of ξ − Φ over the stage's frames (where the vertex has a visible face) is
   unobserved. Without a rule for it (``gauge`` 'none', the authors) it random-walks under the
-  small biases of the data term (noise, appearance changing in time, the silhouette): on the
-  drift-free demo, 300 iterations per level moved ξ 0.39 px (median) off the truth in this mean
-  alone. 'mean' holds it at 0 by subtracting it from every candidate ξ (image px, over the
+  small biases of the data term (noise, appearance changing in time, the silhouette)
+  (docs/decisions/texcoords.md). 'mean' holds it at 0 by subtracting it from every candidate ξ (image px, over the
   frames where the vertex is a corner of a visible face): ξ keeps tracking's average placement
   and takes only the frame-to-frame corrections. 'weighted' (default) holds the mean weighted by
   the proxy weights (the mean cosine of the vertex's visible faces at that frame) instead: the
   proxy colour is the cosine-weighted average of the frames, so this is where the proxy puts the
   texture, and a frame that sees the vertex frontally places it better than one at a grazing
-  angle. Demo, 120 frames (bench_texcoords): 70.1 % median drift reduction against 68.2 % with
-  'mean': the pairs at cosine 0.2-0.4 come from 0.66 to 0.62 px, 0.6-0.8 from 0.53 to 0.48 px,
-  the frontal ones (0.8-1.0) give a little (0.47 → 0.50 px).
+  angle (docs/decisions/texcoords.md).
 - **Hierarchy**: ``levels`` coarse-to-fine levels over an *image* pyramid: level l (0 = coarsest)
   uses the grey image blurred by ``levels − l`` successive 3×3 Gaussian blurs (the authors'
   ``blur_vec``: 6 blurs on the coarsest, 1 on the finest), always at full resolution. **The
@@ -131,30 +127,10 @@ rise (the authors accept every step); the mask test is made on the proxy weights
 ``projection`` stage already dropped masked-out vertices and faces); ``rel_tol`` 1e-4 (theirs
 1e-5). Options that are ours (the authors' behaviour in brackets): ``gauge`` 'weighted' ['none'],
 ``edge_mode`` 'vector' ['length'], ``gain`` 'frame' ['none'], ``robust_grey`` 4 [0],
-``face_photometric`` 'affine' ['none'] and ``solver`` 'sparse' ['jacobi', the default]. Measured
-with ``benchmarks/bench_texcoords.py`` (median |ξ − truth| relative to |Φ − truth|): demo, 120
-frames with the current degradations (exposure drift, wrinkles): 46.7 % reduction with gain
-'none', robust_grey 0 and face_photometric 'none'; 65.0 % with gain and robust weights; 68.2 %
-with face_photometric 'affine' (stage 71 s instead of ~130 s: the levels converge in fewer
-steps); 70.1 % with the defaults (gauge 'weighted'; stage 42 s on a quiet core); paper scale, all
-265 frames: 93.9 % with the defaults (92.8 % with gauge 'mean', 91.7 % before the face model;
-the consensus of the plain-mean gauge, the truth slid by its mean drift over the visible
-frames, is at 81.2 % on the demo and 94.5 % there). All measured with the synthetic camera looking
-from below; from above (35a5f98, the camera's fix) the demo gives 71.7 % (|Φ − truth| 1.845 →
-|ξ − truth| 0.522 px; consensus 83.0 %) and Table 3's ratios 1.0034 / 1.0075 / 1.0096 /
-0.9959 for key frames every 2nd-5th frame. On the demo the wrinkled frames stay the
-limit: their shading is not affine inside a face, so they are down-weighted rather than
-explained.
-
-Those figures are for the synthetic drift, which averages out over time by design. The tracker's
-own error mostly does not: in the workflow's runs (``benchmarks/bench_registration.py RESULTS``,
-every 5th frame, visible vertices) Φ lies 2.42 px from the truth (paper scene; demo 0.77), and
-the per-vertex mean of the tracker's error over the frames that see the vertex, which Eq. 1
-cannot observe, alone puts it 2.15 px off (demo 0.66: the consensus). ξ removes about half of
-what varies between frames (|Φ − consensus| 0.55 → |ξ − consensus| 0.30 px; demo 0.26 → 0.19)
-and ends 2.12 px from the truth (demo 0.72), at that bound. With exact meshes there is nothing to
-remove, and ξ moves 0.12 px off the truth on the demo (``bench_texcoords.py --drift 0``) and
-0.39 px on the Fox (given meshes; its photos have motion blur).
+``face_photometric`` 'affine' ['none'] and ``solver`` 'sparse' ['jacobi', the default]. Each of
+ours lowered the error against the truth in ``benchmarks/bench_texcoords.py``; on the workflow's
+runs ξ is bounded by the part of the tracker's error that Eq. 1 cannot observe (its per-vertex
+mean over the frames). The measurements are in docs/decisions/texcoords.md.
 """
 
 from __future__ import annotations
