@@ -71,9 +71,9 @@ What follows mirrors the authors' code (``TextureMappingNonRigid``, ``official_c
   residuals and weights as 'jacobi', but each photometric residual with its true Jacobian
   β_k g_t ∇C for every corner k, so corners j, k of a face are coupled by β_j β_k g_t² ∇C∇Cᵀ; the
   edge term adds the graph-Laplacian-like blocks. Per (frame, face) 6×6 blocks come from a numba
-  kernel (:func:`face_blocks_kernel`) and are summed into one CSC matrix per frame through a
+  kernel (:func:`stex.photometric.face_blocks_kernel`) and are summed into one CSC matrix per frame through a
   pattern built once per level; (H + λ (diag H + mean diag H) + 1e-4 I) δ = −g is solved by
-  SuperLU (:class:`SparseSystems`). Levenberg–Marquardt: λ starts at ``lm_lambda`` each level,
+  SuperLU (:class:`stex.photometric.SparseSystems`). Levenberg–Marquardt: λ starts at ``lm_lambda`` each level,
   follows Nielsen's rule on the gain ratio (actual / model decrease) after an accepted step and
   doubles (×2, ×4, ...) after a rejected one, up to ``backtracks`` re-solves. The step is clamped,
   gauge-projected and kept in the crop as above, and accepted only if neither E nor the objective
@@ -352,7 +352,7 @@ def photometric_energy(stack: CropStack, xi, faces, face_visible, face_weight, p
 
     Returns:
         (E, proxy): E float = Σ ((C − P)/255)² over visible faces and samples (Eq. 1; its robust,
-        gain-compensated form if ``robust_grey`` > 0 / ``gain`` 'frame', see :class:`PhotometricTerm`);
+        gain-compensated form if ``robust_grey`` > 0 / ``gain`` 'frame', see :class:`stex.photometric.PhotometricTerm`);
         proxy (F, S) grey levels.
     """
     p = texcoords_params(params)
@@ -618,7 +618,7 @@ def sampling_table(inputs: dict, params: dict | None, steps) -> list[dict]:
     by its own.
 
     Args:
-        inputs: :func:`stage_inputs` (``frame_ids`` ignored).
+        inputs: :func:`stex.stages.texcoords.stage_inputs` (``frame_ids`` ignored).
         params: the ``texcoords`` config section. steps: key-frame steps (ints >= 1).
 
     Returns:

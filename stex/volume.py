@@ -38,13 +38,13 @@ def volume_slice(texel_face, texel_bary, faces, labels_t, coords, images, gutter
             on (a (T, V, 2) array, a zarr array, a dict) or a callable ``coords(s)``.
         images: source frame s -> (Hc, Wc, 3) uint8 RGB colour image, likewise indexable or
             callable. Only the frames that occur in ``labels_t`` are read, each once.
-        gutter_px: rings of empty texels around the charts to fill (see :func:`fill_gutter`).
-        interpolation: "bicubic" or "bilinear" (see :class:`TexelSampler`).
+        gutter_px: rings of empty texels around the charts to fill (see :func:`stex.sampling.fill_gutter`).
+        interpolation: "bicubic" or "bilinear" (see :class:`stex.sampling.TexelSampler`).
 
     Returns:
         (slice (W, W, 3) uint8, label_map (W, W) int32; -1 where the colour is not sampled).
 
-    For many slices of one atlas, build a :class:`TexelSampler` once and call its ``slice``.
+    For many slices of one atlas, build a :class:`stex.sampling.TexelSampler` once and call its ``slice``.
     """
     return TexelSampler(texel_face, texel_bary, faces, interpolation).slice(labels_t, coords, images,
                                                                           gutter_px)

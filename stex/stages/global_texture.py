@@ -26,9 +26,9 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     a ``global_texture`` store.
 
     Source frames are the sequence positions 0, k, 2k, ... (k = ``params['source_stride']``, the
-    data-term stage's setting, :func:`source_mask`). Each source frame t blends into the atlas with
+    data-term stage's setting, :func:`stex.data_term.source_mask`). Each source frame t blends into the atlas with
     weight w_t(f) = projection ``face_cos[t, f]`` where ``face_visible[t, f]``; (t, f) with
-    w_t(f) <= ``params['min_weight']`` are left out (:func:`global_texture`). Colours are sampled
+    w_t(f) <= ``params['min_weight']`` are left out (:func:`stex.global_texture.global_texture`). Colours are sampled
     at the texture coordinates of ``coords_path`` (ξ or Φ, as the volume). Chart gutters are
     filled over the template's ``gutter_px`` rings.
 
@@ -41,7 +41,7 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
             frames are read).
         coords_path: ``texcoords`` store (ξ [T, V, 2] px) or the ``projection`` store (Φ).
         out: path of the ``global_texture`` store.
-        params: :func:`global_texture_params` (``min_weight``, ``source_stride``).
+        params: :func:`stex.global_texture.global_texture_params` (``min_weight``, ``source_stride``).
 
     Writes ``texture`` (W, W, 3) uint8 sRGB, ``weight_sum`` (W, W) float32 (Σ_t w_t(f) of each
     texel's face, 0 where nothing was observed), ``face_textured`` (F,) bool (faces with at least

@@ -21,9 +21,9 @@ __all__ = ["labeling_inputs", "write_labels", "preview_labels"]
 
 
 def labeling_inputs(observations_path, data_term_paths, template_path, params: dict) -> dict:
-    """Read what :func:`label_sequence` needs from the stores and apply the config switches.
+    """Read what :func:`stex.labeling.label_sequence` needs from the stores and apply the config switches.
 
-    Returns a dict of keyword arguments for :func:`label_sequence` plus ``frame_ids`` and
+    Returns a dict of keyword arguments for :func:`stex.labeling.label_sequence` plus ``frame_ids`` and
     ``never_seen`` (F,) bool.
     """
     p = section_params("labeling", params)
@@ -63,7 +63,7 @@ def write_labels(observations_path, data_term_paths, template_path, params: dict
     """Labeling stage: write the ``labels`` store.
 
     With ``projection_path``, never-seen faces glimpsed by a source frame are labelled with it
-    at every frame (:func:`glimpse_sources`); ``never_seen`` then holds the faces left without
+    at every frame (:func:`stex.labeling.glimpse_sources`); ``never_seen`` then holds the faces left without
     any source."""
     p = section_params("labeling", params)
     args = labeling_inputs(observations_path, data_term_paths, template_path, p)
