@@ -36,12 +36,12 @@ import numpy as np
 try:
     from stex import mrf
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import face_adjacency
+    from stex.mesh import face_adjacency
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from stex import mrf
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import face_adjacency
+    from stex.mesh import face_adjacency
 
 
 def make_problem(n_frames: int = 265, window: int = 13, second: int = 7, subdivisions: int = 5, seed: int = 0):

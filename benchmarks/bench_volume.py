@@ -54,18 +54,21 @@ def _rss_gb():
 
 def _atlas_digest() -> str:
     """Digest of what the cached atlas depends on besides its size and gutter."""
+    import stex.atlas
+    import stex.mesh
     import stex.synth.shapes
-    import stex.template
+    import stex.xatlas_child
 
     h = hashlib.sha1(version("xatlas").encode())
-    for module in (stex.template, stex.synth.shapes):
+    for module in (stex.atlas, stex.mesh, stex.xatlas_child, stex.synth.shapes):
         h.update(Path(module.__file__).read_bytes())
     return h.hexdigest()[:12]
 
 
 def _atlas(size, gutter):
+    from stex.atlas import build_atlas, texel_map, uv_charts
+    from stex.mesh import face_adjacency
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import build_atlas, face_adjacency, texel_map, uv_charts
 
     CACHE.mkdir(exist_ok=True)
     f = CACHE / f"atlas_{size}_{gutter}_{_atlas_digest()}.npz"

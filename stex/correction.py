@@ -524,7 +524,8 @@ class CorrectionSystem:
                  temporal_length: float | None = 1 / 256, tol: float = 1e-4, maxiter: int = 50,
                  gutter_px: int = 4, amg_kwargs: dict | None = None,
                  boundary_gradient: str = "one_sided", keep_own_frame: bool = True):
-        from stex.template import face_adjacency, texel_map, uv_charts
+        from stex.mesh import face_adjacency
+        from stex.atlas import texel_map, uv_charts
 
         tf = np.asarray(texel_face)
         if tf.ndim != 2 or tf.shape[0] != tf.shape[1]:
@@ -746,7 +747,7 @@ def write_corrected(template_path, volume_path, params: dict, out, previous_path
     """
     from stex.config import section_params
     from stex.io import create_store, open_store
-    from stex.template import check_atlas
+    from stex.stages.template import check_atlas
 
     p = section_params("correction", params)
     template = open_store(template_path, "template")

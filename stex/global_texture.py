@@ -194,7 +194,7 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     """
     from stex.io import FrameSequence, create_store, open_store
     from stex.observations import open_coordinates
-    from stex.template import template_atlas_digest
+    from stex.stages.template import template_atlas_digest
     from stex.volume import TexelSampler
 
     p = global_texture_params(params)

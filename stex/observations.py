@@ -322,7 +322,7 @@ def write_observations(template_path, tracking_path, projection_path, coords_pat
     from stex.dynamism import face_ssim, partial_texture
     from stex.io import FrameSequence, create_store, open_store
     from stex.similarity import face_strain, geodesic_neighbourhoods, mesh_resolution, shot_descriptors
-    from stex.template import texel_map
+    from stex.atlas import texel_map
     from stex.volume import TexelSampler
 
     p = section_params("observations", params)

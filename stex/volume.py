@@ -552,7 +552,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     from stex.config import section_params
     from stex.io import FrameSequence, create_store, open_store, position_range
     from stex.observations import open_coordinates
-    from stex.template import template_atlas_digest
+    from stex.stages.template import template_atlas_digest
 
     log = logging.getLogger("stex.volume")
     p = section_params("volume", params)

@@ -19,7 +19,8 @@ import trimesh
 
 from conftest import data_samples
 from stex.config import load_config
-from stex.ingest import FolderSource, write_frames_block, write_scene
+from stex.ingest import FolderSource
+from stex.stages.ingest import write_frames_block, write_scene
 from stex.io import open_store
 from stex.readers.folder import FolderDataset
 from stex.readers.meshes import load_mesh
@@ -708,7 +709,7 @@ def test_masks_that_match_no_frame_are_named(tmp_path, authors):
     """Masks numbered from 0 (as the authors' meshes) while the colour frames are 7..10 were dropped
     without a word, and masks.use_given said 'the source supplied no masks'. A mask file with no
     colour frame beside masks that match is named too."""
-    from stex.masks import write_masks_block
+    from stex.stages.masks import write_masks_block
 
     folder = authors / "stream" / "mask"
     extra = folder / f"Frame_{FIRST + 50:06d}.png"

@@ -444,7 +444,7 @@ def _decode_color(buf: bytes, size: tuple[int, int], fmt: str, what: str) -> np.
 def _decode_mjpeg_ffmpeg(buf: bytes) -> np.ndarray | None:
     """Fallback MJPEG decoder (FFmpeg through PyAV); returns BGR like cv2.imdecode, or None."""
     try:
-        import av
+        import av  # PyAV is slow to import; only this fallback decoder needs it
 
         ctx = av.CodecContext.create("mjpeg", "r")
         frames = ctx.decode(av.Packet(buf)) + ctx.decode(None)
@@ -665,7 +665,7 @@ class KinectRecording:
     # ---------------------------------------------------------------- PyAV backend
 
     def _av_open(self):
-        import av
+        import av  # PyAV is slow to import; only the PyAV backend needs it
 
         try:
             return av.open(str(self.path), mode="r")
@@ -673,7 +673,7 @@ class KinectRecording:
             raise ValueError(f"{self.path}: cannot be opened as a Matroska file: {e}") from e
 
     def _open_pyav(self) -> None:
-        import av
+        import av  # PyAV is slow to import; only the PyAV backend needs it
 
         container = self._av_open()
         try:
@@ -811,7 +811,7 @@ class KinectRecording:
                          f"{pix!r}); expected raw 16-bit 'b16g' as written by k4arecorder")
 
     def _frames_pyav(self, start: int, stop: int):
-        import av
+        import av  # PyAV is slow to import; only the PyAV backend needs it
 
         want_c = {int(p): i for i, p in enumerate(self._cap_color_pts[start:stop], start)}
         want_d = {int(p): i for i, p in enumerate(self._cap_depth_pts[start:stop], start)}
@@ -893,7 +893,7 @@ class KinectRecording:
     # ---------------------------------------------------------------- pyk4a backend (untested here)
 
     def _open_pyk4a(self) -> None:
-        import pyk4a
+        import pyk4a  # optional: the Azure Kinect SDK's binding, for its own backend
 
         try:
             pb = pyk4a.PyK4APlayback(str(self.path))
@@ -952,7 +952,7 @@ class KinectRecording:
         self._ts_to_index = {t: i for i, t in enumerate(d_ts)}
 
     def _frames_pyk4a(self, start: int, stop: int):
-        import pyk4a
+        import pyk4a  # optional: the Azure Kinect SDK's binding, for its own backend
 
         pb = self._playback
         target = int(self.timestamps_us[start])

@@ -38,6 +38,7 @@ from pathlib import Path
 from urllib.parse import unquote
 
 import numpy as np
+from PIL import Image
 
 __all__ = [
     "GltfError",
@@ -416,8 +417,6 @@ class _Reader:
 
     def image(self, index: int) -> np.ndarray:
         """Image ``index`` as (H, W, 3) uint8 RGB (alpha dropped)."""
-        from PIL import Image
-
         img = self._get("images", index)
         what = f"image {index}" + (f" ({img['name']!r})" if "name" in img else "")
         if "uri" in img:
