@@ -17,7 +17,7 @@ change away from boundaries (> 16 texels), and for factor > 1 the mean |differen
 factor-1 result when this run has one.
 
 The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds it
-(``stex/template.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
+(``stex/atlas.py``, ``stex/mesh.py``, ``stex/charting.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
 again; the slice and the corrected results go from job to job through a folder of this run only.
 
     python benchmarks/bench_volume.py [--size 4096] [--runs 3] [--factors 4,2] [--tol 1e-4]
@@ -57,10 +57,10 @@ def _atlas_digest() -> str:
     import stex.atlas
     import stex.mesh
     import stex.synth.shapes
-    import stex.xatlas_child
+    import stex.charting
 
     h = hashlib.sha1(version("xatlas").encode())
-    for module in (stex.atlas, stex.mesh, stex.xatlas_child, stex.synth.shapes):
+    for module in (stex.atlas, stex.mesh, stex.charting, stex.synth.shapes):
         h.update(Path(module.__file__).read_bytes())
     return h.hexdigest()[:12]
 

@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import connected_components
 from stex.isolated import call_in_child
 from stex.mesh import face_areas_quality, mesh_parts, working_scale
 from stex.render import rasterize
-from stex.xatlas_child import uv_signed_area, xatlas_layout
+from stex.charting import uv_signed_area, xatlas_layout
 
 log = logging.getLogger("stex.template")
 

@@ -896,7 +896,7 @@ def test_build_atlas_never_loads_xatlas_into_the_calling_process():
     import subprocess
     import sys
 
-    code = ("import sys, trimesh; from stex.template import build_atlas; "
+    code = ("import sys, trimesh; from stex.atlas import build_atlas; "
             "m = trimesh.creation.icosphere(2); tc, tf = build_atlas(m.vertices, m.faces, 256, 2); "
             "assert tf.shape == (320, 3), tf.shape; print(sorted(k for k in sys.modules if 'xatlas' in k))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
