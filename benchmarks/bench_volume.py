@@ -17,8 +17,8 @@ change away from boundaries (> 16 texels), and for factor > 1 the mean |differen
 factor-1 result when this run has one.
 
 The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds it
-(``stex/atlas.py``, ``stex/mesh.py``, ``stex/charting.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
-again; the slice and the corrected results go from job to job through a folder of this run only.
+(``stex/atlas.py``, ``stex/mesh.py``, ``stex/charting.py``, ``stex/synth/shapes.py``, xatlas's
+version), so a changed atlas is built again; the slice and the corrected results go from job to job through a folder of this run only.
 
     python benchmarks/bench_volume.py [--size 4096] [--runs 3] [--factors 4,2] [--tol 1e-4]
                                       [--interpolation bicubic|bilinear]
