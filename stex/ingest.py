@@ -18,7 +18,8 @@ import numpy as np
 
 from stex.camera import Calibration
 from stex.readers.folder import FolderDataset
-from stex.readers.kinect_mkv import Undistorter, open_kinect_mkv
+from stex.readers.kinect_calibration import Undistorter
+from stex.readers.kinect_mkv import open_kinect_mkv
 from stex.readers.meshes import Mesh, check_same_topology, load_mesh
 from stex.synth.scene import SyntheticScene
 

@@ -1423,7 +1423,7 @@ def test_real_cameras_are_not_suspected_of_another_resolution():
     """The shared samples' calibrations: Kinect v1 (Snoopy), Structure sensor (DeepDeform) and the
     Azure Kinect in every colour resolution and depth mode."""
     from stex.camera import Intrinsics
-    from stex.readers.kinect_mkv import COLOR_RESOLUTIONS, DEPTH_MODES, calibration_from_k4a_json
+    from stex.readers.kinect_calibration import COLOR_RESOLUTIONS, DEPTH_MODES, calibration_from_k4a_json
 
     root = data_samples()
     K = np.loadtxt(root / "killingfusion_snoopy" / "frames_000000_000001" / "intrinsics_kinect1.txt")
