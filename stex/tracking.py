@@ -676,23 +676,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         if not np.isfinite(cur).all():
             raise ValueError(f"tracking diverged at frame position {pos}: non-finite vertices "
                              f"({stats.get('n_corr', 0)} depth correspondences in the last solve)")
-        # Frame-level guard: the step guard holds the correspondences fixed, so a solve can still
-        # walk off with its own associations (losing pairs lowers the cost). Judged by how well each
-        # mesh explains the whole depth frame (rendered vs observed, silhouette included), the
-        # frame keeps the best of the prediction, the rigid fit and the full solve.
-        meshes = {"solve": cur, "rigid": rigid0, "prediction": pred0}
-        if cur is rigid0:                   # rigid_only: the solve is the rigid fit, render it once
-            del meshes["rigid"]
-        fits = {name: depth_residual(V, F, obs.target, FRAME_GUARD_CLIP_M) for name, V in meshes.items()}
-        stats["depth_residual_m"] = fits["solve"]
-        fallback = fits["solve"] > FRAME_GUARD_MARGIN * min(fits.values())
-        if fallback:
-            best = min(fits, key=fits.get)
-            log.warning("tracking: frame %d: guard: the solve explains the depth worse (mean clipped depth "
-                        "difference %.1f mm) than the %s (%.1f mm): keeping the %s",
-                        pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
-            cur = meshes[best]
-            stats["depth_residual_m"] = fits[best]   # the fit of the mesh the frame keeps
+        # Frame-level guard: the frame keeps the best of the prediction, the rigid fit and the full solve.
+        cur, fallback = _frame_guard(cur, rigid0, pred0, F, obs.target, pos, stats)
         if params.unseen_from_rest and not params.rigid_only:
             cur, rest_warp = _pose_unseen_from_rest(V0, F, graph, rest_warp, prev, cur, obs.target, params, stats)
         stats["seconds"] = time.perf_counter() - tf
@@ -718,6 +703,30 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 cur, image, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
             prev_image = image
         yield pos, cur, stats
+
+
+def _frame_guard(cur, rigid0, pred0, faces, target: DepthTarget, pos: int, stats: dict):
+    """The frame's mesh (V, 3): the best of the solve ``cur``, the rigid fit ``rigid0`` and the
+    prediction ``pred0`` by how well each explains the whole depth frame (:func:`depth_residual`,
+    rendered vs observed, silhouette included), and whether it is not the solve; records the
+    kept mesh's fit in ``stats["depth_residual_m"]``.
+
+    Why: the step guard holds the correspondences fixed, so a solve can still walk off with its own
+    associations (losing pairs lowers the cost)."""
+    meshes = {"solve": cur, "rigid": rigid0, "prediction": pred0}
+    if cur is rigid0:                   # rigid_only: the solve is the rigid fit, render it once
+        del meshes["rigid"]
+    fits = {name: depth_residual(V, faces, target, FRAME_GUARD_CLIP_M) for name, V in meshes.items()}
+    stats["depth_residual_m"] = fits["solve"]
+    fallback = fits["solve"] > FRAME_GUARD_MARGIN * min(fits.values())
+    if fallback:
+        best = min(fits, key=fits.get)
+        log.warning("tracking: frame %d: guard: the solve explains the depth worse (mean clipped depth "
+                    "difference %.1f mm) than the %s (%.1f mm): keeping the %s",
+                    pos, 1000 * fits["solve"], best, 1000 * fits[best], best)
+        cur = meshes[best]
+        stats["depth_residual_m"] = fits[best]   # the fit of the mesh the frame keeps
+    return cur, fallback
 
 
 def _pose_unseen_from_rest(rest, faces, graph, rest_warp, prev, cur, target: DepthTarget, p: TrackParams, stats):

@@ -1,4 +1,4 @@
-"""Thin adapter: rule ingest_block -> stex.ingest.write_frames_block."""
+"""Thin adapter: rule ingest_block -> stex.stages.ingest.write_frames_block."""
 from stex.stages.ingest import write_frames_block
 from stex.logs import setup_logging
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule ingest_scene -> stex.ingest.write_scene."""
+"""Thin adapter: rule ingest_scene -> stex.stages.ingest.write_scene."""
 from stex.stages.ingest import write_scene
 from stex.logs import setup_logging
 

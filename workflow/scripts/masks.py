@@ -1,4 +1,4 @@
-"""Thin adapter: rule masks -> stex.masks.write_masks_block."""
+"""Thin adapter: rule masks -> stex.stages.masks.write_masks_block."""
 from stex.logs import setup_logging
 from stex.stages.masks import write_masks_block
 

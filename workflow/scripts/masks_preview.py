@@ -1,4 +1,4 @@
-"""Thin adapter: rule masks_preview -> stex.masks.preview_masks."""
+"""Thin adapter: rule masks_preview -> stex.stages.masks.preview_masks."""
 from stex.logs import setup_logging
 from stex.stages.masks import preview_masks
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule poses -> stex.poses.write_pose_table."""
+"""Thin adapter: rule poses -> stex.stages.poses.write_pose_table."""
 from stex.logs import setup_logging
 from stex.stages.poses import write_pose_table
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule projection -> stex.projection.write_projection."""
+"""Thin adapter: rule projection -> stex.stages.projection.write_projection."""
 from stex.logs import setup_logging
 from stex.stages.projection import write_projection
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule projection_preview -> stex.projection.preview_projection."""
+"""Thin adapter: rule projection_preview -> stex.stages.projection.preview_projection."""
 from stex.logs import setup_logging
 from stex.stages.projection import preview_projection
 

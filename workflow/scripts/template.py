@@ -1,4 +1,4 @@
-"""Thin adapter: rule template -> stex.template.write_template."""
+"""Thin adapter: rule template -> stex.stages.template.write_template."""
 from stex.logs import setup_logging
 from stex.stages.template import write_template
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule template_preview -> stex.template.preview_template."""
+"""Thin adapter: rule template_preview -> stex.stages.template.preview_template."""
 from stex.logs import setup_logging
 from stex.stages.template import preview_template
 

@@ -1,4 +1,4 @@
-"""Thin adapter: rule tracking -> stex.tracking.write_tracking."""
+"""Thin adapter: rule tracking -> stex.stages.tracking.write_tracking."""
 from stex.logs import setup_logging
 from stex.stages.tracking import write_tracking
 

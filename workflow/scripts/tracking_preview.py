@@ -1,4 +1,4 @@
-"""Thin adapter: rule tracking_preview -> stex.tracking.plot_tracking_fit."""
+"""Thin adapter: rule tracking_preview -> stex.stages.tracking.plot_tracking_fit."""
 from stex.logs import setup_logging
 from stex.stages.tracking import plot_tracking_fit
 
