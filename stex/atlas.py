@@ -1,4 +1,52 @@
-"""ATLAS"""
+"""UV layout of the template: building the atlas (xatlas), keeping a mesh's own layout, charts,
+the texel map, digests, and the border and gutter checks.
+
+Conventions
+-----------
+Texcoords follow stex (see :mod:`stex.render`): u right, v **down**, origin at the texture's
+top-left corner, texel (r, c) centred at ((c + .5) / W, (r + .5) / W).
+
+**UV orientation.** With v pointing down, a UV triangle is *front-facing* (the texture image shows
+the surface as seen from outside, not mirrored) when its signed area
+
+    A = (u1 - u0) (v2 - v0) - (v1 - v0) (u2 - u0)
+
+is **negative**: counter-clockwise on the screen with rows growing downward. (Exported to OBJ,
+v -> 1 - v, this becomes the usual positive / counter-clockwise UV winding of OpenGL tools.)
+:func:`uv_flipped` marks faces with A > 0; :func:`build_atlas` guarantees there are none.
+
+Why xatlas mirrors charts, and the fix
+--------------------------------------
+xatlas' packer may "rotate" a chart by 90 degrees to pack it better (``PackOptions.rotate_charts``,
+on by default), and it does so by swapping u and v — a *transposition*, i.e. a mirror image.
+``ChartOptions.fix_winding`` does not help (it concerns the parameterisation, which is fine).
+About half the charts of a mesh can come out mirrored (docs/decisions/template.md).
+:func:`build_atlas` therefore
+
+1. charts and packs with xatlas' defaults (pass 1),
+2. mirrors every chart whose area-weighted orientation is wrong (u -> -u, turning the
+   transposition into a true 90-degree rotation); a face still wrong after that (a fold inside a
+   chart; not observed so far) becomes a chart of its own and is mirrored alone,
+3. repacks the fixed charts with xatlas (``use_input_mesh_uvs``, ``rotate_charts`` off, so no new
+   mirror images) into exactly ``resolution`` x ``resolution`` texels, searching the texel density
+   (texels per metre) that just fits one atlas,
+4. mirrors back, each inside its own box, the small charts the repack returns wholly mirrored
+   (a sliver triangle of a mesh from depth; small fans at the pole of a noisy scan),
+   and checks that no triangle is mirrored and all texcoords lie in [0, 1].
+
+xatlas skips faces below an absolute area (:data:`XATLAS_MIN_AREA` in the mesh's units), so a
+mesh of tiny faces is scaled up for it (:func:`stex.mesh.working_scale`) and the texel density
+scaled back to texels per metre. The scale comes from the median face area, so the faces of a
+small part (a 4 mm eye on a 10 cm body) can still fall below the limit: their UVs collapse, and a
+warning says how many faces in which parts (scaling further up packs such parts' few-texel
+charts closer than the gutter: docs/decisions/template.md).
+
+Steps 1-3 run in a child process (:func:`stex.isolated.call_in_child`,
+:func:`stex.charting.xatlas_layout`) that exits without destroying its xatlas atlas:
+``xatlas::Destroy`` joins xatlas' worker threads and once waited for them for good.
+Which charts the packer transposes depends on the layout, so ``flipped_xatlas`` varies with the
+resolution; the result never has mirrored triangles.
+"""
 
 from __future__ import annotations
 

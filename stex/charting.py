@@ -1,4 +1,9 @@
-"""CHILD"""
+"""The xatlas work of :func:`stex.atlas.build_atlas`: charting, the chart fix and the repack
+search, run in a child process (:func:`stex.isolated.call_in_child`).
+
+This module imports nothing of stex and loads xatlas only inside its functions, so the child
+starts quickly and the calling process never loads xatlas. UV conventions as in :mod:`stex.atlas`.
+"""
 
 from __future__ import annotations
 
@@ -89,8 +94,8 @@ def xatlas_layout(V, F, resolution, gutter_px, pack_search_steps):
     area = uv_signed_area(px, idx)
     info["flipped_xatlas"] = int((area < 0).sum())
     # each texcoord's chart, from xatlas (the same partition as uv_charts, without importing
-    # scipy into the child: 0.4 s of its 0.7 s start; faces xatlas ignored share its "no chart"
-    # label and have no UV area, so they are never mirrored either way)
+    # scipy into the child, which would take most of its start; faces xatlas ignored share its
+    # "no chart" label and have no UV area, so they are never mirrored either way)
     t_chart = np.unique(np.asarray(a.get_mesh_vertex_assignment(0)[1], np.int64), return_inverse=True)[1]
     t_chart = t_chart.reshape(-1)
     mirrored = np.bincount(t_chart[idx[:, 0]], area, int(t_chart.max()) + 1) < 0

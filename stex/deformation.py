@@ -1,4 +1,21 @@
-"""DEF"""
+"""Embedded deformation (Sumner et al. 2007): the deformation graph over the template, the warp,
+and the normal equations of the tracker's Gauss-Newton steps.
+
+- A deformation graph of nodes sampled over the template with geodesic spacing; each vertex is
+  bound to its k geodesically nearest nodes with weights (1 - d/d_max)^2, normalised. Nodes are
+  linked to their geodesic neighbours and, on a closed template, also through the solid (ours:
+  links whose midpoint is inside the mesh, :func:`volume_links_through_solid`), so the side the
+  camera does not see follows the side it sees.
+- Per node an affine A_j and translation t_j (12 parameters, :data:`PARAMS_PER_NODE`),
+  x'_i = sum_j w_ij (A_j (x_i - g_j) + g_j + t_j) (:func:`deform`); the rotation term
+  ||A^T A - I||^2 (:func:`rotation_terms`).
+- J^T J assembled directly as 12x12 node-pair blocks (every data-like residual of a vertex folds
+  into one 3x3 matrix first; :func:`normal_equations`), not as a sparse Jacobian times its
+  transpose.
+
+Vertices are metres in depth-camera coordinates. The solve itself is :mod:`stex.tracking`'s.
+"""
+
 
 from __future__ import annotations
 
@@ -147,7 +164,7 @@ def volume_links_through_solid(vertices: np.ndarray, faces: np.ndarray, nodes: n
         cand = cand[[tuple(c) not in known for c in cand.tolist()]]
     if not len(cand):
         return edges
-    # ray parity, any winding (trimesh's contains took 3.3 of the demo graph's 4.0 s; same links)
+    # ray parity, any winding (trimesh's contains took most of the graph's time; same links)
     inside = points_inside(V, faces, 0.5 * (P[cand[:, 0]] + P[cand[:, 1]]))
     log.info("deformation graph: %d links through the solid (of %d candidates)", int(inside.sum()), len(cand))
     out = np.concatenate([np.asarray(edges, np.int32).reshape(-1, 2), cand[inside].astype(np.int32)])
@@ -211,8 +228,8 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 # b_i = sum sw^2 r D, and J^T J gains G_a^T M_i G_b = w_a w_b M[r, s] h_a[c] h_b[d] between node
 # slots a, b (h = [local; 1]). The graph-smoothness residuals have the same shape (two slots,
 # h = [g_k - g_j; 1] and [0; -1], M = w I). Accumulating these 12x12 node-pair blocks directly
-# (numba) replaces building the sparse Jacobian and the sparse product J^T J, which took about
-# a third of a paper-scale solve.
+# (numba) replaces building the sparse Jacobian and the sparse product J^T J, a large part of a
+# paper-scale solve (docs/decisions/tracking.md).
 
 @njit(cache=True, nogil=True)
 def _vertex_information(n_vertices, vid, Dw, rw):

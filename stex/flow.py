@@ -1,4 +1,13 @@
-"""FLOW"""
+"""The tracker's colour terms: optical flow from an appearance model to the current image.
+
+The appearance model (:class:`AppearanceModel`) lives in the template's atlas: texels captured
+from earlier frames, rendered at the predicted pose. DIS optical flow over the object's box from
+that rendering to the current image gives each visible vertex a target pixel
+(:func:`flow_constraints`, forward-backward consistent only). Ours: the flow runs on grey and on
+two chromaticity channels, each its own flow (:func:`flow_image`), so shading that comes and goes,
+as wrinkles do, does not draw the targets off.
+"""
+
 
 from __future__ import annotations
 

@@ -1,12 +1,11 @@
-"""Ingest stage: turn a source (synthetic scene, folder dataset, Azure Kinect .mkv) into stores.
+"""Ingest stage: the sources a run reads (synthetic scene, folder dataset, Azure Kinect .mkv),
+behind one interface (:class:`Source`, :func:`open_source`), and the split into frame blocks.
 
-- :func:`write_scene` writes the ``scene`` store once per scene: calibration, frame list, frame
-  blocks, the template mesh and, when the source has them, per-frame meshes (and, for synthetic
-  scenes, the true per-frame vertices).
-- :func:`write_frames_block` writes one ``frames`` store per block of frames (and, for synthetic
-  scenes, the matching ``truth`` store). Blocks are independent jobs.
-
-Later stages never touch the source files again.
+:mod:`stex.stages.ingest` writes them into stores: the ``scene`` store once per scene
+(:func:`stex.stages.ingest.write_scene`: calibration, frame list, frame blocks, the template mesh
+and, when the source has them, per-frame meshes and, for synthetic scenes, the true per-frame
+vertices), and one ``frames`` (and ``truth``) store per block of frames
+(:func:`stex.stages.ingest.write_frames_block`). Later stages never touch the source files again.
 """
 
 from __future__ import annotations

@@ -1,4 +1,13 @@
-"""MESH"""
+"""Mesh topology and geometry: edge tables, non-manifold checks, cleaning, parts, orientation,
+nesting, points inside a closed mesh, subdivision, decimation, face adjacency, and embedding of
+vertices in another surface.
+
+Conventions: vertices (V, 3) float in metres, depth-camera coordinates (the depth camera at the
+origin looking along +z); faces (F, 3) int, counter-clockwise seen from outside: from outside
+the solid for closed parts (into its cavity for a cavity's wall), from the depth camera for open
+ones (a single-view scan). Corner texture coordinates, where carried, are (F, 3, 2) float64 in
+stex's UV convention (u right, v down, see :mod:`stex.atlas`).
+"""
 
 from __future__ import annotations
 
@@ -192,7 +201,7 @@ def mesh_parts(faces) -> np.ndarray:
     e, owner = _edge_table(faces)
     if len(e) == 0:
         return np.zeros(0, np.int64)
-    key = e[:, 0] * (int(e.max()) + 1) + e[:, 1]  # 1-D keys: sorting them is ~10x faster than rows
+    key = e[:, 0] * (int(e.max()) + 1) + e[:, 1]  # 1-D keys: sorting them is much faster than rows
     order = np.argsort(key, kind="stable")
     k, f = key[order], owner[order]
     same = k[1:] == k[:-1]
@@ -390,7 +399,7 @@ def _upward_crossings(X, Y, Z, F, px, py, pz, grid, out):
                 out[k] += 1
 
 
-_CROSSINGS_KERNEL = []  # compiled on first use: importing numba costs ~0.8 s, most users never need it
+_CROSSINGS_KERNEL = []  # compiled on first use: importing numba is slow, most users never need it
 
 
 def points_inside(vertices, faces, points) -> np.ndarray:
@@ -517,12 +526,9 @@ def subdivide_midpoint(vertices, faces, corner_uv=None):
     return V2, F2.astype(np.int32), T2
 
 
-# Weight of the texture coordinates in the texture-aware quadric (MeshLab's default 1). At 1, a
-# 100k-face bumpy sphere with an xatlas layout decimated to 20k faces had two charts overlapping
-# (25 texels of 4096^2; 98.8 % of the texels still covered, surface point of a texel moved 2.1 mm
-# at the 99th percentile); at 16: no overlap, 99.99 % covered, 0.39 mm, and the surface itself no
-# farther from the input (mean 0.063 mm against 0.068). Same trend on an icosphere 1280 -> 640
-# faces; it levels off from 4-16 up (benchmarks/bench_template.py --own-layout).
+# Weight of the texture coordinates in the texture-aware quadric (MeshLab's default 1): at 1 a
+# decimated layout's charts can overlap, at 16 they keep apart without moving the surface
+# (docs/decisions/template.md).
 TEXTURE_QUADRIC_WEIGHT = 16.0
 
 
@@ -556,8 +562,8 @@ def decimate(vertices, faces, target_faces: int, corner_uv=None):
         return out if corner_uv is None else out + (np.array(corner_uv, np.float64),)
     import pymeshlab  # slow to import (and GPL-3.0): only decimation needs it
 
-    # the quadrics' thresholds are absolute too: at 1 mm scale a sphere came out up to 0.7 radii
-    # off its surface, so tiny faces are scaled up for it as for xatlas
+    # the quadrics' thresholds are absolute too (a millimetre sphere came out far off its
+    # surface), so tiny faces are scaled up for it as for xatlas
     scale = working_scale(V, F)
     ms = pymeshlab.MeshSet()
     if corner_uv is None:
@@ -611,10 +617,10 @@ def _load_textured(ms, V, F, corner_uv) -> None:
 
 def working_scale(vertices, faces) -> float:
     """Factor that brings a mesh of small faces to where xatlas and pymeshlab's decimation work:
-    xatlas skips faces below an absolute area (about 1.2e-7, i.e. FLT_EPSILON; a 5 mm sphere of 5k
-    faces got no chart at all), and the quadric decimation of a 1 mm sphere of 82k faces left
-    vertices up to 0.7 radii off its surface. 1.0 when the median face area is at least 1e-6 m² (a 20k-face template of a 10 cm
-    object has ~1.6e-6), so usual templates are untouched; else the factor that makes it 1e-4."""
+    xatlas skips faces below an absolute area (about 1.2e-7, i.e. FLT_EPSILON), and the quadric
+    decimation's thresholds are absolute too (docs/decisions/template.md). 1.0 when the median face
+    area is at least 1e-6 m² (about that of a 20k-face template of a 10 cm object), so usual
+    templates are untouched; else the factor that makes it 1e-4."""
     V = np.asarray(vertices, np.float64)
     tri = V[np.asarray(faces, np.int64)]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -688,8 +694,8 @@ def embed_vertices(points, orig_vertices, orig_faces):
     Faces of zero area are skipped (their barycentrics are undefined). The search runs with the
     mesh scaled by a power of two that makes its median face area about 1: trimesh's
     closest-point test compares products of squared lengths with an absolute tolerance (1e-13),
-    so with ~1 mm faces in metres it snapped points to edges and corners that are not the closest
-    (0.18 mm off on a 10 cm sphere of 82k faces).
+    so with millimetre faces in metres it snapped points to edges and corners that are not the
+    closest (docs/decisions/template.md).
 
     Args:
         points: (V, 3) float, metres.

@@ -51,10 +51,8 @@ Rasterisation rules (deterministic)
 
 Why numba
 ---------
-Measured on the project machine (the shared reference ``building_blocks_measured.md`` §1): a numba
-z-buffer renders a 20k-face mesh at 640x576 in ~4 ms, faster than headless OpenGL (moderngl/EGL
-8-10 ms, pyrender 23-45 ms with MSAA-corrupted ids) and open3d ray casting (39 ms), and it needs
-no system libraries. Kernels are ``@njit(cache=True, nogil=True)``: serial, but they release the
+A numba z-buffer was faster on the project machine than headless OpenGL, pyrender and open3d
+ray casting (docs/decisions/render.md), and it needs no system libraries. Kernels are ``@njit(cache=True, nogil=True)``: serial, but they release the
 GIL so callers may render several frames from threads.
 """
 
@@ -104,6 +102,8 @@ class Raster(NamedTuple):
 # --------------------------------------------------------------------------------------------
 
 def check_vertices(vertices, name="vertices") -> np.ndarray:
+    """``vertices`` as a contiguous (V, 3) float64 array; ValueError naming ``name`` and the first
+    bad vertex when the shape, dtype or finiteness is wrong."""
     v = np.asarray(vertices)
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"{name} must have shape (V, 3), got {v.shape}")
@@ -121,6 +121,8 @@ def check_vertices(vertices, name="vertices") -> np.ndarray:
 
 
 def check_faces(faces, n_vertices, name="faces") -> np.ndarray:
+    """``faces`` as a contiguous (F, 3) int64 array ((0, 3) when empty); ValueError naming ``name``
+    and the first bad face when the shape, dtype or an index outside [0, n_vertices) is wrong."""
     f = np.asarray(faces)
     if f.size == 0:
         return np.zeros((0, 3), dtype=np.int64)
@@ -180,6 +182,10 @@ def project_vertices(V, K, near, px, py, iz):
 
 @njit(cache=True, nogil=True)
 def raster_kernel(V, F, K, near, depth, face_id, bary):
+    """Z-buffer of the triangles F (F, 3) int64 of V (V, 3) float64 camera-space metres through the
+    pinhole K into ``depth`` (H, W) float32 (0 = empty, as it starts), ``face_id`` (H, W) int32
+    and ``bary`` (H, W, 3) float32, in place; triangles with a vertex at or behind
+    ``near`` are skipped. See the module docstring for the rules."""
     H, W = depth.shape
     nv = V.shape[0]
     px = np.empty(nv)
@@ -399,13 +405,8 @@ def vertex_normals(vertices, faces) -> np.ndarray:
 # (``tangent_plane=False``) z_plane(p) = P_z and this is the plain test  P_z <= min_p D[p] + tol.
 #
 # Why the tangent plane: the plain test also rejects slanted surfaces whose own depth changes by
-# more than depth_tol across the window. Measured on the self-occluding 20k-face blob of
-# tests/test_render.py against ray casting (a face is truly visible if rays to its centroid and to
-# 3 points near its corners hit it first; 4777 truly visible faces with cos > 0.1), tolerance 1 cm:
-# - 640x576 (fx=504, 3 mm pixels at 1.5 m): the plain test misses 1266 of them (26.5 %), the
-#   tangent-plane test 61 (1.3 %, all grazing: cos < 0.32); the tangent-plane test accepts 8
-#   occluded faces (all at cos < 0.01, hidden by 1.3-4.6 cm), the plain test none.
-# - 2048x1536 (fx=980): plain misses 421 (8.8 %), tangent-plane 26 (0.5 %, cos < 0.26).
+# more than depth_tol across the window; the tangent-plane test misses far fewer truly visible
+# faces and accepts hardly any occluded ones (docs/decisions/render.md).
 # The remaining misses are grazing faces at the foot of bumps, where the neighbour pixels cover a
 # long stretch of surface that bends up in front of the face's plane.
 # Why one-sided: a point in front of the rendered surface is not occluded (with the depth map of

@@ -1,4 +1,33 @@
-"""TEMPLATE"""
+"""Template stage: clean, decimate and UV-unwrap the template mesh once for the whole sequence.
+
+What it computes (:func:`prepare_template`, a mesh in, the ``template`` store's arrays out; the
+store itself is written by :func:`stex.stages.template.write_template`):
+
+- :func:`stex.mesh.clean_mesh` — merges exactly duplicated vertices, drops degenerate and
+  duplicated faces and unreferenced vertices, turns round the coherently wound parts that face
+  the wrong way (closed parts by signed volume and nesting, open parts towards the depth camera),
+  and reports non-manifold and boundary edges and faces of opposite winding (reported, not fixed).
+- :func:`stex.mesh.decimate` — pymeshlab quadric edge collapse to a target face count (the
+  paper's templates have 10-30k faces; default 20k). A no-op when the mesh is already small enough.
+- :func:`stex.atlas.build_atlas` — a UV atlas from xatlas in one square ``resolution`` x
+  ``resolution`` texture with ``gutter_px`` empty texels between charts, and **no mirrored UV
+  triangles**; or :func:`stex.atlas.keep_layout` (``template.uv: mesh``): the mesh's own texture
+  coordinates, carried through cleaning, decimation and subdivision.
+- :func:`stex.mesh.face_adjacency`, :func:`stex.atlas.texel_map` — the faces' neighbours and each
+  texel's face and barycentrics.
+- :func:`stex.mesh.embed_vertices` — where each template vertex lies on the *original* template
+  surface, so per-frame meshes of the original topology can be carried to the decimated one.
+
+Sources without a template get one from the first frame's depth (:func:`template_from_frame`,
+:func:`template_from_depth`).
+
+Conventions
+-----------
+Vertices are metres in depth-camera coordinates (never recentred; the depth camera sits at the
+origin looking along +z); faces are counter-clockwise seen from outside. Texcoords follow stex
+(see :mod:`stex.render` and :mod:`stex.atlas`): u right, v **down**, origin at the texture's
+top-left corner.
+"""
 
 from __future__ import annotations
 
@@ -172,8 +201,7 @@ def hidden_from_color(depth_m, calibration, select, tolerance_m: float = 0.05) -
 
     The two cameras are a few centimetres apart, so background just beside the object in the depth
     image can land behind the object in the colour image, inside its mask. The tolerance keeps the
-    object's own receding sides (tiny scene, stride 1: 2 cm drops 18 % of its silhouette, 5 cm 6 %,
-    and the background strip either way).
+    object's own receding sides, which a tighter one drops (docs/decisions/template.md).
     """
     out = np.zeros(depth_m.size, bool)
     idx, px, z = depth_pixels_in_color(depth_m, calibration, select)

@@ -1,4 +1,43 @@
-"""TRACK"""
+"""Tracking stage: non-rigid tracking of the template through the depth stream.
+
+Embedded deformation (Sumner et al. 2007) with the L0 motion regulariser of Guo et al. (2015):
+
+- A deformation graph over the template (:mod:`stex.deformation`: geodesic nodes, links along the
+  surface and, on a closed template, through the solid). Ours: a link's smoothness term is
+  weighted by its length (at the frame's start) in node spacings to the power
+  ``link_length_power`` (links shorter than a spacing: 1), so the body bends less on the scale of
+  its long links than locally.
+- Each frame solves for an **incremental** warp from the previous frame's mesh (as Guo et al.):
+  first one rigid motion of the whole mesh (:func:`_solve_rigid`: a rotation vector and a
+  translation, same data terms), so that unseen regions follow the global motion; then per node
+  an affine A_j and translation t_j, x'_i = sum_j w_ij (A_j (x_i - g_j) + g_j + t_j).
+- Energy: projective point-to-plane data term against the frame's foreground depth (Huber
+  weighted, visible vertices only), rotation term ||A^T A - I||^2, and the graph smoothness
+  residuals r_jk = A_j (g_k - g_j) + g_j + t_j - (g_k + t_k) under an L0 penalty (the number of
+  node pairs whose motions differ), solved by half-quadratic splitting: auxiliary s_jk,
+  hard-thresholded (s = r where |r|^2 > lambda/beta, else 0), with beta increasing.
+- Each (x-step) is Gauss-Newton with the normal equations solved by conjugate gradients with a
+  12x12 block-Jacobi preconditioner. J^T J is assembled directly as 12x12 node-pair blocks
+  (:func:`stex.deformation.normal_equations`), and the mesh is rasterised for visibility every
+  ``VISIBILITY_EVERY`` steps, not every step.
+  A step is kept only if it lowers the energy (robust costs at the step's correspondences);
+  otherwise it is solved again with Levenberg-Marquardt damping (:func:`_solve_frame`). And a
+  frame keeps the best, by the clipped rendered-vs-observed depth difference
+  (:func:`depth_residual`), of its solve, its rigid fit and its prediction (:func:`track_sequence`).
+- Colour terms (see :func:`track_sequence`): optical flow (DIS, over the object's box) from an
+  appearance model in the template's atlas rendered at the predicted pose to the current image,
+  as a reprojection term (:mod:`stex.flow`); and a silhouette term (:func:`silhouette_field`,
+  weight ``w_silhouette``, on by default): rim vertices onto the mask's boundary, and no visible vertex outside the mask.
+
+- Ours (``unseen_from_rest``): after each frame, the vertices the depth camera does not see are
+  posed by a warp of the template itself (:func:`fit_rest_warp`: the same graph and priors, L0
+  included, fitted to the seen vertices), so a hidden side follows its part's seen side as they
+  sit on the template instead of carrying every deformation the incremental warps dragged it
+  through.
+
+The frame is initialised from the previous frame's mesh, or with ``constant_velocity`` from it
+moved once more by the previous frame's rigid motion.
+"""
 
 from __future__ import annotations
 
@@ -202,7 +241,8 @@ def silhouette_crop(mask: np.ndarray, K: np.ndarray, margin_px: int = 64):
     ``margin_px``: (signed distance (h, w) float32, gradient (h, w, 2), K (3, 3) float64 with the
     principal point moved to the crop, so that projecting with it gives crop pixels).
 
-    Why: at 2048 x 1536 the field over the whole image takes 0.52 s, over the object's box 0.03 s.
+    Why: at 2048 x 1536 the field over the whole image costs many times the field over the
+    object's box (docs/decisions/tracking.md).
     It is exact wherever a vertex can count (|distance| < SILHOUETTE_MAX_PX < ``margin_px``):
     the box holds the whole mask and background beyond it on every side (beyond the box,
     sample_bilinear clamps to its edge, so a vertex there still sees a large distance).
@@ -234,8 +274,7 @@ def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=
     The colour terms' pixel residuals are turned into metres with ``px_scale`` (V,), each
     vertex's metres per colour pixel fixed for the solve (at the vertices it starts from): with
     the current z / fx instead, moving a vertex towards the camera would shrink its cost, and a
-    solve whose depth data has run out slides the mesh at the camera (measured on the fox: the
-    whole mesh ~1 m off in one frame).
+    solve whose depth data has run out slides the mesh at the camera (docs/decisions/tracking.md).
 
     Returns (robust cost, float: sum of the Huber costs times the terms' weights, and, with
     ``rows``, lists of vertex ids, weighted rows d r / d x'_i (n, 3) and weighted residuals (n,)
@@ -451,7 +490,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             JtJ, g, diag_blocks = normal_equations(
                 pattern, graph, local, vid, Dw, rw, rr * sr, Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk,
                 p.damping)
-            # CSR: scipy's CSR mat-vec is ~1.7x faster than its BSR one at 12x12 blocks
+            # CSR: scipy's CSR mat-vec is faster than its BSR one at 12x12 blocks
             JtJ = JtJ.tocsr()
             diag = JtJ.diagonal()
 
@@ -486,8 +525,8 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
     (``p.gn_iterations`` steps, no graph priors); the unknowns are 6: a rotation vector, applied
     about the mesh's current centroid, and a translation. A turn is taken whole in one step,
     where one graph node held rigid by a large rotation weight turns only a little per step (its
-    rotation term grows with the square of the turn: a 10 degree turn of a sphere was 14 mm
-    off after 12 such steps).
+    rotation term grows with the square of the turn, so a turn of a few degrees is still far
+    off after the rigid stage's steps).
     """
     c0 = V0.mean(0)
     P0 = V0 - c0
@@ -545,10 +584,10 @@ def fit_rest_warp(rest: np.ndarray, graph: DeformationGraph, x_init: np.ndarray,
             L0 settings, as in the frame's solve.
 
     Why: the frame's solve warps the previous frame's mesh, so a side the camera has not seen
-    for a while carries every deformation it was dragged through (on the demo the hidden back of
-    its rigid lower half drifted 9.8 mm by frame 40). Warped from the rest shape instead, with the
-    links between parts that move differently broken by the L0 step, the hidden side of a part
-    follows that part's seen side as it sits on the template (measured: 8.1 mm, docs/tracking.md).
+    for a while carries every deformation it was dragged through. Warped from the rest shape
+    instead, with the links between parts that move differently broken by the L0 step, the hidden
+    side of a part follows that part's seen side as it sits on the template
+    (docs/decisions/tracking.md, docs/tracking.md).
     """
     node_pos = rest[graph.nodes]
     N = len(node_pos)

@@ -1,4 +1,8 @@
-"""STAGE"""
+"""Ingest stage, artifact side: the ``scene`` store of a source (:func:`stex.ingest.open_source`)
+and one ``frames`` store (and, for synthetic scenes, ``truth`` store) per block of frames.
+
+Later stages never touch the source files again."""
+
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""STAGE"""
+"""Masks stage, artifact side: one ``masks`` store per frame block (:func:`stex.masks.compute_mask`
+per frame, or the source's own masks), and the montage of masks over colour."""
+
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""STAGE"""
+"""Projection stage, artifact side: :func:`stex.projection.project_frame` over the tracked frames
+into the ``projection`` store, and the preview of each frame's visible vertices over its colour."""
+
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""STAGE"""
+"""Template stage, artifact side: read the template mesh from the ``scene`` store (or the first
+frame's depth), run :func:`stex.template.prepare_template`, write the ``template`` store; the
+atlas preview; and the atlas digest that texture stores are checked against."""
+
 
 from __future__ import annotations
 

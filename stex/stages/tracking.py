@@ -1,4 +1,7 @@
-"""STAGE"""
+"""Tracking stage, artifact side: observations read from the ``frames`` and ``masks`` stores, the
+tracker (:func:`stex.tracking.track_sequence`) or the source's given meshes, the ``tracking``
+store with each frame's fit (silhouette IoU, depth difference), and the plot of that fit."""
+
 
 from __future__ import annotations
 
@@ -155,8 +158,8 @@ def _lost_mesh_hint(from_first_frame: bool, params: dict, vertices, faces) -> st
     if (from_first_frame or params["mode"] != "track" or params["volume_links"] == 0
             or not is_closed(vertices, faces)):
         return ""
-    # links through the solid hold back parts that turn against each other (docs/tracking.md:
-    # the Fox's standing animation 13.1 mm with them, 6.1 mm without)
+    # links through the solid hold back parts that turn against each other (docs/tracking.md,
+    # docs/decisions/tracking.md)
     return (f". If the object is made of parts that turn against each other (an animal, a person's head and "
             f"arms), try tracking.volume_links: 0 (now {params['volume_links']}; docs/tracking.md); fast, thin "
             f"limbs need per-frame meshes from elsewhere (tracking.mode: given)")
