@@ -10,7 +10,7 @@ chart and the atlas border (both must be at least the gutter).
 
 With ``--own-layout`` the input first gets a UV layout of its own (xatlas, untimed), and the
 template stage keeps it (``template.uv: mesh``): timed, the texture-aware decimation and
-:func:`stex.template.keep_layout` (which checks it for overlaps); reported, how far each texel's
+:func:`stex.atlas.keep_layout` (which checks it for overlaps); reported, how far each texel's
 surface point moved (the layout must follow the surface through the decimation).
 
     python benchmarks/bench_template.py [--runs 3] [--target 20000] [--size 4096] [--gutter 4] [--own-layout]

@@ -4,7 +4,7 @@ Acceptance (issue 6): volume <= 1 s per slice, correction <= 6 s per slice (medi
 <= 4 GB per job, on the 2-core machine.
 
 Synthetic data (untimed): the bumpy sphere of ``stex.synth.shapes`` (20,480 faces) unwrapped by
-:func:`stex.template.build_atlas` at ``--size`` with ``--gutter``; ``--frames`` source frames,
+:func:`stex.atlas.build_atlas` at ``--size`` with ``--gutter``; ``--frames`` source frames,
 each a smooth random colour image (2048 x 1536) with its own exposure offset and ξ an orthographic
 view of the vertices from a per-frame direction; labels in coherent patches (each face takes the
 frame of the nearest of ``--patches`` random seed points on the surface; patch->frame random,

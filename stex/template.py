@@ -220,7 +220,7 @@ def hidden_from_color(depth_m, calibration, select, tolerance_m: float = 0.05) -
 def template_from_frame(depth_mm, mask_color, calibration, stride: int = 2, max_jump_m: float = 0.05):
     """A template from one frame: the surface its depth image sees inside its colour mask.
 
-    The mask is carried into the depth image (:func:`stex.tracking.mask_in_depth`), without the
+    The mask is carried into the depth image (:func:`stex.camera.mask_in_depth`), without the
     points the colour camera cannot see (:func:`hidden_from_color`: background behind the object
     that lands in its mask); depth pixels without a value are carried into the colour image at the
     object's median depth and kept where they land in the mask; the region is closed and its holes
