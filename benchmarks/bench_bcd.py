@@ -30,7 +30,7 @@ except ImportError:  # run from a source checkout without installing the package
 
 from stex.labeling import label_sequence
 from stex.synth.shapes import bumpy_sphere
-from stex.template import face_adjacency
+from stex.mesh import face_adjacency
 
 
 def synthetic_inputs(T: int, K: int = 20, seed: int = 0):

@@ -1,7 +1,7 @@
 """Benchmark stex.mrf: one frame's labeling MRF at the paper scene's size.
 
 Problem (built here, seeded): the faces of the bumpy icosphere (``stex.synth.shapes.bumpy_sphere``,
-subdivisions 5: 20,480 faces) joined by ``stex.template.face_adjacency`` (30,720 edges); labels
+subdivisions 5: 20,480 faces) joined by ``stex.mesh.face_adjacency`` (30,720 edges); labels
 are frames 0..264; each face's subset is ~20 frames (the authors prune to the top-20 candidates):
 a window of 13 frames around a per-face centre that varies smoothly over the sphere (plus a
 jitter of +-2 frames) and 7 frames around a second, also smooth, centre (a "similar shape"
@@ -36,12 +36,12 @@ import numpy as np
 try:
     from stex import mrf
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import face_adjacency
+    from stex.mesh import face_adjacency
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from stex import mrf
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import face_adjacency
+    from stex.mesh import face_adjacency
 
 
 def make_problem(n_frames: int = 265, window: int = 13, second: int = 7, subdivisions: int = 5, seed: int = 0):

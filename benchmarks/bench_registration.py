@@ -67,7 +67,7 @@ def main(argv=None):
     from stex.camera import Calibration
     from stex.evaluation import Atlas, frame_views, method_views, truth_views
     from stex.io import FrameSequence, open_store
-    from stex.template import transfer_vertices
+    from stex.mesh import transfer_vertices
     from stex.sampling import TexelSampler
 
     R = a.results

@@ -10,7 +10,7 @@ chart and the atlas border (both must be at least the gutter).
 
 With ``--own-layout`` the input first gets a UV layout of its own (xatlas, untimed), and the
 template stage keeps it (``template.uv: mesh``): timed, the texture-aware decimation and
-:func:`stex.template.keep_layout` (which checks it for overlaps); reported, how far each texel's
+:func:`stex.atlas.keep_layout` (which checks it for overlaps); reported, how far each texel's
 surface point moved (the layout must follow the surface through the decimation).
 
     python benchmarks/bench_template.py [--runs 3] [--target 20000] [--size 4096] [--gutter 4] [--own-layout]
@@ -26,11 +26,15 @@ from pathlib import Path
 import numpy as np
 
 try:
+    from stex import atlas as A
+    from stex import mesh as M
     from stex import template as T
     from stex.readers.meshes import Mesh
     from stex.synth.shapes import bumpy_sphere
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from stex import atlas as A
+    from stex import mesh as M
     from stex import template as T
     from stex.readers.meshes import Mesh
     from stex.synth.shapes import bumpy_sphere
@@ -62,15 +66,15 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     V, F = bumpy_sphere(subdivisions=7)
-    V, F = T.decimate(V, F, args.input_faces)
+    V, F = M.decimate(V, F, args.input_faces)
     print(f"input: {len(F)} faces, {len(V)} vertices; target {args.target} faces, atlas {args.size}^2, "
           f"gutter {args.gutter} px; {args.runs} runs per step")
 
-    (Vc, Fc, _), t_clean = _timed(lambda: T.clean_mesh(V, F), args.runs)
-    (Vd, Fd), t_dec = _timed(lambda: T.decimate(Vc, Fc, args.target), args.runs)
-    (face, bary, closest, dist), t_emb = _timed(lambda: T.embed_vertices(Vd, V, F), args.runs)
-    (tc, tf, info), t_atlas = _timed(lambda: T.build_atlas(closest, Fd, args.size, args.gutter, return_info=True), args.runs)
-    (fid, _), t_tex = _timed(lambda: T.texel_map(tc, tf, args.size), args.runs)
+    (Vc, Fc, _), t_clean = _timed(lambda: M.clean_mesh(V, F), args.runs)
+    (Vd, Fd), t_dec = _timed(lambda: M.decimate(Vc, Fc, args.target), args.runs)
+    (face, bary, closest, dist), t_emb = _timed(lambda: M.embed_vertices(Vd, V, F), args.runs)
+    (tc, tf, info), t_atlas = _timed(lambda: A.build_atlas(closest, Fd, args.size, args.gutter, return_info=True), args.runs)
+    (fid, _), t_tex = _timed(lambda: A.texel_map(tc, tf, args.size), args.runs)
     m_clean = _line("clean_mesh", t_clean)
     m_dec = _line(f"decimate -> {len(Fd)} faces", t_dec)
     m_emb = _line("embed_vertices", t_emb)
@@ -82,14 +86,14 @@ def main(argv=None):
     print(f"decimation + atlas (medians): {m_dec + m_atlas:.2f} s  "
           f"(+ clean + embedding: {m_clean + m_dec + m_emb + m_atlas:.2f} s; acceptance <= 30 s)")
 
-    flipped = int(T.uv_flipped(tc, tf).sum())
+    flipped = int(A.uv_flipped(tc, tf).sum())
     outside = int(((tc < 0) | (tc > 1)).any(1).sum())
-    chart = T.uv_charts(tf)
+    chart = A.uv_charts(tf)
     gap = 0
-    while T.gutter_conflicts(fid, chart, gap + 1) == 0 and gap < 4 * args.gutter + 8:
+    while A.gutter_conflicts(fid, chart, gap + 1) == 0 and gap < 4 * args.gutter + 8:
         gap += 1
     missing = len(Fd) - len(np.unique(fid[fid >= 0]))
-    to_border = T.border_gap(fid)
+    to_border = A.border_gap(fid)
     print(f"mirrored UV triangles: xatlas {info['flipped_xatlas']} of {len(Fd)} "
           f"({info['flipped_charts']} charts) -> after fix {flipped}")
     print(f"texcoords outside [0,1]: {outside}; smallest gap between charts: {gap} empty texels, "
@@ -109,7 +113,7 @@ def main(argv=None):
 
 
 def _surface_at_texels(V, F, tc, tf, size):
-    fid, bary = T.texel_map(tc, tf, size)
+    fid, bary = A.texel_map(tc, tf, size)
     hit = fid >= 0
     p = np.zeros(fid.shape + (3,))
     p[hit] = np.einsum("nk,nkd->nd", bary[hit].astype(np.float64), np.asarray(V, np.float64)[np.asarray(F)[fid[hit]]])
@@ -118,11 +122,11 @@ def _surface_at_texels(V, F, tc, tf, size):
 
 def own_layout(V, F, args) -> bool:
     """template.uv: mesh on the same input, given a layout of its own first."""
-    tc_in, tf_in = T.build_atlas(V, F, args.size, args.gutter)
+    tc_in, tf_in = A.build_atlas(V, F, args.size, args.gutter)
     corner_uv = np.asarray(tc_in, np.float64)[tf_in]
-    print(f"own layout: the input's xatlas layout ({T.uv_charts(tf_in).max() + 1} charts) kept (template.uv: mesh)")
-    (Vd, Fd, cd), t_dec = _timed(lambda: T.decimate(V, F, args.target, corner_uv=corner_uv), args.runs)
-    (tc, tf, info), t_keep = _timed(lambda: T.keep_layout(cd, args.size), args.runs)
+    print(f"own layout: the input's xatlas layout ({A.uv_charts(tf_in).max() + 1} charts) kept (template.uv: mesh)")
+    (Vd, Fd, cd), t_dec = _timed(lambda: M.decimate(V, F, args.target, corner_uv=corner_uv), args.runs)
+    (tc, tf, info), t_keep = _timed(lambda: A.keep_layout(cd, args.size), args.runs)
     m_dec = _line(f"decimate with texture -> {len(Fd)} faces", t_dec)
     m_keep = _line("keep_layout (checks, overlaps)", t_keep)
     p_in, hit_in = _surface_at_texels(V, F, tc_in, tf_in, args.size)

@@ -46,7 +46,8 @@ from stex.config import load_config  # noqa: E402
 from stex.projection import project_frame  # noqa: E402
 from stex.readers.meshes import Mesh  # noqa: E402
 from stex.synth.scene import SyntheticScene  # noqa: E402
-from stex.template import prepare_template, transfer_vertices  # noqa: E402
+from stex.template import prepare_template  # noqa: E402
+from stex.mesh import transfer_vertices  # noqa: E402
 from stex.texcoords import optimize_texcoords  # noqa: E402
 
 SCENES = {"demo": [], "paper": ["config/scenes/paper.yaml"]}

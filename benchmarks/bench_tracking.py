@@ -58,9 +58,10 @@ from stex.config import load_config  # noqa: E402
 from stex.render import rasterize, vertex_visibility  # noqa: E402
 from stex.readers.meshes import Mesh  # noqa: E402
 from stex.synth.scene import SyntheticScene  # noqa: E402
-from stex.template import prepare_template, transfer_vertices  # noqa: E402
-from stex.tracking import (Observation, TrackParams, depth_target, mask_in_depth, silhouette_iou,  # noqa: E402
-                           track_sequence)
+from stex.template import prepare_template  # noqa: E402
+from stex.mesh import transfer_vertices  # noqa: E402
+from stex.tracking import Observation, TrackParams, depth_target, silhouette_iou, track_sequence  # noqa: E402
+from stex.camera import mask_in_depth  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "paper": ["config/scenes/paper.yaml"]}
 
@@ -171,7 +172,8 @@ def _seen_by_depth(V, F, calibration) -> np.ndarray:
 
 def _prior_floor(scene, frames, F, emb, params, every) -> int:
     """``--prior-floor``: per frame, the rest-shape warp fitted to the true seen vertices."""
-    from stex.tracking import build_graph, compose_rigid, deform, fit_rest_warp, identity_params, rigid_fit
+    from stex.deformation import build_graph, compose_rigid, deform, identity_params, rigid_fit
+    from stex.tracking import fit_rest_warp
 
     cal = scene.calibration
     rest = transfer_vertices(scene.true_vertices(0), scene.faces, *emb)

@@ -4,7 +4,7 @@ Acceptance (issue 6): volume <= 1 s per slice, correction <= 6 s per slice (medi
 <= 4 GB per job, on the 2-core machine.
 
 Synthetic data (untimed): the bumpy sphere of ``stex.synth.shapes`` (20,480 faces) unwrapped by
-:func:`stex.template.build_atlas` at ``--size`` with ``--gutter``; ``--frames`` source frames,
+:func:`stex.atlas.build_atlas` at ``--size`` with ``--gutter``; ``--frames`` source frames,
 each a smooth random colour image (2048 x 1536) with its own exposure offset and ξ an orthographic
 view of the vertices from a per-frame direction; labels in coherent patches (each face takes the
 frame of the nearest of ``--patches`` random seed points on the surface; patch->frame random,
@@ -17,8 +17,8 @@ change away from boundaries (> 16 texels), and for factor > 1 the mean |differen
 factor-1 result when this run has one.
 
 The atlas is cached in ``/tmp/stex_bench_volume`` under a digest of the code that builds it
-(``stex/template.py``, ``stex/synth/shapes.py``, xatlas's version), so a changed atlas is built
-again; the slice and the corrected results go from job to job through a folder of this run only.
+(``stex/atlas.py``, ``stex/mesh.py``, ``stex/charting.py``, ``stex/synth/shapes.py``, xatlas's
+version), so a changed atlas is built again; the slice and the corrected results go from job to job through a folder of this run only.
 
     python benchmarks/bench_volume.py [--size 4096] [--runs 3] [--factors 4,2] [--tol 1e-4]
                                       [--interpolation bicubic|bilinear]
@@ -54,18 +54,21 @@ def _rss_gb():
 
 def _atlas_digest() -> str:
     """Digest of what the cached atlas depends on besides its size and gutter."""
+    import stex.atlas
+    import stex.mesh
     import stex.synth.shapes
-    import stex.template
+    import stex.charting
 
     h = hashlib.sha1(version("xatlas").encode())
-    for module in (stex.template, stex.synth.shapes):
+    for module in (stex.atlas, stex.mesh, stex.charting, stex.synth.shapes):
         h.update(Path(module.__file__).read_bytes())
     return h.hexdigest()[:12]
 
 
 def _atlas(size, gutter):
+    from stex.atlas import build_atlas, texel_map, uv_charts
+    from stex.mesh import face_adjacency
     from stex.synth.shapes import bumpy_sphere
-    from stex.template import build_atlas, face_adjacency, texel_map, uv_charts
 
     CACHE.mkdir(exist_ok=True)
     f = CACHE / f"atlas_{size}_{gutter}_{_atlas_digest()}.npz"

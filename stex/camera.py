@@ -282,6 +282,15 @@ def depth_pixels_in_color(depth_m: np.ndarray, calibration: "Calibration", selec
     return idx[ok][inside], px[inside], z[ok][inside]
 
 
+def mask_in_depth(mask_color: np.ndarray, depth_mm: np.ndarray, calibration) -> np.ndarray:
+    """(Hd, Wd) bool: depth pixels whose 3-D point lands on the colour-resolution mask."""
+    d = depth_mm.astype(np.float64) / 1000.0
+    idx, px, _ = depth_pixels_in_color(d, calibration)
+    out = np.zeros(d.size, bool)
+    out[idx] = mask_color[px[:, 1], px[:, 0]]
+    return out.reshape(d.shape)
+
+
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     """4x4 world->camera transform for an OpenCV camera at ``eye`` looking at ``target``.
 

@@ -102,7 +102,8 @@ import scipy.sparse as sp
 from numba import njit
 
 from stex.sampling import fill_gutter
-from stex.template import face_adjacency, texel_map, uv_charts
+from stex.atlas import texel_map, uv_charts
+from stex.mesh import face_adjacency
 
 log = logging.getLogger("stex.correction")
 

@@ -199,7 +199,7 @@ class TextureSlices:
         slices must be in that atlas: stex stores that record another one raise ValueError."""
         from stex.readers.meshes import load_mesh
         from stex.resample import atlas_transfer
-        from stex.template import check_atlas
+        from stex.stages.template import check_atlas
 
         if self.uv_mesh is None:
             if self._seq is not None:
@@ -961,7 +961,7 @@ class _Inputs:
                  global_texture_path, truth_paths, coords_path, data_term_paths, frames, block):
         from stex.io import FrameSequence, StoreError, open_store
         from stex.stages.observations import open_coordinates
-        from stex.template import check_atlas
+        from stex.stages.template import check_atlas
         from stex.sampling import TexelSampler
 
         self.p = p = evaluation_params(params)
@@ -1153,7 +1153,7 @@ class _Inputs:
 
     def truth_at(self, t):
         """:func:`truth_views` at position t."""
-        from stex.template import transfer_vertices
+        from stex.mesh import transfer_vertices
 
         surface = None
         if self.true_embedding is not None:

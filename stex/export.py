@@ -47,7 +47,7 @@ from stex.camera import Calibration, transform_points
 from stex.metrics import novel_view, render_texture
 from stex.io import FrameSequence, StoreError, open_store, partial_path, run_block_paths
 from stex.render import vertex_normals
-from stex.template import check_atlas
+from stex.stages.template import check_atlas
 
 __all__ = [
     "opencv_to_viewer",

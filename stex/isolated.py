@@ -19,6 +19,7 @@ import pickle
 import signal
 import subprocess
 import sys
+import traceback
 from pathlib import Path
 
 # the child imports stex from the same place as the caller, whatever the current directory
@@ -60,8 +61,6 @@ def call_in_child(func, *args, **kwargs):
 def _child_main() -> None:
     """The child's side: read (func, args, kwargs) from stdin, write (status, value, traceback)
     to the original stdout, leave through ``os._exit`` (no destructors, no atexit)."""
-    import traceback
-
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # anything else printed to stdout (by Python or C) goes to stderr
     try:

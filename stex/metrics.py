@@ -47,7 +47,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
 
-from stex.render import _check_faces, _check_vertices, face_visibility, rasterize, sample_texture, textured_raster
+from stex.render import check_faces, check_vertices, face_visibility, rasterize, sample_texture, textured_raster
 
 __all__ = [
     "PSNR_CAP",
@@ -576,8 +576,8 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
 
 def face_areas(vertices, faces) -> np.ndarray:
     """(F,) float64 triangle areas (m^2 for metre vertices) of (V, 3) vertices and (F, 3) faces."""
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, len(V))
+    V = check_vertices(vertices)
+    F = check_faces(faces, len(V))
     return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
 
 

@@ -49,20 +49,21 @@ import logging
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numpy as np
 from numba import njit
 
 from stex.config import section_params
+from stex.render import vertex_normals
 
 log = logging.getLogger("stex.poses")
+
 
 #: RANSAC stops once an all-inlier sample of the best model so far would have been drawn with
 #: this probability (standard adaptive stopping); ``ransac_iterations`` is the upper bound.
 _CONFIDENCE = 0.999
 
-def _params(params: dict | None) -> dict:
+def pose_params(params: dict | None) -> dict:
     p = section_params("poses", params)
     if p["ransac_iterations"] < 1 or p["sample_vertices"] < 3 or p["icp_iterations"] < 0:
         raise ValueError(f"poses parameters out of range: {p}")
@@ -590,7 +591,7 @@ def pairwise_ransac(vertices, pairs=None, n_iter: int = 500, inlier_thresh_m: fl
     """
     X = _check_vertices(vertices)
     pi, pj = _pairs(pairs, X.shape[0])
-    p = _params({"ransac_iterations": n_iter, "inlier_threshold_m": inlier_thresh_m,
+    p = pose_params({"ransac_iterations": n_iter, "inlier_threshold_m": inlier_thresh_m,
                  "sample_vertices": sample_vertices, "seed": seed, "icp_iterations": 0})
     T, r = _run_pairs(X, X, pi, pj, p, threads, icp_iter=0)
     return T, r.astype(np.float32)
@@ -678,9 +679,7 @@ def pose_table(vertices, faces, params: dict | None = None, seed: int | None = N
         inlier_ratio: (T, T) float32, fraction of vertices within ``inlier_threshold_m`` of their
         partner after alignment (symmetric; 1 on the diagonal).
     """
-    from stex.render import vertex_normals
-
-    p = _params(params)
+    p = pose_params(params)
     if seed is not None:
         p["seed"] = int(seed)
     X = _check_vertices(vertices)
@@ -697,93 +696,3 @@ def pose_table(vertices, faces, params: dict | None = None, seed: int | None = N
     ratio[pi, pj] = r
     ratio[pj, pi] = r
     return poses, ratio
-
-
-# --------------------------------------------------------------------------------------------
-# artifact
-# --------------------------------------------------------------------------------------------
-
-def read_vertices(source, array: str | None = None):
-    """Per-frame vertices (T, V, 3) float64, faces (F, 3) or None, frame ids and the array name
-    read, from a store.
-
-    ``source`` is a zarr store path. ``array`` names the (T, V, 3) array; by default
-    ``given/vertices`` if present, else ``truth/vertices`` (a ``scene`` store), else
-    ``vertices``. Faces come from ``template/faces`` or ``faces`` in the same store (or None).
-    """
-    path = Path(source)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such store")
-    g = _open_vertices_store(path)
-    if array is None:
-        for name in ("given/vertices", "truth/vertices", "vertices"):
-            if name in g:
-                array = name
-                break
-        else:
-            raise ValueError(f"{path}: no per-frame vertices (given/vertices, truth/vertices or vertices)")
-    if array not in g:
-        raise ValueError(f"{path}: no array {array!r}")
-    X = np.asarray(g[array][...], dtype=np.float64)
-    faces = None
-    for name in ("template/faces", "faces"):
-        if name in g:
-            faces = np.asarray(g[name][...])
-            break
-    frame_ids = g.attrs.get("frame_ids", list(range(X.shape[0])))
-    return X, faces, list(frame_ids), array
-
-
-def _open_vertices_store(path: Path):
-    """A stex store through :func:`stex.io.open_store` (its kind read from it: a damaged chunk
-    is then named), or a plain zarr group holding vertices."""
-    import zarr
-
-    from stex.io import open_store
-
-    g = zarr.open_group(str(path), mode="r")
-    kind = g.attrs.get("stex_artifact")
-    if kind:
-        return open_store(path, kind)
-    if g.attrs.get("complete") is False:
-        raise ValueError(f"{path}: store is incomplete (its writer did not finish)")
-    return g
-
-
-def write_pose_table(vertices_source, out, params: dict | None = None, array: str | None = None,
-                     faces=None, threads: int | None = None) -> None:
-    """Compute the pose table of the vertices in ``vertices_source`` and write the ``poses`` store.
-
-    Args:
-        vertices_source: store path holding (T, V, 3) per-frame vertices (see
-            :func:`read_vertices`; a ``scene`` store by default, later the tracking artifact).
-        out: output store path (``poses.zarr``), written atomically.
-        params: the ``poses`` config section.
-        array: name of the vertices array in the store (default: see :func:`read_vertices`).
-        faces: (F, 3) int faces, or a store path holding ``template/faces`` or ``faces`` (a
-            ``scene`` or ``template`` store); default: the vertices store's own faces.
-        threads: worker threads.
-    """
-    from stex.io import create_store
-
-    p = _params(params)
-    X, own_faces, frame_ids, array = read_vertices(vertices_source, array)
-    if faces is None:
-        faces = own_faces
-    elif isinstance(faces, (str, os.PathLike)):
-        g = _open_vertices_store(Path(faces))
-        name = next((n for n in ("template/faces", "faces") if n in g), None)
-        if name is None:
-            raise ValueError(f"{faces}: no template/faces or faces array")
-        faces = np.asarray(g[name][...])
-    if faces is None:
-        if p["icp_iterations"] > 0:
-            raise ValueError(f"{vertices_source}: no faces found for the point-to-plane ICP "
-                             "(pass faces=, or set poses.icp_iterations: 0)")
-        faces = np.zeros((0, 3), np.int32)
-    poses, ratio = pose_table(X, faces, p, threads=threads)
-    with create_store(out, "poses", attrs={"frame_ids": frame_ids,
-                                           "vertices_source": str(vertices_source),
-                                           "vertices_array": array}, params=p) as s:
-        s.write("poses", poses)
-        s.write("inlier_ratio", ratio)

@@ -51,10 +51,8 @@ Rasterisation rules (deterministic)
 
 Why numba
 ---------
-Measured on the project machine (the shared reference ``building_blocks_measured.md`` §1): a numba
-z-buffer renders a 20k-face mesh at 640x576 in ~4 ms, faster than headless OpenGL (moderngl/EGL
-8-10 ms, pyrender 23-45 ms with MSAA-corrupted ids) and open3d ray casting (39 ms), and it needs
-no system libraries. Kernels are ``@njit(cache=True, nogil=True)``: serial, but they release the
+A numba z-buffer was faster on the project machine than headless OpenGL, pyrender and open3d
+ray casting (docs/decisions/render.md), and it needs no system libraries. Kernels are ``@njit(cache=True, nogil=True)``: serial, but they release the
 GIL so callers may render several frames from threads.
 """
 
@@ -103,7 +101,9 @@ class Raster(NamedTuple):
 # input checks
 # --------------------------------------------------------------------------------------------
 
-def _check_vertices(vertices, name="vertices") -> np.ndarray:
+def check_vertices(vertices, name="vertices") -> np.ndarray:
+    """``vertices`` as a contiguous (V, 3) float64 array; ValueError naming ``name`` and the first
+    bad vertex when the shape, dtype or finiteness is wrong."""
     v = np.asarray(vertices)
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"{name} must have shape (V, 3), got {v.shape}")
@@ -120,7 +120,9 @@ def _check_vertices(vertices, name="vertices") -> np.ndarray:
     return v
 
 
-def _check_faces(faces, n_vertices, name="faces") -> np.ndarray:
+def check_faces(faces, n_vertices, name="faces") -> np.ndarray:
+    """``faces`` as a contiguous (F, 3) int64 array ((0, 3) when empty); ValueError naming ``name``
+    and the first bad face when the shape, dtype or an index outside [0, n_vertices) is wrong."""
     f = np.asarray(faces)
     if f.size == 0:
         return np.zeros((0, 3), dtype=np.int64)
@@ -159,7 +161,7 @@ def _check_size(width, height):
 # --------------------------------------------------------------------------------------------
 
 @njit(cache=True, nogil=True)
-def _project_vertices(V, K, near, px, py, iz):
+def project_vertices(V, K, near, px, py, iz):
     """Per-vertex pixel coordinates and 1/z (iz = 0 marks z <= near or a non-finite projection)."""
     fx, s, cx = K[0, 0], K[0, 1], K[0, 2]
     k10, fy, cy = K[1, 0], K[1, 1], K[1, 2]
@@ -179,13 +181,17 @@ def _project_vertices(V, K, near, px, py, iz):
 
 
 @njit(cache=True, nogil=True)
-def _raster_kernel(V, F, K, near, depth, face_id, bary):
+def raster_kernel(V, F, K, near, depth, face_id, bary):
+    """Z-buffer of the triangles F (F, 3) int64 of V (V, 3) float64 camera-space metres through the
+    pinhole K into ``depth`` (H, W) float32 (0 = empty, as it starts), ``face_id`` (H, W) int32
+    and ``bary`` (H, W, 3) float32, in place; triangles with a vertex at or behind
+    ``near`` are skipped. See the module docstring for the rules."""
     H, W = depth.shape
     nv = V.shape[0]
     px = np.empty(nv)
     py = np.empty(nv)
     iz = np.empty(nv)
-    _project_vertices(V, K, near, px, py, iz)
+    project_vertices(V, K, near, px, py, iz)
     wmax = W - 1.0
     hmax = H - 1.0
     # per-edge line coefficients: E(p) = A*x + B*y + C for the edges opposite v0, v1, v2, i.e.
@@ -289,15 +295,15 @@ def rasterize(vertices, faces, K, width, height, near=1e-3) -> Raster:
         the point (u, v) = (c, r). Ties in float32 depth go to the lowest face index; see the
         module docstring for the coverage rule.
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     K = _check_K(K)
     W, H = _check_size(width, height)
     depth = np.zeros((H, W), dtype=np.float32)
     face_id = np.full((H, W), -1, dtype=np.int32)
     bary = np.zeros((H, W, 3), dtype=np.float32)
     if F.shape[0] > 0:
-        _raster_kernel(V, F, K, float(near), depth, face_id, bary)
+        raster_kernel(V, F, K, float(near), depth, face_id, bary)
     return Raster(depth, face_id, bary)
 
 
@@ -327,8 +333,8 @@ def face_normals(vertices, faces) -> np.ndarray:
         (F, 3) float64 unit vectors along (v1 - v0) x (v2 - v0) (outward for trimesh-convention
         meshes); zero rows for degenerate (zero-area) faces.
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     return _normalize_rows(_face_cross(V, F))
 
 
@@ -379,8 +385,8 @@ def vertex_normals(vertices, faces) -> np.ndarray:
         (V, 3) float64: normalised sum of the incident faces' (v1 - v0) x (v2 - v0) (i.e. unit
         normals weighted by face area); zero rows for vertices used by no (non-degenerate) face.
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     return _vertex_normals(V, F)
 
 
@@ -399,13 +405,8 @@ def vertex_normals(vertices, faces) -> np.ndarray:
 # (``tangent_plane=False``) z_plane(p) = P_z and this is the plain test  P_z <= min_p D[p] + tol.
 #
 # Why the tangent plane: the plain test also rejects slanted surfaces whose own depth changes by
-# more than depth_tol across the window. Measured on the self-occluding 20k-face blob of
-# tests/test_render.py against ray casting (a face is truly visible if rays to its centroid and to
-# 3 points near its corners hit it first; 4777 truly visible faces with cos > 0.1), tolerance 1 cm:
-# - 640x576 (fx=504, 3 mm pixels at 1.5 m): the plain test misses 1266 of them (26.5 %), the
-#   tangent-plane test 61 (1.3 %, all grazing: cos < 0.32); the tangent-plane test accepts 8
-#   occluded faces (all at cos < 0.01, hidden by 1.3-4.6 cm), the plain test none.
-# - 2048x1536 (fx=980): plain misses 421 (8.8 %), tangent-plane 26 (0.5 %, cos < 0.26).
+# more than depth_tol across the window; the tangent-plane test misses far fewer truly visible
+# faces and accepts hardly any occluded ones (docs/decisions/render.md).
 # The remaining misses are grazing faces at the foot of bumps, where the neighbour pixels cover a
 # long stretch of surface that bends up in front of the face's plane.
 # Why one-sided: a point in front of the rendered surface is not occluded (with the depth map of
@@ -545,8 +546,8 @@ def vertex_visibility(vertices, faces, K, depth, depth_tol=0.01, window=1, tange
         cos: (V,) float32, cosine between vertex normal and direction to the camera, clipped at
             0, for **every** vertex (independent of the depth test; mask with ``visible``).
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     K = _check_K(K)
     depth = _check_depth(depth)
     window = _check_window(window)
@@ -586,8 +587,8 @@ def face_visibility(vertices, faces, K, depth, depth_tol=0.01, min_cos=0.0, wind
         cos: (F,) float32, the viewing cosine clipped to [0, 1], for **every** face (0 for
             back-facing and degenerate faces; mask with ``visible``).
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     K = _check_K(K)
     depth = _check_depth(depth)
     window = _check_window(window)
@@ -623,7 +624,7 @@ def interpolate_attributes(raster: Raster, faces, attributes) -> np.ndarray:
         attr = attr[:, None]
     if attr.ndim != 2:
         raise ValueError(f"attributes must have shape (N, D) or (N,), got {np.shape(attributes)}")
-    F = _check_faces(faces, attr.shape[0], name="faces")
+    F = check_faces(faces, attr.shape[0], name="faces")
     fid = np.asarray(raster.face_id)
     H, W = fid.shape
     if fid.size and fid.max() >= F.shape[0]:
@@ -738,12 +739,12 @@ def textured_raster(vertices, faces, texcoords, texcoord_faces, K, width, height
         uv: (N, 2) float64 texcoords of the N covered pixels in row-major order (the order of
             ``image[mask]``), interpolated with the raster's perspective-correct barycentrics.
     """
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, V.shape[0])
+    V = check_vertices(vertices)
+    F = check_faces(faces, V.shape[0])
     tc = np.asarray(texcoords, dtype=np.float64)
     if tc.ndim != 2 or tc.shape[1] != 2:
         raise ValueError(f"texcoords must have shape (Vt, 2), got {tc.shape}")
-    TF = _check_faces(texcoord_faces, tc.shape[0], name="texcoord_faces")
+    TF = check_faces(texcoord_faces, tc.shape[0], name="texcoord_faces")
     if TF.shape[0] != F.shape[0]:
         raise ValueError(f"texcoord_faces has {TF.shape[0]} rows but faces has {F.shape[0]}")
     raster = rasterize(V, F, K, width, height, near=near)

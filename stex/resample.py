@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from stex.render import _check_faces, _check_vertices, sample_bilinear, texcoords_to_pixels
+from stex.render import check_faces, check_vertices, sample_bilinear, texcoords_to_pixels
 
 log = logging.getLogger("stex.resample")
 
@@ -156,8 +156,8 @@ def closest_surface_points(points, vertices, faces):
         raise ValueError(f"points must be (n, 3), got shape {P.shape}")
     if not np.isfinite(P).all():
         raise ValueError(f"points hold {int((~np.isfinite(P).all(1)).sum())} non-finite points")
-    V = _check_vertices(vertices)
-    F = _check_faces(faces, len(V))  # the rasteriser's checks: shape, integer, index range
+    V = check_vertices(vertices)
+    F = check_faces(faces, len(V))  # the rasteriser's checks: shape, integer, index range
     tri_all = V[F]
     area = np.linalg.norm(np.cross(tri_all[:, 1] - tri_all[:, 0], tri_all[:, 2] - tri_all[:, 0]), axis=1)
     keep = np.flatnonzero(area > 0)
@@ -231,7 +231,7 @@ class AtlasTransfer:
     def apply(self, texture) -> np.ndarray:
         """(W, W, 3) uint8: ``texture`` ((S, S, 3) uint8 in the other layout) in the run's atlas;
         texels that read nothing are black, and the run's gutter is filled from its charts."""
-        from stex.template import texel_map
+        from stex.atlas import texel_map
         from stex.sampling import fill_gutter
 
         tex = np.asarray(texture)
@@ -291,7 +291,8 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     F = np.asarray(faces, np.int64)
     TF = np.asarray(other_texcoord_faces, np.int64)
     T = np.asarray(other_texcoords, np.float64)
-    from stex.template import nonmanifold_edges, outside_unit_square
+    from stex.mesh import nonmanifold_edges
+    from stex.atlas import outside_unit_square
 
     used = T[np.unique(TF)]
     outside = int(outside_unit_square(used).sum())

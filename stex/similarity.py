@@ -96,7 +96,7 @@ import scipy.sparse as sp
 from numba import njit
 
 from stex.camera import Intrinsics
-from stex.render import _project_vertices, _raster_kernel
+from stex.render import project_vertices, raster_kernel
 from stex.shot import check_faces, check_neighbourhoods, check_vertices, mesh_edges, positive
 
 __all__ = [
@@ -198,8 +198,8 @@ def _render_own(X, F, K, near, own, boxes):
     py = np.empty(nv)
     iz = np.empty(nv)
     for l in range(T):
-        _raster_kernel(X[l], F, K, near, own[l], fid, bary)  # only depth is read; own[l] starts at 0
-        _project_vertices(X[l], K, near, px, py, iz)
+        raster_kernel(X[l], F, K, near, own[l], fid, bary)  # only depth is read; own[l] starts at 0
+        project_vertices(X[l], K, near, px, py, iz)
         _image_box(px, py, iz, W, H, boxes[l])
 
 
@@ -222,8 +222,8 @@ def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, 
             x, y, z = Xt[i, 0], Xt[i, 1], Xt[i, 2]
             for k in range(3):
                 Y[i, k] = P[k, 0] * x + P[k, 1] * y + P[k, 2] * z + P[k, 3]
-        _raster_kernel(Y, F, K, near, depth, fid, bary)
-        _project_vertices(Y, K, near, px, py, iz)
+        raster_kernel(Y, F, K, near, depth, fid, bary)
+        project_vertices(Y, K, near, px, py, iz)
         _image_box(px, py, iz, W, H, box)
         ob = boxes[l]
         # union of the two boxes (an empty box has r0 = r1)

@@ -105,12 +105,12 @@ def run_stages(cfg: dict, d) -> dict:
     """Run ingest, masks, template, 'given' tracking and projection of ``cfg`` into folder ``d``
     through the real stage writers (what the workflow runs, without Snakemake). Returns the
     store paths: scene, frames, truth, masks (lists per block), template, tracking, projection."""
-    from stex.ingest import write_frames_block, write_scene
+    from stex.stages.ingest import write_frames_block, write_scene
     from stex.io import open_store
-    from stex.masks import write_masks_block
-    from stex.projection import write_projection
-    from stex.template import write_template
-    from stex.tracking import write_tracking
+    from stex.stages.masks import write_masks_block
+    from stex.stages.projection import write_projection
+    from stex.stages.template import write_template
+    from stex.stages.tracking import write_tracking
 
     write_scene(cfg["source"], cfg["frame_block"], d / "scene.zarr")
     scene = open_store(d / "scene.zarr", "scene")
@@ -147,7 +147,7 @@ def run_pipeline(cfg: dict, d) -> dict:
     from stex.io import open_store
     from stex.stages.labeling import write_labels
     from stex.stages.observations import write_observations
-    from stex.poses import write_pose_table
+    from stex.stages.poses import write_pose_table
     from stex.stages.data_term import write_data_term
     from stex.stages.volume import write_volume
 

@@ -4,7 +4,7 @@ import pytest
 
 import stex.correction as C
 from stex.correction import CorrectionSystem, interior_change, label_boundary_step, seam_step
-from stex.template import texel_map
+from stex.atlas import texel_map
 
 W = 256
 

@@ -7,7 +7,7 @@ from stex.dynamism import (authors_dynamic_faces, dynamism_rows, dynamism_table,
                            partial_texture, spatial_edge_weight, spatial_face_weight, ssim_map_image,
                            temporal_gate, temporal_pair_weight)
 from conftest import grid_atlas
-from stex.template import texel_map
+from stex.atlas import texel_map
 from stex.sampling import TexelSampler
 
 W = 64  # atlas side, texels

@@ -131,7 +131,7 @@ def test_texture_on_the_true_surface(frame, tiny_pipeline):
     """gt_truegeom: the same texture rendered on the true surface (the truth carried onto the
     template). With the tracked mesh in its place the scores are the gt_novel ones; with the
     tracked mesh moved 1 cm sideways, gt_novel drops and gt_truegeom does not see the move."""
-    from stex.template import transfer_vertices
+    from stex.mesh import transfer_vertices
     template = open_store(tiny_pipeline["template"], "template")
     tvv = transfer_vertices(frame["true_V"], frame["true_atlas"].faces, template["embedding/face"][...],
                             template["embedding/bary"][...])
@@ -171,7 +171,7 @@ def test_methods_scored_together_score_as_each_alone(frame, tiny_pipeline):
     """score_methods shares the rasterised mesh and the photo's and the truth's blur between
     textures: every score equals score_frame's for that texture alone, with the true surface
     apart from the tracked mesh (its own rasters) and with it in the same place (reused)."""
-    from stex.template import transfer_vertices
+    from stex.mesh import transfer_vertices
     template = open_store(tiny_pipeline["template"], "template")
     surface = transfer_vertices(frame["true_V"], frame["true_atlas"].faces,
                                 template["embedding/face"][...], template["embedding/bary"][...])
@@ -426,7 +426,7 @@ def test_other_methods_in_another_uv_layout(tiny_pipeline, tmp_path, capsys):
     from stex.export import write_png_slices
     from stex.readers.meshes import Mesh, load_mesh, write_obj
     from stex.resample import atlas_transfer
-    from stex.template import texel_map
+    from stex.atlas import texel_map
 
     scene = open_store(tiny_pipeline["scene"], "scene")
     template = open_store(tiny_pipeline["template"], "template")
@@ -608,7 +608,8 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, t
     from stex.stages.correction import write_corrected
     from stex.evaluation import evaluate_results
     from stex.export import _Results
-    from stex.template import atlas_digest, template_atlas_digest
+    from stex.atlas import atlas_digest
+    from stex.stages.template import template_atlas_digest
 
     template = open_store(tiny_pipeline["template"], "template")
     mine = template_atlas_digest(template)

@@ -19,7 +19,8 @@ import trimesh
 
 from conftest import data_samples
 from stex.config import load_config
-from stex.ingest import FolderSource, write_frames_block, write_scene
+from stex.ingest import FolderSource
+from stex.stages.ingest import write_frames_block, write_scene
 from stex.io import open_store
 from stex.readers.folder import FolderDataset
 from stex.readers.meshes import load_mesh
@@ -708,7 +709,7 @@ def test_masks_that_match_no_frame_are_named(tmp_path, authors):
     """Masks numbered from 0 (as the authors' meshes) while the colour frames are 7..10 were dropped
     without a word, and masks.use_given said 'the source supplied no masks'. A mask file with no
     colour frame beside masks that match is named too."""
-    from stex.masks import write_masks_block
+    from stex.stages.masks import write_masks_block
 
     folder = authors / "stream" / "mask"
     extra = folder / f"Frame_{FIRST + 50:06d}.png"
@@ -1422,7 +1423,7 @@ def test_real_cameras_are_not_suspected_of_another_resolution():
     """The shared samples' calibrations: Kinect v1 (Snoopy), Structure sensor (DeepDeform) and the
     Azure Kinect in every colour resolution and depth mode."""
     from stex.camera import Intrinsics
-    from stex.readers.kinect_mkv import COLOR_RESOLUTIONS, DEPTH_MODES, calibration_from_k4a_json
+    from stex.readers.kinect_calibration import COLOR_RESOLUTIONS, DEPTH_MODES, calibration_from_k4a_json
 
     root = data_samples()
     K = np.loadtxt(root / "killingfusion_snoopy" / "frames_000000_000001" / "intrinsics_kinect1.txt")

@@ -7,7 +7,7 @@ from stex.global_texture import global_texture, projection_texture
 from stex.stages.global_texture import write_global_texture
 from stex.data_term import source_mask
 from conftest import grid_atlas, run_stages, tiny_scene_config
-from stex.template import texel_map
+from stex.atlas import texel_map
 from stex.sampling import TexelSampler
 
 W = 64

@@ -5,7 +5,8 @@ import pytest
 
 from conftest import data_samples
 from stex.config import load_config
-from stex.ingest import count_frames, frame_blocks, write_frames_block, write_scene
+from stex.ingest import count_frames, frame_blocks
+from stex.stages.ingest import write_frames_block, write_scene
 from stex.io import open_store
 from test_kinect_mkv import synthetic_mkv  # noqa: F401  (fixture)
 

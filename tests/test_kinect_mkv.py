@@ -22,14 +22,8 @@ import pytest
 av = pytest.importorskip("av")
 
 from stex.camera import Calibration, transform_points  # noqa: E402
-from stex.readers.kinect_mkv import (  # noqa: E402
-    FrameIndexError,
-    KinectRecording,
-    Undistorter,
-    calibration_from_k4a_json,
-    open_kinect_mkv,
-    undistort_frame,
-)
+from stex.readers.kinect_mkv import FrameIndexError, KinectRecording, open_kinect_mkv  # noqa: E402
+from stex.readers.kinect_calibration import Undistorter, calibration_from_k4a_json, undistort_frame  # noqa: E402
 
 # Camera entries of a real device's calibration.json (pyk4a's MIT-licensed test asset
 # tests/assets/calibration.json, the same device as the shared sample recording).

@@ -107,8 +107,8 @@ def test_sure_labels_hold_when_grabcut_runs_at_a_reduced_size():
 
 
 def test_masks_block_rejects_empty_depth_range(tmp_path, tiny_config):
-    from stex.ingest import write_frames_block, write_scene
-    from stex.masks import write_masks_block
+    from stex.stages.ingest import write_frames_block, write_scene
+    from stex.stages.masks import write_masks_block
     src = tiny_config["source"]
     write_scene(src, 4, tmp_path / "scene.zarr")
     write_frames_block(src, 0, 2, tmp_path / "f.zarr", tmp_path / "t.zarr")

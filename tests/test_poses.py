@@ -7,6 +7,7 @@ import pytest
 from stex import poses
 from stex.config import load_config
 from stex.io import StoreError, create_store, open_store
+from stex.stages.poses import read_vertices, write_pose_table
 from stex.synth.procedural import ProceduralBody
 from stex.synth.scene import SyntheticScene
 
@@ -215,7 +216,7 @@ def test_write_pose_table_store(tmp_path, caplog):
         w.write("truth/vertices", X)
     out = tmp_path / "poses.zarr"
     with caplog.at_level(logging.INFO, logger="stex.poses"):
-        poses.write_pose_table(scene, out, load_config()["poses"])
+        write_pose_table(scene, out, load_config()["poses"], array="truth/vertices")
     assert any("6 / 6 pairs" in r.getMessage() for r in caplog.records)
     g = open_store(out, "poses")
     assert g["poses"].shape == (4, 4, 4, 4) and g["poses"].chunks == (1, 4, 4, 4)
@@ -229,19 +230,37 @@ def test_write_pose_table_store(tmp_path, caplog):
     other = tmp_path / "other.zarr"
     with create_store(other, "scene", attrs={"frame_ids": [10, 11, 12, 13]}) as w:
         w.write("given/vertices", X)
-    poses.write_pose_table(other, tmp_path / "p2.zarr", load_config()["poses"], faces=scene)
+    write_pose_table(other, tmp_path / "p2.zarr", load_config()["poses"], array="given/vertices", faces=scene)
     g2 = open_store(tmp_path / "p2.zarr", "poses")
     np.testing.assert_array_equal(g2["poses"][...], P)
     assert g2.attrs["vertices_array"] == "given/vertices"
     with pytest.raises(ValueError, match="no array 'nope'"):
-        poses.write_pose_table(scene, tmp_path / "x.zarr", array="nope")
+        write_pose_table(scene, tmp_path / "x.zarr", array="nope")
     assert not (tmp_path / "x.zarr").exists()
     # a chunk cut short is named (zarr's own error named neither the store nor the array)
     chunk = sorted((scene / "truth" / "vertices" / "c").rglob("*"))[-1]
     chunk.write_bytes(chunk.read_bytes()[: chunk.stat().st_size // 2])
     with pytest.raises(StoreError, match=r"scene\.zarr: array 'truth/vertices' cannot be read \(chunk file"):
-        poses.write_pose_table(scene, tmp_path / "x.zarr", load_config()["poses"])
+        write_pose_table(scene, tmp_path / "x.zarr", load_config()["poses"], array="truth/vertices")
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_read_vertices_never_falls_back_to_the_truth(tmp_path):
+    """A store holding only the true vertices gives no poses unless the truth is asked for by name:
+    a library user who names no array is not handed the ground truth in place of the tracking."""
+    s, X, _ = _scene(n_frames=3)
+    scene = tmp_path / "scene.zarr"
+    with create_store(scene, "scene", attrs={"frame_ids": [0, 1, 2]}) as w:
+        w.write("template/faces", s.faces)
+        w.write("truth/vertices", X)
+    with pytest.raises(ValueError, match="no array 'vertices'"):
+        read_vertices(scene)
+    with pytest.raises(ValueError, match="no array 'vertices'"):
+        write_pose_table(scene, tmp_path / "p.zarr", load_config()["poses"])
+    assert not (tmp_path / "p.zarr").exists()
+    got, faces, ids, name = read_vertices(scene, "truth/vertices")
+    assert name == "truth/vertices" and ids == [0, 1, 2] and faces.shape == s.faces.shape
+    np.testing.assert_array_equal(got, X.astype(np.float32))
 
 
 def test_pose_table_refuses_inputs_it_cannot_pose():

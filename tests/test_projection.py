@@ -7,7 +7,8 @@ from scipy import ndimage
 from conftest import run_stages, tiny_scene_config
 from stex.camera import Calibration, transform_points
 from stex.io import FrameSequence, open_store
-from stex.projection import project_frame, projection_overlay, write_projection
+from stex.projection import project_frame
+from stex.stages.projection import projection_overlay, write_projection
 from stex.render import face_normals, rasterize
 
 
@@ -228,7 +229,7 @@ def test_errors(tiny):
 
 
 def test_preview(tiny, tmp_path):
-    from stex.projection import preview_projection
+    from stex.stages.projection import preview_projection
     out = tmp_path / "projection.png"
     preview_projection(sorted(tiny["dir"].glob("frames_*.zarr")), tiny["dir"] / "projection.zarr",
                        out, n_show=3)

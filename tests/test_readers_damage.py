@@ -127,7 +127,7 @@ def test_ingest_names_the_template_with_a_non_finite_texture_coordinate(tmp_path
     'scene/template/texcoords')."""
     import json
 
-    from stex.ingest import write_scene
+    from stex.stages.ingest import write_scene
     from test_folder import IDS, folder_cfg
     cal = {"color": {"fx": 140.0, "fy": 140.0, "cx": 79.5, "cy": 59.5, "width": 160, "height": 120},
            "depth": {"fx": 63.0, "fy": 63.0, "cx": 39.5, "cy": 35.5, "width": 80, "height": 72},
@@ -151,7 +151,8 @@ def test_depth_scale_error_names_the_masks_as_a_cause():
     the error blamed the units alone."""
     from stex.render import rasterize
     from stex.synth.shapes import bumpy_sphere
-    from stex.tracking import _check_depth_scale, depth_target
+    from stex.stages.tracking import _check_depth_scale
+    from stex.tracking import depth_target
 
     K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
     V, F = bumpy_sphere(subdivisions=3, radius=0.3, distance=1.2)

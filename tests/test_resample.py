@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 from stex.resample import atlas_transfer, closest_surface_points
-from stex.template import build_atlas, texel_map
+from stex.atlas import build_atlas, texel_map
 
 
 def _brute_force(points, V, F):

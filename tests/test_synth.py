@@ -508,7 +508,7 @@ def test_synthetic_ingest_stores_the_scene_as_rendered(tiny_config, tmp_path):
     given vertices of all 6 frames as SyntheticScene gives them (float32); the last, partial block
     [4, 6) holds frames 4 and 5 as render_frame draws them (colour, depth, timestamps) and its
     truth store their appearance, mask and true depth, value for value."""
-    from stex.ingest import write_frames_block, write_scene
+    from stex.stages.ingest import write_frames_block, write_scene
     from stex.io import open_store
 
     src = tiny_config["source"]

@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from stex.template import (border_gap, build_atlas, clean_mesh, decimate, embed_vertices, face_adjacency,
-                           gutter_conflicts, nonmanifold_vertices, texel_map, transfer_vertices,
-                           uv_charts, uv_flipped,
-                           uv_signed_area, write_template)
+from stex.atlas import border_gap, build_atlas, gutter_conflicts, texel_map, uv_charts, uv_flipped, uv_signed_area
+from stex.mesh import clean_mesh, decimate, embed_vertices, face_adjacency, nonmanifold_vertices, transfer_vertices
+from stex.stages.template import write_template
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +73,7 @@ def test_edge_defects_of_meshes_small_enough_to_count_by_hand():
     A fin on an edge of a closed tetrahedron makes that edge non-manifold and each of its two ends
     two fans (the tetrahedron's and the fin's), whichever face comes first: a non-manifold edge
     joins no faces."""
-    from stex.template import nonmanifold_edges
+    from stex.mesh import nonmanifold_edges
     nm, boundary = nonmanifold_edges([[0, 1, 2], [0, 2, 3]])
     assert len(nm) == 0
     np.testing.assert_array_equal(boundary, [[0, 1], [0, 3], [1, 2], [2, 3]])
@@ -235,7 +234,7 @@ def test_transfer_vertices_rest_pose_and_rigid_motion():
 
 def _tiny_scene(tmp_path):
     from stex.config import load_config
-    from stex.ingest import write_scene
+    from stex.stages.ingest import write_scene
     cfg = load_config(overrides={"source": {"kind": "synthetic", "synthetic": {
         "n_frames": 2, "procedural": {"n_around": 32, "n_rings": 16}}}})
     path = tmp_path / "scene.zarr"
@@ -269,7 +268,7 @@ def test_write_template_on_a_synthetic_scene(tmp_path):
     frame1 = transfer_vertices(scene["truth/vertices"][1], orig_faces, emb_f, emb_b)
     assert frame1.shape == V.shape and np.isfinite(frame1).all()
 
-    from stex.template import preview_template
+    from stex.stages.template import preview_template
     png = tmp_path / "previews" / "template_atlas.png"
     preview_template(out, png, size=256)
     assert png.stat().st_size > 1000
@@ -300,9 +299,9 @@ def test_template_from_the_first_frames_depth(tmp_path):
 
     from conftest import tiny_scene_config
     from stex.camera import Calibration
-    from stex.ingest import write_frames_block, write_scene
+    from stex.stages.ingest import write_frames_block, write_scene
     from stex.io import open_store
-    from stex.masks import write_masks_block
+    from stex.stages.masks import write_masks_block
     from stex.render import face_normals, rasterize
 
     cfg = tiny_scene_config()
@@ -336,7 +335,7 @@ def test_template_from_the_first_frames_depth(tmp_path):
     inner = ndimage.binary_erosion(silhouette)
     assert covered[inner].mean() > 0.9 and silhouette[covered].mean() > 0.98, (covered[inner].mean(), silhouette[covered].mean())
     # the source's per-frame meshes refer to its own template: 'given' tracking refuses this one
-    from stex.tracking import write_tracking
+    from stex.stages.tracking import write_tracking
     with pytest.raises(ValueError, match="template.from_depth.*use tracking.mode track"):
         write_tracking(tmp_path / "scene.zarr", tmp_path / "template.zarr", [tmp_path / "f.zarr"],
                        [tmp_path / "m.zarr"], dict(cfg["tracking"], mode="given"), tmp_path / "tracking.zarr")
@@ -364,7 +363,8 @@ def test_low_poly_meshes_are_subdivided_without_changing_shape():
     import trimesh as _tm
 
     from stex.readers.meshes import Mesh
-    from stex.template import prepare_template, subdivide_midpoint, transfer_vertices
+    from stex.template import prepare_template
+    from stex.mesh import subdivide_midpoint, transfer_vertices
     m = _tm.creation.icosphere(1)  # 80 faces
     V, F = subdivide_midpoint(m.vertices, m.faces)
     t = _tm.Trimesh(V, F, process=False)
@@ -387,7 +387,7 @@ def test_a_lone_triangle_the_repack_mirrors_is_mirrored_back(monkeypatch):
     """xatlas' repack can return a triangle that pass 1 flattened to a sliver as a chart of its own,
     mirrored (seen on a template from a real depth image): build_atlas mirrors it back inside its
     own box. Here the repack is made to mirror one of two separate triangles."""
-    import stex.template as tm
+    import stex.atlas as tm
 
     V = np.array([[0, 0, 1], [0.01, 0, 1], [0, 0.01, 1], [0.05, 0, 1], [0.06, 0, 1], [0.05, 0.01, 1.0]])
     F = np.array([[0, 2, 1], [3, 5, 4]])
@@ -410,7 +410,7 @@ def test_small_charts_the_repack_mirrors_whole_are_mirrored_back(monkeypatch):
     """A noisy 500k-face scan's pole fans came back from the repack as wholly mirrored charts of
     2-4 faces ("38 UV triangles still mirrored"): each is mirrored back inside its own box, and
     its box, hence the packing and the gutters, stays where it was."""
-    import stex.template as tm
+    import stex.atlas as tm
 
     # two separate charts: a quad of 2 faces, and a triangle
     V = np.array([[0, 0, 1], [0.01, 0, 1], [0.01, 0.01, 1], [0, 0.01, 1], [0.05, 0, 1], [0.06, 0, 1], [0.05, 0.01, 1.0]])
@@ -459,7 +459,7 @@ def test_the_working_scale_brings_the_median_face_area_to_1e_4():
     """A mesh whose median face area is under 1e-6 m^2 is scaled by the factor k that makes it
     1e-4 (areas grow with k^2), measured here by trimesh on the scaled mesh; a mesh of larger
     faces is not scaled."""
-    from stex.template import working_scale
+    from stex.mesh import working_scale
     s = trimesh.creation.icosphere(3, radius=0.002)  # 1280 faces of ~4e-8 m^2
     k = working_scale(s.vertices, s.faces)
     area = trimesh.Trimesh(s.vertices * k, s.faces, process=False).area_faces
@@ -581,7 +581,7 @@ def test_points_inside_a_closed_mesh_by_ray_parity():
     """points_inside against exact answers: a box, and a sphere's polygon (points off its surface
     by more than the polygon's sag), whatever the winding; a grid-like mesh (the box) does not
     catch the rays on its edges."""
-    from stex.template import points_inside
+    from stex.mesh import points_inside
 
     rng = np.random.default_rng(0)
     box = trimesh.creation.box((0.2, 0.3, 0.4))
@@ -791,7 +791,8 @@ def test_a_layout_that_covers_no_texels_is_refused():
     and was accepted; so is a layout most of whose faces have zero UV area, and one of triangles
     too small to hold a texel centre. A few collapsed faces are only warned about."""
     from stex.readers.meshes import Mesh
-    from stex.template import MAX_COLLAPSED_UV_FRACTION, prepare_template
+    from stex.atlas import MAX_COLLAPSED_UV_FRACTION
+    from stex.template import prepare_template
     s = trimesh.creation.icosphere(2, 0.1)
     V, F = np.asarray(s.vertices) + [0, 0, 1], np.asarray(s.faces)
     params = dict(decimate=False, min_faces=0, atlas_size=64, gutter_px=1, uv="mesh")
@@ -839,7 +840,7 @@ def test_a_layout_with_exactly_the_allowed_fraction_of_collapsed_faces_is_kept()
     """keep_layout refuses more than MAX_COLLAPSED_UV_FRACTION of the faces with zero UV area, not
     that fraction itself: 4 of 8 collapsed faces are kept (and counted), 5 are refused."""
     from conftest import grid_atlas
-    from stex.template import MAX_COLLAPSED_UV_FRACTION, keep_layout
+    from stex.atlas import MAX_COLLAPSED_UV_FRACTION, keep_layout
     tc, tf = grid_atlas(3)  # 8 faces
     assert MAX_COLLAPSED_UV_FRACTION * len(tf) == 4
     corners = tc[tf].copy()
@@ -895,7 +896,7 @@ def test_build_atlas_never_loads_xatlas_into_the_calling_process():
     import subprocess
     import sys
 
-    code = ("import sys, trimesh; from stex.template import build_atlas; "
+    code = ("import sys, trimesh; from stex.atlas import build_atlas; "
             "m = trimesh.creation.icosphere(2); tc, tf = build_atlas(m.vertices, m.faces, 256, 2); "
             "assert tf.shape == (320, 3), tf.shape; print(sorted(k for k in sys.modules if 'xatlas' in k))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
@@ -910,7 +911,7 @@ def test_an_edge_through_texel_centres_is_no_overlap():
     of corners 0, 1 and the square's centre; in texel units (centres at integers) its base lies at
     v = 15.5 from u = 15.5 to 47.5 and its apex at (31.5, 31.5), so row v = 16..30 holds the
     62 - 2v centres u = v + 1 .. 62 - v strictly inside: 30 + 28 + ... + 2 = 240."""
-    from stex.template import keep_layout, uv_overlaps
+    from stex.atlas import keep_layout, uv_overlaps
     tc = np.array([[.25, .25], [.75, .25], [.75, .75], [.25, .75]])
     tf = np.array([[0, 1, 2], [0, 2, 3]])
     assert uv_overlaps(tc, tf, 64) == (0, None)

@@ -10,7 +10,7 @@ from stex.config import load_config
 import stex.photometric as pm
 from stex.io import open_store
 from stex.synth.scene import SyntheticScene
-from stex.template import transfer_vertices
+from stex.mesh import transfer_vertices
 from stex.texcoords import (build_stack, interpolate_displacements, keyframe_positions,
                             optimize_texcoords, photometric_energy, texcoords_params)
 from stex.stages.texcoords import write_texcoords

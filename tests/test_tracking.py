@@ -9,8 +9,9 @@ from conftest import data_samples, real_pair_fits
 from stex.render import face_normals, rasterize, vertex_visibility
 from stex.synth.shapes import bumpy_sphere
 from stex.template import template_from_depth
-from stex.tracking import (Observation, TrackParams, _solve_frame, build_graph, compose_rigid, deform,
-                           depth_residual, depth_target, fit_rest_warp, identity_params, rigid_fit, track_sequence)
+from stex.tracking import (Observation, TrackParams, _solve_frame, depth_residual, depth_target, fit_rest_warp,
+    track_sequence)
+from stex.deformation import build_graph, compose_rigid, deform, identity_params, rigid_fit
 
 K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
@@ -18,7 +19,7 @@ K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 def _scene_observations(s, n_frames=None):
     """Observations of a synthetic scene's first frames (all by default): depth inside the true
     mask, colour image, calibration and true mask, as the tracking stage builds them."""
-    from stex.tracking import mask_in_depth
+    from stex.camera import mask_in_depth
     cal = s.calibration
     for t in range(s.n_frames if n_frames is None else n_frames):
         r = s.render_frame(t)
@@ -135,7 +136,7 @@ def test_volume_links_run_through_the_solid_only():
     the balls; an open mesh (a hemisphere) gets none."""
     import trimesh
 
-    from stex.tracking import build_graph
+    from stex.deformation import build_graph
     a = trimesh.creation.icosphere(3, radius=0.1)
     b = a.copy()
     b.apply_translation([0.23, 0, 0])
@@ -178,7 +179,7 @@ def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):
     import cv2
 
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import AppearanceModel, flow_constraints
+    from stex.flow import AppearanceModel, flow_constraints
     s = SyntheticScene(tiny_config["source"]["synthetic"])
     cal = s.calibration
     r0, r1 = s.render_frame(0), s.render_frame(1)
@@ -199,7 +200,7 @@ def test_chroma_flow_follows_the_surface_under_shading_stripes(tiny_config):
     chromaticity channels of :func:`flow_image` barely change, and their targets stay put."""
     from stex.camera import project_points, transform_points
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import AppearanceModel, flow_constraints, flow_image
+    from stex.flow import AppearanceModel, flow_constraints, flow_image
     s = SyntheticScene(tiny_config["source"]["synthetic"])
     cal = s.calibration
     r0 = s.render_frame(0)
@@ -224,7 +225,7 @@ def test_chroma_flow_follows_the_surface_under_shading_stripes(tiny_config):
 
 
 def test_flow_image_channels_and_bad_input():
-    from stex.tracking import flow_image
+    from stex.flow import flow_image
     rgb = np.random.default_rng(0).integers(0, 256, (6, 8, 3), dtype=np.uint8)
     assert flow_image(rgb, "grey").shape == (6, 8, 1)
     assert flow_image(rgb, "chroma").shape == (6, 8, 2)
@@ -244,7 +245,7 @@ def test_appearance_model_recaptures_texels_seen_more_squarely(tiny_config):
     import cv2
 
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import AppearanceModel
+    from stex.flow import AppearanceModel
     s = SyntheticScene(tiny_config["source"]["synthetic"])
     cal = s.calibration
     gray = cv2.cvtColor(s.render_frame(0).color, cv2.COLOR_RGB2GRAY)
@@ -313,7 +314,7 @@ def test_silhouette_term_pulls_a_shifted_mesh_onto_the_mask():
 def test_normal_equations_match_the_jacobian_by_finite_differences():
     """The 12x12 node-pair blocks assembled per vertex equal J^T J and J^T r of the stacked
     residuals (data rows D . x'_i, rotation A^T A - I, graph smoothness), J by central differences."""
-    from stex.tracking import _NormalPattern, _normal_equations, _rot_terms
+    from stex.deformation import NormalPattern, normal_equations, rotation_terms
     V, F = _sphere()
     g = build_graph(V, F, 0.12)
     nodes = V[g.nodes]
@@ -331,7 +332,7 @@ def test_normal_equations_match_the_jacobian_by_finite_differences():
     def residuals(xf):
         x = xf.reshape(N, 12)
         data = (Dw * deform(V, nodes, g, x)[vid]).sum(1) - c
-        rot, _ = _rot_terms(x)
+        rot, _ = rotation_terms(x)
         A, t = x[:, :9].reshape(N, 3, 3), x[:, 9:]
         r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
         return np.concatenate([data, np.sqrt(w_rot) * rot.ravel(), np.sqrt(w_smooth) * (r_jk - s).ravel()])
@@ -340,11 +341,11 @@ def test_normal_equations_match_the_jacobian_by_finite_differences():
     eps = 1e-6
     J = np.stack([(residuals(x0.ravel() + eps * e) - residuals(x0.ravel() - eps * e)) / (2 * eps)
                   for e in np.eye(12 * N)], axis=1)
-    rot, Jr = _rot_terms(x0)
+    rot, Jr = rotation_terms(x0)
     A, t = x0[:, :9].reshape(N, 3, 3), x0[:, 9:]
     r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
     local = V[:, None, :] - nodes[g.vertex_nodes]
-    JtJ, grad, diag = _normal_equations(_NormalPattern(g, N), g, local, vid.astype(np.int64), Dw, r0[:400],
+    JtJ, grad, diag = normal_equations(NormalPattern(g, N), g, local, vid.astype(np.int64), Dw, r0[:400],
                                         rot * np.sqrt(w_rot), Jr * np.sqrt(w_rot), r_jk - s, w_smooth, d_jk,
                                         damping=0.5)
     ref = J.T @ J + 0.5 * np.eye(12 * N)
@@ -420,7 +421,7 @@ def test_silhouette_crop_matches_the_whole_image_field():
 def test_link_weights_enter_the_normal_equations_per_link():
     """A per-link smoothness weight (TrackParams.link_length_power) scales exactly that link's
     part of J^T J and J^T r: weight 0 on some links equals a graph without them."""
-    from stex.tracking import DeformationGraph, _normal_equations, _NormalPattern
+    from stex.deformation import DeformationGraph, NormalPattern, normal_equations
 
     V, F = _sphere()
     g = build_graph(V, F, 0.08)
@@ -434,7 +435,7 @@ def test_link_weights_enter_the_normal_equations_per_link():
     none = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
 
     def normal(graph, r, w, d):
-        JtJ, grad, _ = _normal_equations(_NormalPattern(graph, N), graph, local, *none, rot_res, rot_jac, r, w, d)
+        JtJ, grad, _ = normal_equations(NormalPattern(graph, N), graph, local, *none, rot_res, rot_jac, r, w, d)
         return JtJ.toarray(), grad
 
     keep = rng.random(E) < 0.5
@@ -475,7 +476,7 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
 
     from conftest import run_stages, tiny_scene_config
     from stex.io import open_store
-    from stex.tracking import write_tracking
+    from stex.stages.tracking import write_tracking
 
     cfg = tiny_scene_config(template={"atlas_size": 128})
     P = run_stages(cfg, tmp_path)
@@ -534,7 +535,7 @@ def test_a_lost_tracked_mesh_is_told_what_to_try():
     was lost)."""
     import trimesh
 
-    from stex.tracking import _lost_mesh_hint
+    from stex.stages.tracking import _lost_mesh_hint
 
     closed = trimesh.creation.icosphere(2, radius=0.2)
     V, F = closed.vertices, closed.faces
@@ -557,7 +558,7 @@ def test_tracking_stage_refuses_a_mesh_in_millimetres_and_names_frames_without_d
 
     from conftest import run_stages, tiny_scene_config
     from stex.io import FrameSequence, open_store
-    from stex.tracking import write_tracking
+    from stex.stages.tracking import write_tracking
 
     cfg = tiny_scene_config(template={"atlas_size": 128})
     P = run_stages(cfg, tmp_path)
@@ -759,7 +760,7 @@ def test_l0_step_keeps_exactly_the_links_whose_weighted_difference_pays():
     with w_jk = w_reg max(1, length / spacing)^link_length_power and beta growing per round.
     Links 10 cm (w = 2^1.5) and 2.5 cm (w = 1) long, both |r| = 1 cm; lambda 4e-4, beta 2 then 8:
     round 1 keeps the long link only (2.83e-4 > 2e-4 > 1e-4), round 2 both (> 5e-5)."""
-    from stex.tracking import DeformationGraph
+    from stex.deformation import DeformationGraph
     V = np.array([[0.0, 0, 1], [0.1, 0, 1], [0.025, 0, 1]])
     g = DeformationGraph(np.arange(3, dtype=np.int32), np.arange(3, dtype=np.int32)[:, None], np.ones((3, 1)),
                          np.array([[0, 1], [0, 2]], np.int32))
@@ -784,7 +785,7 @@ def test_solve_reaches_the_least_squares_minimum_of_its_energy():
     (On a flat target the residual is 1 - z'_i whichever pixel a vertex pairs with.)"""
     from scipy.optimize import least_squares
 
-    from stex.tracking import _rot_terms
+    from stex.deformation import rotation_terms
     n = 9
     u = np.linspace(-0.12, 0.12, n)
     X, Y = np.meshgrid(u, u)
@@ -803,7 +804,7 @@ def test_solve_reaches_the_least_squares_minimum_of_its_energy():
         x = xf.reshape(N, 12)
         A, t = x[:, :9].reshape(N, 3, 3), x[:, 9:]
         r_jk = np.einsum("eab,eb->ea", A[j_], d_jk) + nodes[j_] + t[j_] - nodes[k_] - t[k_]
-        return np.concatenate([1.0 - deform(V, nodes, g, x)[:, 2], np.sqrt(p.w_rot) * _rot_terms(x)[0].ravel(),
+        return np.concatenate([1.0 - deform(V, nodes, g, x)[:, 2], np.sqrt(p.w_rot) * rotation_terms(x)[0].ravel(),
                                (np.sqrt(p.l0_beta0 * w)[:, None] * r_jk).ravel()])
 
     def energy(x):
@@ -842,7 +843,8 @@ def test_depth_residual_clips_and_counts_the_union_by_hand():
 def test_depth_scale_check_refuses_a_mesh_twice_as_far():
     """Scaling a mesh about the camera centre keeps its silhouette and scales its depth: the
     ratio is the scale, and the check refuses 2 (outside 1/1.5 .. 1.5) but passes 1.3 and 1/1.3."""
-    from stex.tracking import _check_depth_scale, depth_scale_ratio
+    from stex.stages.tracking import _check_depth_scale
+    from stex.tracking import depth_scale_ratio
     V, F = _sphere()
     t = _target(V, F)
     assert depth_scale_ratio(2.0 * V, F, t) == pytest.approx(2.0, rel=1e-3)
@@ -929,7 +931,7 @@ def test_flow_constraints_keep_only_forward_backward_consistent_flow(tiny_config
 
     from stex.camera import project_points, transform_points
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import AppearanceModel, flow_constraints
+    from stex.flow import AppearanceModel, flow_constraints
     s = SyntheticScene(tiny_config["source"]["synthetic"])
     cal = s.calibration
     r0 = s.render_frame(0)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stex.render import sample_bilinear
-from stex.template import build_atlas, texel_map
+from stex.atlas import build_atlas, texel_map
 from stex.sampling import TexelSampler, fill_gutter, label_colors, nearest_seen_texels
 from stex.volume import volume_slice
 

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stex.synth.gltf import GltfNoSkinError, load_skinned_gltf
+
 
 @dataclass
 class Mesh:
@@ -80,7 +82,7 @@ def _obj_index(i: int, n_read: int) -> int:
 def _read_static_gltf(path: Path) -> Mesh:
     """A glTF/GLB without a skin, read with trimesh (node transforms applied, meshes joined);
     TEXCOORD_0 kept per vertex (glTF's v already points down, as stex's)."""
-    import trimesh
+    import trimesh  # slow to import; OBJ files are read without it
 
     try:
         tm = trimesh.load(path, force="mesh", process=False)
@@ -108,7 +110,6 @@ def load_mesh(path: str | Path) -> Mesh:
     if suffix == ".obj":
         mesh = _read_obj(path)
     elif suffix in (".gltf", ".glb"):
-        from stex.synth.gltf import GltfNoSkinError, load_skinned_gltf
         try:
             sk = load_skinned_gltf(path)
             mesh = Mesh(np.asarray(sk.vertices, np.float64), np.asarray(sk.faces, np.int32),
@@ -116,7 +117,7 @@ def load_mesh(path: str | Path) -> Mesh:
         except GltfNoSkinError:
             mesh = _read_static_gltf(path)
     else:
-        import trimesh
+        import trimesh  # slow to import; OBJ files are read without it
         try:
             tm = trimesh.load(path, process=False, maintain_order=True, force="mesh")
         except Exception as exc:

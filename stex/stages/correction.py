@@ -10,7 +10,7 @@ import numpy as np
 from stex.config import section_params
 from stex.correction import CorrectionSystem, label_boundary_step
 from stex.io import create_store, open_store
-from stex.template import check_atlas
+from stex.stages.template import check_atlas
 
 log = logging.getLogger("stex.correction")
 

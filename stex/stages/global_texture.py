@@ -13,7 +13,7 @@ from stex.global_texture import global_texture, global_texture_params
 from stex.io import FrameSequence, create_store, open_store
 from stex.sampling import TexelSampler
 from stex.stages.observations import open_coordinates
-from stex.template import template_atlas_digest
+from stex.stages.template import template_atlas_digest
 
 log = logging.getLogger("stex.global_texture")
 

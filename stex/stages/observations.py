@@ -19,7 +19,7 @@ from stex.observations import (EDGE_SAMPLES, blur_cost, edge_samples, face_centr
 from stex.sampling import TexelSampler
 from stex.shot import geodesic_neighbourhoods, mesh_resolution, shot_descriptors
 from stex.similarity import face_strain
-from stex.template import texel_map
+from stex.atlas import texel_map
 from stex.texcoords import SAMPLE_BARY
 
 log = logging.getLogger("stex.observations")

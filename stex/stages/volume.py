@@ -11,7 +11,7 @@ from stex.config import section_params
 from stex.io import FrameSequence, create_store, open_store, position_range
 from stex.sampling import TexelSampler, fill_gutter, nearest_seen_texels
 from stex.stages.observations import open_coordinates
-from stex.template import template_atlas_digest
+from stex.stages.template import template_atlas_digest
 
 log = logging.getLogger("stex.volume")
 

@@ -28,46 +28,21 @@ lower-level :func:`node_global_transforms`, :func:`joint_matrices`, :func:`skin_
 
 from __future__ import annotations
 
-import base64
-import io
-import json
-import struct
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from urllib.parse import unquote
 
 import numpy as np
 
-__all__ = [
-    "GltfError",
-    "AnimationChannel",
-    "Animation",
-    "SkinnedMesh",
-    "load_skinned_gltf",
-    "pose_vertices",
-    "pose_sequence",
-    "node_global_transforms",
-    "joint_matrices",
-    "skin_vertices",
-    "sample_channel",
-    "animation_index",
-]
+from stex.synth.gltf_reader import (
+    MODE_NAMES, UNSUPPORTED_EXTENSIONS, GltfError, GltfNoSkinError, GltfReader, load_buffers, read_document)
+
 
 UNITS_NOTE = (
     "glTF 2.0: metres (by specification; check the bounding box, some assets are authored in "
     "centimetre-like units), right-handed, +Y up, asset front faces +Z; UV u right, v down, "
     "origin top-left of the image (same as stex)."
 )
-
-
-class GltfError(ValueError):
-    """A glTF file is malformed or uses a feature this reader does not support."""
-
-
-class GltfNoSkinError(GltfError):
-    """A glTF file has no skinned mesh (a static asset: :func:`stex.readers.meshes.load_mesh`
-    reads it as a plain mesh)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -191,249 +166,6 @@ class SkinnedMesh:
     def bbox(self) -> np.ndarray:
         """(2, 3) float64 [min, max] corners of the bind-pose vertices."""
         return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
-
-
-# --------------------------------------------------------------------------------------------
-# File and buffer reading
-# --------------------------------------------------------------------------------------------
-
-_GLB_MAGIC = 0x46546C67  # b"glTF"
-_CHUNK_JSON = 0x4E4F534A
-_CHUNK_BIN = 0x004E4942
-
-_COMPONENT_DTYPES = {
-    5120: np.dtype("<i1"),
-    5121: np.dtype("<u1"),
-    5122: np.dtype("<i2"),
-    5123: np.dtype("<u2"),
-    5125: np.dtype("<u4"),
-    5126: np.dtype("<f4"),
-}
-_TYPE_SHAPES = {
-    "SCALAR": (1,),
-    "VEC2": (2,),
-    "VEC3": (3,),
-    "VEC4": (4,),
-    "MAT2": (2, 2),
-    "MAT3": (3, 3),
-    "MAT4": (4, 4),
-}
-_UNSUPPORTED_EXTENSIONS = {
-    "KHR_draco_mesh_compression": "Draco-compressed geometry",
-    "EXT_meshopt_compression": "meshopt-compressed buffers",
-}
-_MODE_NAMES = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP", 4: "TRIANGLES",
-               5: "TRIANGLE_STRIP", 6: "TRIANGLE_FAN"}
-
-
-def _read_document(path: Path) -> tuple[dict, bytes | None]:
-    """Return the JSON document and, for .glb, the BIN chunk (or None)."""
-    data = path.read_bytes()
-    if data[:4] == b"glTF":
-        if len(data) < 12:
-            raise GltfError(f"{path}: truncated GLB header")
-        magic, version, length = struct.unpack_from("<III", data, 0)
-        if magic != _GLB_MAGIC:
-            raise GltfError(f"{path}: not a GLB file (bad magic)")
-        if version != 2:
-            raise GltfError(f"{path}: GLB container version {version}, only glTF 2 is supported")
-        if length > len(data):
-            raise GltfError(f"{path}: GLB header says {length} bytes but the file has {len(data)}")
-        pos, doc, bin_chunk = 12, None, None
-        while pos + 8 <= length:
-            chunk_len, chunk_type = struct.unpack_from("<II", data, pos)
-            chunk = data[pos + 8: pos + 8 + chunk_len]
-            if len(chunk) != chunk_len:
-                raise GltfError(f"{path}: truncated GLB chunk at byte {pos}")
-            if chunk_type == _CHUNK_JSON and doc is None:
-                doc = json.loads(chunk.decode("utf-8"))
-            elif chunk_type == _CHUNK_BIN and bin_chunk is None:
-                bin_chunk = chunk
-            pos += 8 + chunk_len
-        if doc is None:
-            raise GltfError(f"{path}: GLB file has no JSON chunk")
-        return doc, bin_chunk
-    try:
-        doc = json.loads(data.decode("utf-8-sig"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise GltfError(f"{path}: neither a GLB file nor valid glTF JSON ({exc})") from exc
-    return doc, None
-
-
-def _decode_data_uri(uri: str, what: str, path: Path) -> bytes:
-    header, sep, payload = uri.partition(",")
-    if not sep:
-        raise GltfError(f"{path}: malformed data URI in {what}")
-    if header.endswith(";base64"):
-        try:
-            return base64.b64decode(payload, validate=False)
-        except (ValueError, TypeError) as exc:
-            raise GltfError(f"{path}: bad base64 data URI in {what}: {exc}") from exc
-    return unquote(payload).encode("latin-1")
-
-
-def _read_uri(uri: str, what: str, path: Path) -> bytes:
-    """Bytes behind a glTF URI: a ``data:`` URI or a file relative to the glTF file."""
-    if uri.startswith("data:"):
-        return _decode_data_uri(uri, what, path)
-    if "://" in uri:
-        raise GltfError(f"{path}: {what} refers to a remote URI {uri!r}; only local files are read")
-    target = path.parent / unquote(uri)
-    if not target.is_file():
-        raise FileNotFoundError(f"{path}: {what} file {uri!r} not found (looked for {target})")
-    return target.read_bytes()
-
-
-def _load_buffers(doc: dict, bin_chunk: bytes | None, path: Path) -> list[bytes]:
-    buffers = []
-    for i, b in enumerate(doc.get("buffers", [])):
-        what = f"buffer {i}" + (f" ({b['name']!r})" if "name" in b else "")
-        if "uri" in b:
-            data = _read_uri(b["uri"], what, path)
-        elif i == 0 and bin_chunk is not None:
-            data = bin_chunk
-        else:
-            raise GltfError(f"{path}: {what} has no uri and there is no GLB binary chunk for it")
-        n = int(b.get("byteLength", len(data)))
-        if len(data) < n:
-            raise GltfError(f"{path}: {what} holds {len(data)} bytes, byteLength says {n}")
-        buffers.append(data[:n])
-    return buffers
-
-
-class _Reader:
-    """Resolves accessors, buffer views and images of one glTF document."""
-
-    def __init__(self, doc: dict, buffers: list[bytes], path: Path):
-        self.doc, self.buffers, self.path = doc, buffers, path
-        self._cache: dict[int, np.ndarray] = {}
-
-    def _get(self, kind: str, index) -> dict:
-        items = self.doc.get(kind, [])
-        if not isinstance(index, int) or not 0 <= index < len(items):
-            raise GltfError(f"{self.path}: {kind} index {index!r} out of range (file has {len(items)})")
-        return items[index]
-
-    def buffer_view_bytes(self, index: int) -> tuple[bytes, int, int, int | None]:
-        """(buffer bytes, start offset, byte length, byteStride or None) of a buffer view."""
-        bv = self._get("bufferViews", index)
-        buf_index = bv.get("buffer")
-        if not isinstance(buf_index, int) or not 0 <= buf_index < len(self.buffers):
-            raise GltfError(f"{self.path}: bufferView {index} refers to missing buffer {buf_index!r}")
-        buf = self.buffers[buf_index]
-        start, length = int(bv.get("byteOffset", 0)), int(bv["byteLength"])
-        if start + length > len(buf):
-            raise GltfError(f"{self.path}: bufferView {index} (bytes {start}..{start + length}) "
-                            f"runs past the end of buffer {buf_index} ({len(buf)} bytes)")
-        return buf, start, length, bv.get("byteStride")
-
-    def _strided(self, view: int, byte_offset: int, count: int, dtype: np.dtype,
-                 shape: tuple[int, ...], what: str, use_stride: bool = True) -> np.ndarray:
-        """(count, *shape) array read from a buffer view, honouring stride and matrix padding.
-
-        ``use_stride=False`` ignores the view's byteStride (sparse data is tightly packed).
-        """
-        buf, start, length, stride = self.buffer_view_bytes(view)
-        if not use_stride:
-            stride = None
-        size = dtype.itemsize
-        if len(shape) == 2:  # matrices: column-major, each column aligned to 4 bytes
-            cols, rows = shape[1], shape[0]
-            col_stride = -(-rows * size // 4) * 4
-            elem_size = col_stride * cols
-            inner_shape, inner_strides = (cols, rows), (col_stride, size)
-        else:
-            elem_size = size * shape[0]
-            inner_shape, inner_strides = shape, (size,)
-        stride = int(stride) if stride else elem_size
-        if stride < elem_size:
-            raise GltfError(f"{self.path}: {what}: byteStride {stride} is smaller than an element "
-                            f"({elem_size} bytes)")
-        if count == 0:
-            return np.zeros((0, *shape), dtype=dtype)
-        needed = byte_offset + (count - 1) * stride + elem_size
-        if needed > length:
-            raise GltfError(f"{self.path}: {what} needs {needed} bytes of bufferView {view}, "
-                            f"which has {length}")
-        arr = np.ndarray((count, *inner_shape), dtype=dtype, buffer=buf, offset=start + byte_offset,
-                         strides=(stride, *inner_strides))
-        arr = np.array(arr)  # own, aligned copy
-        if len(shape) == 2:
-            arr = np.swapaxes(arr, 1, 2)  # column-major storage -> [row, col]
-        return arr
-
-    def accessor(self, index: int) -> np.ndarray:
-        """Decoded accessor: float64 for float or normalized data, int64 otherwise.
-
-        Shape (count,) for SCALAR, (count, n) for VECn, (count, n, n) for MATn ([row, col]).
-        """
-        if index in self._cache:
-            return self._cache[index]
-        acc = self._get("accessors", index)
-        what = f"accessor {index}" + (f" ({acc['name']!r})" if "name" in acc else "")
-        ctype, atype = acc.get("componentType"), acc.get("type")
-        if ctype not in _COMPONENT_DTYPES:
-            raise GltfError(f"{self.path}: {what} has unknown componentType {ctype!r}")
-        if atype not in _TYPE_SHAPES:
-            raise GltfError(f"{self.path}: {what} has unknown type {atype!r}")
-        dtype, shape, count = _COMPONENT_DTYPES[ctype], _TYPE_SHAPES[atype], int(acc["count"])
-        if "bufferView" in acc:
-            data = self._strided(acc["bufferView"], int(acc.get("byteOffset", 0)), count, dtype,
-                                 shape, what)
-        else:
-            data = np.zeros((count, *shape), dtype=dtype)
-        sparse = acc.get("sparse")
-        if sparse:
-            n = int(sparse["count"])
-            ind, val = sparse["indices"], sparse["values"]
-            idt = _COMPONENT_DTYPES.get(ind.get("componentType"))
-            if idt is None or idt.kind != "u":
-                raise GltfError(f"{self.path}: {what}: sparse indices need an unsigned componentType")
-            idx = self._strided(ind["bufferView"], int(ind.get("byteOffset", 0)), n, idt, (1,),
-                                what + " sparse indices", use_stride=False)[:, 0].astype(np.int64)
-            if n and (idx.min() < 0 or idx.max() >= count):
-                raise GltfError(f"{self.path}: {what}: sparse index out of range [0, {count})")
-            vals = self._strided(val["bufferView"], int(val.get("byteOffset", 0)), n, dtype, shape,
-                                 what + " sparse values", use_stride=False)
-            data = data.copy()
-            data[idx] = vals
-        if acc.get("normalized", False):
-            if ctype == 5126:
-                raise GltfError(f"{self.path}: {what}: float accessors cannot be normalized")
-            info = np.iinfo(dtype)
-            out = data.astype(np.float64) / float(info.max)
-            if info.min < 0:
-                out = np.maximum(out, -1.0)
-        elif ctype == 5126:
-            out = data.astype(np.float64)
-        else:
-            out = data.astype(np.int64)
-        if shape == (1,):
-            out = out[:, 0]
-        out.setflags(write=False)
-        self._cache[index] = out
-        return out
-
-    def image(self, index: int) -> np.ndarray:
-        """Image ``index`` as (H, W, 3) uint8 RGB (alpha dropped)."""
-        from PIL import Image
-
-        img = self._get("images", index)
-        what = f"image {index}" + (f" ({img['name']!r})" if "name" in img else "")
-        if "uri" in img:
-            data = _read_uri(img["uri"], what, self.path)
-        elif "bufferView" in img:
-            buf, start, length, _ = self.buffer_view_bytes(img["bufferView"])
-            data = buf[start:start + length]
-        else:
-            raise GltfError(f"{self.path}: {what} has neither uri nor bufferView")
-        try:
-            with Image.open(io.BytesIO(data)) as im:
-                rgb = np.asarray(im.convert("RGB"), dtype=np.uint8)
-        except Exception as exc:  # Pillow raises several types for undecodable data
-            raise GltfError(f"{self.path}: cannot decode {what} "
-                            f"({img.get('mimeType', 'unknown type')}): {exc}") from exc
-        return np.ascontiguousarray(rgb)
 
 
 # --------------------------------------------------------------------------------------------
@@ -588,7 +320,7 @@ def _node_tree(doc: dict, path: Path):
     return names, parents, order, T, Q, S, M
 
 
-def _load_animations(doc: dict, reader: _Reader, path: Path) -> list[Animation]:
+def _load_animations(doc: dict, reader: GltfReader, path: Path) -> list[Animation]:
     out = []
     N = len(doc.get("nodes", []))
     for ai, anim in enumerate(doc.get("animations", [])):
@@ -677,57 +409,36 @@ def _canonical_skin(joints: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray
     return np.take_along_axis(j, o, 1), np.take_along_axis(weights, o, 1)
 
 
-def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool = True,
-                      on_skin_mismatch: str = "warn") -> SkinnedMesh:
-    """Read the skinned mesh, its skeleton, animations and base-colour texture from a glTF file.
-
-    Args:
-        path: a ``.gltf`` (JSON; buffers as files next to it or ``data:`` URIs) or ``.glb`` file.
-        mesh_index: index into the file's ``meshes`` of the skinned mesh to read; None = the
-            mesh of the first node that has both a mesh and a skin.
-        load_texture: decode the base-colour image (PNG/JPEG via Pillow); False gives None.
-        on_skin_mismatch: what to do when glTF vertices merged by identical position carry
-            different joints/weights: ``"warn"`` (keep the first vertex's skinning) or ``"raise"``.
-
-    All primitives of the mesh are merged (each must be TRIANGLES). Vertices are merged by
-    bit-identical position; texture coordinates are deduplicated by identical value and indexed
-    separately (``texcoord_faces``). Up to 4 influences are kept per vertex (if JOINTS_1/
-    WEIGHTS_1 exist, the 4 largest weights are kept, with a warning); weights are renormalised.
-    Morph targets are ignored (warning).
-
-    Raises:
-        FileNotFoundError: ``path``, or a buffer/image file it refers to, is missing (named).
-        GltfError (a ValueError): malformed file, no skinned mesh, a non-triangle primitive,
-            a compression extension that is not supported, ...
-    """
-    path = Path(path)
+def _open_gltf(path: Path, on_skin_mismatch: str) -> tuple[dict, GltfReader]:
+    """The checked glTF document of ``path`` and a reader of its buffers."""
     if not path.is_file():
         raise FileNotFoundError(f"glTF file not found: {path}")
     if on_skin_mismatch not in ("warn", "raise"):
         raise ValueError(f"on_skin_mismatch must be 'warn' or 'raise', got {on_skin_mismatch!r}")
-    doc, bin_chunk = _read_document(path)
+    doc, bin_chunk = read_document(path)
     version = str(doc.get("asset", {}).get("version", "2.0"))
     if not version.startswith("2"):
         raise GltfError(f"{path}: glTF version {version}; only glTF 2.x is supported")
     for ext in doc.get("extensionsRequired", []):
-        if ext in _UNSUPPORTED_EXTENSIONS:
-            raise GltfError(f"{path}: requires {ext} ({_UNSUPPORTED_EXTENSIONS[ext]}), which this "
+        if ext in UNSUPPORTED_EXTENSIONS:
+            raise GltfError(f"{path}: requires {ext} ({UNSUPPORTED_EXTENSIONS[ext]}), which this "
                             f"reader does not decode; re-export the asset without it")
-    buffers = _load_buffers(doc, bin_chunk, path)
-    reader = _Reader(doc, buffers, path)
+    buffers = load_buffers(doc, bin_chunk, path)
+    reader = GltfReader(doc, buffers, path)
+    return doc, reader
 
-    node_i, mesh_i, skin_i = _find_skinned_node(doc, mesh_index, path)
-    mesh = reader._get("meshes", mesh_i)
-    mesh_name = str(mesh.get("name", f"mesh_{mesh_i}"))
-    skin = reader._get("skins", skin_i)
 
-    # ---- material / texture: the first primitive whose material has a base-colour texture
+# The helpers below warn with stacklevel 3: the warning names the caller of load_skinned_gltf.
+
+def _base_color(mesh: dict, mesh_name: str, reader: GltfReader, path: Path, load_texture: bool):
+    """(texcoord set, texture (H, W, 3|4) uint8 or None, base-colour factor (4,) float64) of the
+    first primitive of ``mesh`` whose material has a base-colour texture."""
     tex_coord_set, texture, color_factor, tex_source = 0, None, np.ones(4), None
     first_factor = None
     for p in mesh.get("primitives", []):
         if "material" not in p:
             continue
-        mat = reader._get("materials", p["material"])
+        mat = reader.get("materials", p["material"])
         info = _first_texture_info(mat)
         factor = np.asarray(mat.get("pbrMetallicRoughness", {}).get("baseColorFactor",
                             [1.0, 1.0, 1.0, 1.0]), dtype=np.float64)
@@ -737,12 +448,12 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
             tex_coord_set = int(info.get("texCoord", 0))
             if "KHR_texture_transform" in info.get("extensions", {}):
                 warnings.warn(f"{path}: KHR_texture_transform on the base-colour texture is "
-                              f"ignored", stacklevel=2)
-            tex = reader._get("textures", info["index"])
+                              f"ignored", stacklevel=3)
+            tex = reader.get("textures", info["index"])
             tex_source = tex.get("source")
             if tex_source is None:
                 warnings.warn(f"{path}: base-colour texture {info['index']} has no PNG/JPEG "
-                              f"source (extension image?); texture is None", stacklevel=2)
+                              f"source (extension image?); texture is None", stacklevel=3)
             break
     if load_texture and tex_source is not None:
         texture = reader.image(tex_source)
@@ -750,9 +461,15 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
     if len(materials) > 1:
         warnings.warn(f"{path}: mesh {mesh_name!r} has primitives with different materials "
                       f"{sorted(m for m in materials if m is not None)}; only the first textured "
-                      f"one's base colour is used", stacklevel=2)
+                      f"one's base colour is used", stacklevel=3)
+    return tex_coord_set, texture, color_factor
 
-    # ---- primitives
+
+def _read_primitives(mesh: dict, mesh_i: int, mesh_name: str, reader: GltfReader, path: Path,
+                    tex_coord_set: int):
+    """Every TRIANGLES primitive of ``mesh``, concatenated: (positions (n, 3) float64, triangles
+    (m, 3) int64, joints (n, 4) int64, weights (n, 4) float64 >= 0, per-primitive texcoords, whether
+    every primitive has them)."""
     pos_l, uv_l, jnt_l, wgt_l, tri_l = [], [], [], [], []
     offset = 0
     have_uv = True
@@ -760,13 +477,13 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
         where = f"{path}: mesh {mesh_i} ({mesh_name!r}) primitive {pi}"
         mode = int(prim.get("mode", 4))
         if mode != 4:
-            raise GltfError(f"{where} has mode {mode} ({_MODE_NAMES.get(mode, 'unknown')}); only "
+            raise GltfError(f"{where} has mode {mode} ({MODE_NAMES.get(mode, 'unknown')}); only "
                             f"TRIANGLES (4) is supported")
         attrs = prim.get("attributes", {})
         if "POSITION" not in attrs:
             raise GltfError(f"{where} has no POSITION attribute")
         if prim.get("targets"):
-            warnings.warn(f"{where}: morph targets are ignored", stacklevel=2)
+            warnings.warn(f"{where}: morph targets are ignored", stacklevel=3)
         pos = np.asarray(reader.accessor(attrs["POSITION"]), dtype=np.float64)
         if pos.ndim != 2 or pos.shape[1] != 3:
             raise GltfError(f"{where}: POSITION must be VEC3")
@@ -803,7 +520,7 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
             dropped = np.take_along_axis(W, np.argsort(-W, axis=1, kind="stable")[:, 4:], 1)
             if np.any(dropped > 0):
                 warnings.warn(f"{where}: more than 4 influences per vertex; keeping the 4 largest "
-                              f"(max dropped weight {dropped.max():.3g})", stacklevel=2)
+                              f"(max dropped weight {dropped.max():.3g})", stacklevel=3)
             J, W = np.take_along_axis(J, o, 1), np.take_along_axis(W, o, 1)
         pos_l.append(pos)
         jnt_l.append(J)
@@ -817,7 +534,12 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
     J = np.concatenate(jnt_l)
     W = np.maximum(np.concatenate(wgt_l), 0.0)
 
-    # ---- skin
+    return pos, tri, J, W, uv_l, have_uv
+
+
+def _read_skin(skin: dict, skin_i: int, reader: GltfReader, path: Path, J: np.ndarray, W: np.ndarray):
+    """The skin's joint nodes (J,) int32 and inverse bind matrices (J, 4, 4) float64, and the
+    vertices' joints and weights checked against it (weights renormalised to sum 1)."""
     joint_nodes = np.asarray(skin.get("joints", []), dtype=np.int32)
     n_joints = joint_nodes.size
     if n_joints == 0:
@@ -839,13 +561,18 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
     zero = wsum <= 0
     if np.any(zero):
         warnings.warn(f"{path}: {int(zero.sum())} vertices have all-zero skin weights; bound "
-                      f"rigidly to joint 0", stacklevel=2)
+                      f"rigidly to joint 0", stacklevel=3)
         W[zero] = [1.0, 0.0, 0.0, 0.0]
         J[zero] = 0
         wsum = W.sum(axis=1)
     W = W / wsum[:, None]
+    return joint_nodes, ibm, J, W
 
-    # ---- merge vertices by identical position
+
+def _merge_vertices(path: Path, mesh_name: str, pos, tri, J, W, uv_l, have_uv, tex_coord_set: int,
+                   on_skin_mismatch: str):
+    """Vertices merged by bit-identical position and texcoords deduplicated by value:
+    (vertices, faces, joints, weights, texcoords, texcoord_faces, glTF vertex -> vertex)."""
     first, inv = _unique_rows_first_order(pos)
     vertices = pos[first].copy()
     faces = inv[tri].astype(np.int32)
@@ -857,7 +584,7 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
                f"but have different skinning; merged vertices keep the first one's joints/weights")
         if on_skin_mismatch == "raise":
             raise GltfError(msg)
-        warnings.warn(msg, stacklevel=2)
+        warnings.warn(msg, stacklevel=3)
     joints = J[first].astype(np.int32)
     weights = W[first].copy()
 
@@ -868,16 +595,55 @@ def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool
         texcoord_faces = uinv[tri].astype(np.int32)
     else:
         warnings.warn(f"{path}: mesh {mesh_name!r} has no TEXCOORD_{tex_coord_set} on every "
-                      f"primitive; texcoords are None", stacklevel=2)
+                      f"primitive; texcoords are None", stacklevel=3)
         texcoords = texcoord_faces = None
 
     degenerate = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     if np.any(degenerate):
         warnings.warn(f"{path}: dropped {int(degenerate.sum())} triangles that are degenerate after "
-                      f"merging vertices", stacklevel=2)
+                      f"merging vertices", stacklevel=3)
         faces = faces[~degenerate]
         if texcoord_faces is not None:
             texcoord_faces = texcoord_faces[~degenerate]
+    return vertices, faces, joints, weights, texcoords, texcoord_faces, inv
+
+
+def load_skinned_gltf(path, mesh_index: int | None = None, *, load_texture: bool = True,
+                      on_skin_mismatch: str = "warn") -> SkinnedMesh:
+    """Read the skinned mesh, its skeleton, animations and base-colour texture from a glTF file.
+
+    Args:
+        path: a ``.gltf`` (JSON; buffers as files next to it or ``data:`` URIs) or ``.glb`` file.
+        mesh_index: index into the file's ``meshes`` of the skinned mesh to read; None = the
+            mesh of the first node that has both a mesh and a skin.
+        load_texture: decode the base-colour image (PNG/JPEG via Pillow); False gives None.
+        on_skin_mismatch: what to do when glTF vertices merged by identical position carry
+            different joints/weights: ``"warn"`` (keep the first vertex's skinning) or ``"raise"``.
+
+    All primitives of the mesh are merged (each must be TRIANGLES). Vertices are merged by
+    bit-identical position; texture coordinates are deduplicated by identical value and indexed
+    separately (``texcoord_faces``). Up to 4 influences are kept per vertex (if JOINTS_1/
+    WEIGHTS_1 exist, the 4 largest weights are kept, with a warning); weights are renormalised.
+    Morph targets are ignored (warning).
+
+    Raises:
+        FileNotFoundError: ``path``, or a buffer/image file it refers to, is missing (named).
+        GltfError (a ValueError): malformed file, no skinned mesh, a non-triangle primitive,
+            a compression extension that is not supported, ...
+    """
+    path = Path(path)
+    doc, reader = _open_gltf(path, on_skin_mismatch)
+
+    node_i, mesh_i, skin_i = _find_skinned_node(doc, mesh_index, path)
+    mesh = reader.get("meshes", mesh_i)
+    mesh_name = str(mesh.get("name", f"mesh_{mesh_i}"))
+    skin = reader.get("skins", skin_i)
+
+    tex_coord_set, texture, color_factor = _base_color(mesh, mesh_name, reader, path, load_texture)
+    pos, tri, J, W, uv_l, have_uv = _read_primitives(mesh, mesh_i, mesh_name, reader, path, tex_coord_set)
+    joint_nodes, ibm, J, W = _read_skin(skin, skin_i, reader, path, J, W)
+    vertices, faces, joints, weights, texcoords, texcoord_faces, inv = _merge_vertices(
+        path, mesh_name, pos, tri, J, W, uv_l, have_uv, tex_coord_set, on_skin_mismatch)
 
     names, parents, order, T, Q, S, M = _node_tree(doc, path)
     if np.any((joint_nodes < 0) | (joint_nodes >= len(names))):

@@ -205,7 +205,7 @@ class ProceduralBody:
         s, v = np.meshgrid(c, c)
         h = 1.0 - v
         # The compression field is smooth: evaluated on at most 512^2 texel centres and
-        # upsampled (cv2 aligns texel centres), which makes a 2048^2 slice ~10x cheaper.
+        # upsampled (cv2 aligns texel centres), which makes a large slice much cheaper.
         n = min(size, 512)
         cc = (np.arange(n) + 0.5) / n
         cs, cv_ = np.meshgrid(cc, cc)

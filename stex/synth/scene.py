@@ -27,6 +27,7 @@ from scipy import ndimage
 from stex.camera import Calibration, Intrinsics, transform_points
 from stex.render import rasterize, render_textured, sample_bilinear, vertex_normals
 from stex.synth.procedural import ProceduralBody, ProceduralParams
+from stex.synth.skinned import SkinnedBody
 
 
 def _rot(axis: str, angle: float) -> np.ndarray:
@@ -91,7 +92,6 @@ class SyntheticScene:
                 seed=self.seed))
             self._base = self.body.base_texture(self.texture_size)
         elif kind == "gltf":
-            from stex.synth.skinned import SkinnedBody
             g = cfg["gltf"]
             if not g.get("path"):
                 raise ValueError("source.synthetic.gltf.path must name a .gltf/.glb file for object: gltf")

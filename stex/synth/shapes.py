@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 # Three tall smooth protrusions on the camera-facing side hide parts of the surface behind them
-# (about 570 of the ~5600 front-facing faces are occluded); (direction, height, width).
+# (a tenth of the front-facing faces are occluded, docs/decisions/synth.md); (direction, height, width).
 _BUMPS = [((0.6, 0.1, -0.8), 0.6, 0.22), ((-0.5, 0.5, -0.7), 0.5, 0.25), ((-0.2, -0.7, -0.7), 0.5, 0.22)]
 
 

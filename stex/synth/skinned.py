@@ -9,17 +9,16 @@ colour follows the animation phase, so frames of similar pose have similar textu
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
+from stex.atlas import texel_map
 from stex.synth.gltf import load_skinned_gltf, pose_vertices
+from stex.synth.procedural import ProceduralBody, ProceduralParams
 
 
 class SkinnedBody:
     def __init__(self, path, animation=0, size_m: float = 0.5, texture_size: int = 512, seed: int = 0):
-        import cv2
-
-        from stex.synth.procedural import ProceduralBody, ProceduralParams
-
         self.mesh = load_skinned_gltf(path)
         names = self.mesh.animation_names
         if not names:
@@ -42,7 +41,6 @@ class SkinnedBody:
             self.base = base.astype(np.float32) / 255.0
         else:
             self.base = ProceduralBody(ProceduralParams(n_around=8, n_rings=4, seed=seed)).base_texture(texture_size)
-        from stex.template import texel_map
 
         self.texel_face, self.texel_bary = texel_map(self.texcoords, self.texcoord_faces, texture_size)
         e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])

@@ -1,5 +1,5 @@
-"""Thin adapter: rule ingest_block -> stex.ingest.write_frames_block."""
-from stex.ingest import write_frames_block
+"""Thin adapter: rule ingest_block -> stex.stages.ingest.write_frames_block."""
+from stex.stages.ingest import write_frames_block
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

@@ -1,5 +1,5 @@
-"""Thin adapter: rule ingest_scene -> stex.ingest.write_scene."""
-from stex.ingest import write_scene
+"""Thin adapter: rule ingest_scene -> stex.stages.ingest.write_scene."""
+from stex.stages.ingest import write_scene
 from stex.logs import setup_logging
 
 setup_logging(snakemake.log[0])

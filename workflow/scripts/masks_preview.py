@@ -1,6 +1,6 @@
-"""Thin adapter: rule masks_preview -> stex.masks.preview_masks."""
+"""Thin adapter: rule masks_preview -> stex.stages.masks.preview_masks."""
 from stex.logs import setup_logging
-from stex.masks import preview_masks
+from stex.stages.masks import preview_masks
 
 setup_logging(snakemake.log[0])
 preview_masks(list(snakemake.input.frames), list(snakemake.input.masks),

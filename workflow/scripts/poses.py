@@ -1,6 +1,6 @@
-"""Thin adapter: rule poses -> stex.poses.write_pose_table."""
+"""Thin adapter: rule poses -> stex.stages.poses.write_pose_table."""
 from stex.logs import setup_logging
-from stex.poses import write_pose_table
+from stex.stages.poses import write_pose_table
 
 setup_logging(snakemake.log[0])
 write_pose_table(snakemake.input.tracking, snakemake.output[0], snakemake.params.poses,

@@ -1,6 +1,6 @@
-"""Thin adapter: rule projection -> stex.projection.write_projection."""
+"""Thin adapter: rule projection -> stex.stages.projection.write_projection."""
 from stex.logs import setup_logging
-from stex.projection import write_projection
+from stex.stages.projection import write_projection
 
 setup_logging(snakemake.log[0])
 write_projection(snakemake.input.tracking, snakemake.input.template, snakemake.input.scene,

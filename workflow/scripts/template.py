@@ -1,6 +1,6 @@
-"""Thin adapter: rule template -> stex.template.write_template."""
+"""Thin adapter: rule template -> stex.stages.template.write_template."""
 from stex.logs import setup_logging
-from stex.template import write_template
+from stex.stages.template import write_template
 
 setup_logging(snakemake.log[0])
 first = list(snakemake.input.first) or [None, None]  # template.from_depth: frames and masks of block 0

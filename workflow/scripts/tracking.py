@@ -1,6 +1,6 @@
-"""Thin adapter: rule tracking -> stex.tracking.write_tracking."""
+"""Thin adapter: rule tracking -> stex.stages.tracking.write_tracking."""
 from stex.logs import setup_logging
-from stex.tracking import write_tracking
+from stex.stages.tracking import write_tracking
 
 setup_logging(snakemake.log[0])
 write_tracking(snakemake.input.scene, snakemake.input.template, list(snakemake.input.frames),

@@ -1,0 +1,107 @@
+"""Template stage, artifact side: read the template mesh from the ``scene`` store (or the first
+frame's depth), run :func:`stex.template.prepare_template`, write the ``template`` store; the
+atlas preview; and the atlas digest that texture stores are checked against."""
+
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from stex.atlas import atlas_digest
+from stex.camera import Calibration
+from stex.config import section_params
+from stex.io import create_store, open_store
+from stex.preview import _label, write_png
+from stex.readers.meshes import Mesh
+from stex.template import atlas_preview, prepare_template, template_from_frame
+
+log = logging.getLogger("stex.template")
+
+
+def template_atlas_digest(template) -> str:
+    """:func:`atlas_digest` of an open ``template`` store."""
+    return atlas_digest(template["texcoords"][...], template["texcoord_faces"][...],
+                        int(template.attrs["atlas_size"]))
+
+
+def check_atlas(stores, template, template_where) -> str:
+    """Raise ValueError when one of ``stores`` ((where, open texture store) pairs, e.g. a
+    sequence's block stores) records another atlas than the open ``template`` store's (at
+    ``template_where``); stores without the attr (written before it existed) pass. Returns the
+    template's :func:`atlas_digest` (computed once for all the stores)."""
+    have = template_atlas_digest(template)
+    for where, store in stores:
+        made_in = store.attrs.get("atlas_digest")
+        if made_in is not None and made_in != have:
+            raise ValueError(f"{where} holds textures of another UV atlas than the template {template_where} "
+                             f"(atlas {made_in}, the template's is {have}): a run's stores must come from "
+                             f"one template (another run's or scene's?)")
+    return have
+
+
+def write_template(scene_path, params: dict, out, frames_path=None, masks_path=None) -> None:
+    """Read the template mesh from the ``scene`` store, run the stage, write the ``template`` store.
+
+    With ``params['from_depth']`` the mesh is instead :func:`template_from_frame` of the first
+    frame of ``frames_path`` (a ``frames`` store) inside its mask from ``masks_path``.
+    """
+    # defaults filled in, as the store records them; refuses uv: mesh with from_depth too
+    params = section_params("template", params)
+    scene = open_store(scene_path, "scene")
+    has_template = scene.attrs.get("has_template", False) and "template/vertices" in scene
+    if params["from_depth"]:
+        if frames_path is None or masks_path is None:
+            raise ValueError("template.from_depth needs the first frame block and its masks")
+        frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
+        fid = int(frames.attrs["frame_ids"][0])
+        if has_template:
+            log.warning("template: template.from_depth is set, so the source's template mesh is not used")
+        if "given/vertices" in scene:
+            log.warning("template: the source's per-frame meshes refer to its own template, not to one from "
+                        "depth; tracking.mode given cannot use them")
+        try:
+            V, F = template_from_frame(frames["depth"][0], masks["mask"][0],
+                                       Calibration.from_dict(scene.attrs["calibration"]),
+                                       stride=int(params["from_depth_stride_px"]))
+        except ValueError as e:
+            raise ValueError(f"{frames_path}: frame {fid}: template.from_depth: {e}") from e
+        log.info("template: %d faces from the depth of frame %d", len(F), fid)
+        mesh, origin = Mesh(V, F), f"depth of frame {fid}"
+    elif has_template:
+        has_uv = "template/texcoords" in scene and "template/texcoord_faces" in scene
+        mesh = Mesh(np.asarray(scene["template/vertices"][...], np.float64),
+                    np.asarray(scene["template/faces"][...], np.int32),
+                    np.asarray(scene["template/texcoords"][...], np.float64) if has_uv else None,
+                    np.asarray(scene["template/texcoord_faces"][...], np.int32) if has_uv else None)
+        origin = "source"
+    else:
+        kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
+        raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
+                         f"template.from_depth to build one from the first frame's depth (one view only)")
+    calibration = scene.attrs.get("calibration")
+    # the mesh is in depth-camera coordinates at frame 0: open parts are turned to face that camera
+    camera = Calibration.from_dict(calibration).depth if calibration else None
+    try:
+        result = prepare_template(mesh, params, camera=camera)
+    except (ValueError, RuntimeError) as e:  # name the mesh: the stage's errors speak of faces only
+        raise type(e)(f"{scene_path}: template ({origin}): {e}") from e
+    attrs = result.pop("attrs")
+    attrs["origin"] = origin
+    with create_store(out, "template", attrs=attrs, params=params) as store:
+        for name, arr in result.items():
+            store.write(name, arr)
+    log.info("template: wrote %s (%d faces, atlas %d^2)", out, attrs["counts"]["faces"], attrs["atlas_size"])
+
+
+def preview_template(template_path, out_png, size: int = 1024) -> None:
+    """Write the atlas picture of a ``template`` store to ``out_png``."""
+    g = open_store(template_path, "template")
+    img = atlas_preview(g["texcoords"][...], g["texcoord_faces"][...], g["face_chart"][...], size)
+    c = g.attrs["counts"]
+    title = (f"atlas {g.attrs['atlas_size']}^2, {c['charts']} charts, {c['faces']} faces, "
+             f"gutter {g.attrs['gutter_px']} px")
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    write_png(out_png, _label(img, title))
