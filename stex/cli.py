@@ -1,5 +1,7 @@
 """The ``stex`` command line: tasks a user runs outside Snakemake.
 
+    stex --version                            # the installed stex's version
+    stex inspect results/demo                 # every store of a run: kind, arrays, state, size, frames
     stex inspect results/demo/scene.zarr      # what a store holds: kind, frames, arrays, params
     stex export results/demo --what mp4 --out out/   # texture volume as PNG/MP4/OBJ/glTF
     stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
@@ -15,12 +17,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
 import sys
 from pathlib import Path
 
 import zarr
 
-from stex.io import ARTIFACTS, StoreArray, StoreError, StoreGroup, open_store
+from stex import __version__
+from stex.artifacts import ARTIFACTS
+from stex.export import EXPORT_KINDS, PIX_FMTS, SOURCES, output_folder, parse_frame_range, select_frames
+from stex.io import StoreArray, StoreError, StoreGroup, id_ranges, open_store
+from stex.reporting import runs_tables, tables_html
+from stex.stages.evaluation import evaluate_results
+from stex.stages.export import export_results, preview_results
 
 
 def _arrays(group: StoreGroup):
@@ -66,6 +76,81 @@ def inspect_store(path: str) -> str:
     return "\n".join(lines)
 
 
+def is_run_folder(path) -> bool:
+    """``path`` is a run's folder (``results/<scene>``: a ``scene.zarr`` inside), not a store."""
+    path = Path(path)
+    return path.is_dir() and not (path / "zarr.json").exists() and (path / "scene.zarr").is_dir()
+
+
+def run_stores(results_dir) -> list[Path]:
+    """Every store of a run folder, and every writer's unfinished one (``*.partial-*``): its
+    own ``*.zarr`` first, then the frame-block stores ``<kind>/block_*.zarr``, in name order."""
+    root = Path(results_dir)
+    own = sorted(p for p in root.iterdir() if p.is_dir() and (p.suffix == ".zarr" or ".zarr.partial" in p.name))
+    blocks = sorted(p for d in root.iterdir() if d.is_dir() and d.suffix != ".zarr"
+                    for p in d.glob("block_*.zarr*") if p.is_dir())
+    return own + blocks
+
+
+def _disk_size(path: Path) -> str:
+    """The bytes under ``path`` (every file, recursively), as B / KB / MB / GB."""
+    n = sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return ""
+
+
+def _frames_covered(ids) -> str:
+    """``frames 0..59, 70..79 (70)``: the runs of consecutive frame ids and their count."""
+    if not ids:
+        return "no per-frame arrays"
+    runs = ", ".join(f"{a}..{b - 1}" if b - a > 1 else str(a) for a, b in id_ranges(ids))
+    return f"frames {runs} ({len(ids)})"
+
+
+def _store_line(path: Path, root: Path) -> list[str]:
+    """Two lines on one store of a run: name, kind, complete or partial, size, frames; its arrays."""
+    name = str(path.relative_to(root))
+    try:
+        raw = zarr.open_group(str(path), mode="r")
+        kind = raw.attrs.get("stex_artifact")
+    except Exception as exc:  # zarr raises several types for what is not a store
+        return [f"  {name:34s} not a readable store ({type(exc).__name__})"]
+    if kind not in ARTIFACTS:
+        return [f"  {name:34s} not a stex store (stex_artifact={kind!r})"]
+    try:
+        group, state = open_store(path, kind), "complete"
+    except StoreError as exc:
+        group = None
+        state = ("partial" if not raw.attrs.get("complete", False) or ".partial" in path.name
+                 else f"damaged ({str(exc).removeprefix(f'{path}: ')})")
+    declared = ARTIFACTS[kind].arrays
+    # the required arrays are the store's main ones; a store with none (scene) shows what it has
+    main = [a for a, spec in declared.items() if spec.required and a in raw] or [a for a in declared if a in raw]
+    arrays = [f"{a} {tuple(raw[a].shape)} {raw[a].dtype}" for a in main]
+    shown = arrays[:4] + ([f"and {len(arrays) - 4} more"] if len(arrays) > 4 else [])
+    ids = (group or raw).attrs.get("frame_ids")
+    return [f"  {name:34s} {kind:15s} {state:9s} {_disk_size(path):>9s}  {_frames_covered(ids)}",
+            f"  {'':34s} {', '.join(shown) or 'no arrays'}"]
+
+
+def inspect_run(results_dir) -> str:
+    """A human-readable summary of every store of a run folder (``results/<scene>``): each
+    store's name, artifact kind, complete or partial (or damaged), size on disk, the frames it
+    covers and the shapes and dtypes of its main (required) arrays."""
+    root = Path(results_dir)
+    stores = run_stores(root)
+    scene = open_store(root / "scene.zarr", "scene")
+    ids = scene.attrs.get("frame_ids") or []
+    lines = [f"{root}: run of {len(ids)} frames in {len(scene.attrs.get('frame_blocks') or [])} "
+             f"block(s), {len(stores)} stores ({_disk_size(root)} in the folder)"]
+    for path in stores:
+        lines += _store_line(path, root)
+    return "\n".join(lines)
+
+
 class _Counter:
     """Frame counter on stderr: rewrites one line while running, ends it when done."""
 
@@ -86,8 +171,6 @@ class _Counter:
 
 
 def _run_export(args) -> int:
-    from stex.export import export_results
-
     paths = export_results(args.results, args.what, args.out, frames=args.frames,
                            source=args.source, fps=args.fps, crf=args.crf, pix_fmt=args.pix_fmt,
                            progress=_Counter(f"export {args.what}"))
@@ -96,8 +179,6 @@ def _run_export(args) -> int:
 
 
 def _run_preview(args) -> int:
-    from stex.export import preview_results
-
     n, w, h = preview_results(args.results, args.out, frames=args.frames, source=args.source,
                               fps=args.fps, size=args.size, progress=_Counter("preview"))
     print(f"wrote {args.out}: {n} frames, {w}x{h}")
@@ -105,10 +186,6 @@ def _run_preview(args) -> int:
 
 
 def _run_tables(args) -> int:
-    from pathlib import Path
-
-    from stex.reporting import runs_tables, tables_html
-
     rst = runs_tables(args.results)
     if args.out is None:
         print(rst)
@@ -126,7 +203,7 @@ def _run_inspect(args) -> int:
     status = 0
     for store in args.stores:
         try:
-            print(inspect_store(store))
+            print(inspect_run(store) if is_run_folder(store) else inspect_store(store))
         except (StoreError, FileNotFoundError, ValueError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             status = 1
@@ -134,11 +211,6 @@ def _run_inspect(args) -> int:
 
 
 def _run_evaluate(args) -> int:
-    import logging
-
-    from stex.evaluation import evaluate_results
-    from stex.export import parse_frame_range, select_frames
-
     others = {}
     for item in args.texture:
         name, sep, path = item.partition("=")
@@ -156,8 +228,6 @@ def _run_evaluate(args) -> int:
         if isinstance(others[name], dict):
             raise ValueError(f"--uv-mesh: method name {name!r} given twice")
         others[name] = {"slices": others[name], "uv_mesh": mesh}
-    from stex.export import output_folder
-
     output_folder(args.out)  # the evaluation checks that it may replace it, before scoring
     frames = None
     if args.frames is not None:
@@ -194,12 +264,11 @@ def _positive_int(text: str) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from stex.export import EXPORT_KINDS, PIX_FMTS, SOURCES
-
     parser = argparse.ArgumentParser(prog="stex", description=__doc__.splitlines()[0].replace("``", ""))
+    parser.add_argument("--version", action="version", version=f"stex {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("inspect", help="summarise artifact stores")
-    p.add_argument("stores", nargs="+")
+    p = sub.add_parser("inspect", help="summarise artifact stores, or every store of a run folder")
+    p.add_argument("stores", nargs="+", help="stores (*.zarr) or results/<scene> folders")
     p.set_defaults(run=_run_inspect)
 
     frames_help = "frame ids START:STOP (STOP excluded), START:, :STOP or one id; default all"

@@ -9,8 +9,12 @@ What it writes
   texture embedded as PNG.
 - :func:`preview_frame` / :func:`write_preview_video` — the input image beside the textured mesh
   rendered from the input camera and from the opposite side.
-- :func:`export_results` / :func:`preview_results` — the same, reading the artifact stores
-  under ``results/<scene>/`` (what ``stex export`` and ``stex preview`` run).
+- :func:`parse_frame_range`, :func:`select_frames`, :func:`output_folder`,
+  :func:`output_file` — the command line's frame ranges and output checks.
+
+:func:`stex.stages.export.export_results` / :func:`stex.stages.export.preview_results` do the
+same reading the artifact stores under ``results/<scene>/`` (what ``stex export`` and
+``stex preview`` run).
 
 Conventions at the boundary (stex itself: see :mod:`stex.camera` and :mod:`stex.render`)
 --------------------------------------------------------------------------------------
@@ -35,7 +39,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
 import shutil
+import tempfile
 from fractions import Fraction
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -44,10 +50,9 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration, transform_points
+from stex.files import partial_path
 from stex.metrics import novel_view, render_texture
-from stex.io import FrameSequence, StoreError, open_store, partial_path, run_block_paths
 from stex.render import vertex_normals
-from stex.stages.template import check_atlas
 
 __all__ = [
     "opencv_to_viewer",
@@ -63,8 +68,8 @@ __all__ = [
     "write_preview_video",
     "parse_frame_range",
     "select_frames",
-    "export_results",
-    "preview_results",
+    "output_folder",
+    "output_file",
 ]
 
 log = logging.getLogger(__name__)
@@ -156,8 +161,7 @@ def _written_as_a_set(out_dir: Path):
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
-    # cv2 takes BGR. Its default PNG settings were the fastest measured here (2048^2 texture:
-    # 0.24 s vs 0.63 s at compression 3, 1.7 s at 6; files 2.7 / 2.3 / 1.9 MB).
+    # cv2 takes BGR. Its default PNG settings were the fastest (docs/decisions/export.md).
     with _written_whole(path) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
             raise OSError(f"cannot write image {path}")
@@ -226,17 +230,15 @@ def write_video(images: Iterable, out_mp4, fps: float = 30.0, crf: int = 18, pre
         crf: x264 constant rate factor, 0 .. 51 (lower: better and larger).
         preset: x264 speed/size preset.
         pix_fmt: 'yuv420p' (plays everywhere) or 'yuv444p' (full-resolution chroma, High 4:4:4
-            profile, which many browsers and hardware decoders refuse). Measured on the demo's
-            true 512^2 textures (20 frames): yuv420p at crf 18 gives 36.2 dB PSNR, and the
-            RGB -> yuv420p -> RGB conversion alone already caps it at 36.8 dB (sharp colour
-            detail); yuv444p at crf 18 gives 43.2 dB.
+            profile, which many browsers and hardware decoders refuse). yuv420p's subsampled
+            chroma alone caps the fidelity of sharp colour detail (docs/decisions/export.md).
         total: number of images if known (for ``progress``).
         progress: called as ``progress(done, total)`` after each encoded frame.
 
     Returns:
         (frames written, encoded width, encoded height).
     """
-    import av
+    import av  # PyAV (FFmpeg) is loaded only when a video is written
 
     rate = _rate(fps)
     if pix_fmt not in PIX_FMTS:
@@ -343,8 +345,6 @@ def _refuse_other_frames(out_dir: Path, pattern: str, ids: list[int]) -> None:
     frames other than ``ids``: an export of frames 2-3 into a folder of an earlier export of
     0-5 would leave a mixed set that reads as one (``stex evaluate --texture`` scores whatever
     file a frame has). Files of the same frames are replaced, as a re-export should."""
-    import re
-
     if "{frame" not in pattern or not Path(out_dir).is_dir():
         return
     head, tail = pattern.split("{frame", 1)[0], pattern.split("}", 1)[1]
@@ -448,10 +448,11 @@ def write_gltf_frame(path, vertices, faces, texcoords, texcoord_faces, texture,
         faces: (F, 3) int. texcoords: (Vt, 2) float. texcoord_faces: (F, 3) int.
         texture: (H, W, 3) uint8 RGB, row 0 = v 0.
     """
+    # trimesh (and its visual submodules) load slowly; only glTF exports need them
     import trimesh
-    from PIL import Image
     from trimesh.visual import TextureVisuals
     from trimesh.visual.material import PBRMaterial
+    from PIL import Image
 
     v, f, tc, tf = _mesh(vertices, faces, texcoords, texcoord_faces)
     tex = _rgb_image(texture, "texture")
@@ -572,7 +573,7 @@ def write_preview_video(colors: Iterable, vertices_seq: Iterable, faces, texcoor
 
 
 # --------------------------------------------------------------------------------------------
-# from the artifact stores (stex export / stex preview)
+# the command line's frame ranges and outputs (stex export / stex preview)
 # --------------------------------------------------------------------------------------------
 
 def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
@@ -608,83 +609,9 @@ def select_frames(frame_ids, start: int | None, stop: int | None) -> list[int]:
     return [i for i in ids if a <= i < b]
 
 
-class _Results:
-    """The stores of one ``results/<scene>`` folder that the exports read."""
-
-    def __init__(self, results_dir, source: str = "corrected"):
-        if source not in SOURCES:
-            raise ValueError(f"source must be one of {SOURCES}, got {source!r}")
-        self.dir = Path(results_dir)
-        if not self.dir.is_dir():
-            raise StoreError(f"{self.dir}: no such results folder")
-        if (self.dir / "zarr.json").exists():
-            raise StoreError(f"{self.dir}: a store, not a results folder; give the results/<scene> folder "
-                             f"that holds the run's stores")
-        self.scene = open_store(self.dir / "scene.zarr", "scene")
-        self.textures = FrameSequence(self._blocks(source), source)
-        template = open_store(self.dir / "template.zarr", "template")
-        check_atlas(zip(self.textures.paths, self.textures.groups), template, self.dir / "template.zarr")
-        self.n_vertices = template["vertices"].shape[0]
-        self.faces = template["faces"][...]
-        self.texcoords = template["texcoords"][...]
-        self.texcoord_faces = template["texcoord_faces"][...]
-        self._tracking = None
-        self._frames = None
-
-    def _blocks(self, kind: str) -> list[Path]:
-        return run_block_paths(self.dir, kind, self.scene)
-
-    @property
-    def frame_ids(self) -> list[int]:
-        return self.textures.frame_ids
-
-    def texture(self, fid: int) -> np.ndarray:
-        return self.textures.read("texture", fid)
-
-    def vertices(self, fid: int) -> np.ndarray:
-        if self._tracking is None:
-            g = open_store(self.dir / "tracking.zarr", "tracking")
-            rows = {int(i): k for k, i in enumerate(g.attrs["frame_ids"])}
-            if g["vertices"].shape[1] != self.n_vertices:
-                raise StoreError(f"{self.dir / 'tracking.zarr'}: {g['vertices'].shape[1]} vertices per "
-                                 f"frame, template.zarr has {self.n_vertices}")
-            self._tracking = (g, rows)
-        g, rows = self._tracking
-        if fid not in rows:
-            raise StoreError(f"{self.dir / 'tracking.zarr'}: no vertices for frame {fid}")
-        vertices = g["vertices"][rows[fid]]
-        if not np.isfinite(vertices).all():
-            # the tracking writes finite vertices: a store written before chunk checksums, damaged
-            # in place, decodes to garbage (a damaged chunk of a newer store does not decode)
-            raise StoreError(f"{self.dir / 'tracking.zarr'}: the vertices of frame {fid} are not finite; "
-                             f"the store is damaged: re-run the stage that writes it")
-        return vertices
-
-    def color(self, fid: int) -> np.ndarray:
-        if self._frames is None:
-            self._frames = FrameSequence(self._blocks("frames"), "frames")
-        if fid not in self._frames.frame_ids:
-            raise StoreError(f"{self.dir / 'frames'}: no colour image for frame {fid}")
-        return self._frames.read("color", fid)
-
-    @property
-    def calibration(self) -> Calibration:
-        return Calibration.from_dict(self.scene.attrs["calibration"])
-
-    def fps(self, default: float = 30.0) -> float:
-        """Frame rate from the frames' timestamps (median step), else ``default``."""
-        seq = FrameSequence(self._blocks("frames"), "frames")
-        stamps = np.concatenate([g["timestamps"][...] for g in seq.groups])
-        steps = np.diff(stamps)
-        steps = steps[steps > 0]
-        return float(1.0 / np.median(steps)) if steps.size else default
-
-
 def _check_writable(folder: Path, what: str, text) -> None:
     """Refuse (ValueError naming ``text``) an output whose nearest existing folder cannot take a
     new file, before any work is done: a probe file is created there and removed."""
-    import tempfile
-
     base = folder
     while not base.exists() and base != base.parent:
         base = base.parent
@@ -721,72 +648,3 @@ def output_file(out, suffix: str, what: str = "--out") -> Path:
     return out
 
 
-def export_results(results_dir, what: str, out, frames: str | None = None,
-                   source: str = "corrected", fps: float | None = None, crf: int = 18,
-                   pix_fmt: str = "yuv420p", progress: Progress | None = None) -> list[Path]:
-    """Export the texture volume under ``results_dir`` (= results/<scene>).
-
-    Args:
-        results_dir: folder holding ``scene.zarr`` (its ``frame_blocks`` name the blocks),
-            ``<source>/block_*.zarr``, ``template.zarr`` and, for meshes, ``tracking.zarr``
-            (and ``frames/`` for the video frame rate).
-        what: 'png' (``out/texture_00012.png``), 'mp4' (``out/texture.mp4``), 'obj'
-            (``out/frame_00012.{obj,mtl,png}``) or 'gltf' (``out/frame_00012.glb``).
-        out: output folder.
-        frames: frame-id range as in :func:`parse_frame_range` (None = all).
-        source: 'corrected' or 'volume' (before colour correction).
-        fps: video frame rate; None = from the frames' timestamps (30 if unavailable).
-        crf, pix_fmt: video quality and chroma layout (:func:`write_video`).
-        progress: called as ``progress(done, total)`` per frame.
-
-    Returns:
-        The written files (for obj: the .obj files).
-
-    Raises:
-        StoreError: a store is missing, incomplete or inconsistent.
-        ValueError: bad ``what``, ``source`` or frame range.
-    """
-    if what not in EXPORT_KINDS:
-        raise ValueError(f"what must be one of {EXPORT_KINDS}, got {what!r}")
-    out = output_folder(out)
-    res = _Results(results_dir, source)
-    ids = select_frames(res.frame_ids, *parse_frame_range(frames))
-    textures = (res.texture(i) for i in ids)
-    if what == "png":
-        return write_png_slices(textures, ids, out, progress=progress)
-    if what == "mp4":
-        if fps is None:
-            try:
-                fps = res.fps()
-            except StoreError:
-                fps = 30.0
-        path = out / "texture.mp4"
-        write_texture_video(textures, path, fps=fps, crf=crf, pix_fmt=pix_fmt, total=len(ids),
-                            progress=progress)
-        return [path]
-    res.vertices(ids[0])  # fail on a missing tracking store before writing anything
-    verts = (res.vertices(i) for i in ids)
-    if what == "obj":
-        return write_obj_sequence(verts, res.faces, res.texcoords, res.texcoord_faces, textures,
-                                  ids, out, progress=progress)
-    return write_gltf_sequence(verts, res.faces, res.texcoords, res.texcoord_faces, textures,
-                               ids, out, progress=progress)
-
-
-def preview_results(results_dir, out_mp4, frames: str | None = None, source: str = "corrected",
-                    fps: float | None = None, size: int = 360,
-                    progress: Progress | None = None) -> tuple[int, int, int]:
-    """:func:`write_preview_video` of the stores under ``results_dir`` (= results/<scene>):
-    colour images from ``frames/``, vertices from ``tracking.zarr``, textures from
-    ``<source>/``, calibration from ``scene.zarr``. Returns (frames, width, height)."""
-    out_mp4 = output_file(out_mp4, ".mp4")
-    res = _Results(results_dir, source)
-    ids = select_frames(res.frame_ids, *parse_frame_range(frames))
-    calibration = res.calibration
-    res.color(ids[0]), res.vertices(ids[0])  # fail on missing stores before encoding starts
-    if fps is None:
-        fps = res.fps()
-    return write_preview_video((res.color(i) for i in ids), (res.vertices(i) for i in ids),
-                               res.faces, res.texcoords, res.texcoord_faces,
-                               (res.texture(i) for i in ids), calibration, out_mp4, fps=fps,
-                               size=size, frame_ids=ids, progress=progress)

@@ -167,7 +167,8 @@ def _fake_run(d, scene, psnr, held_out=(), sampling=None):
     import json
     import math
 
-    from stex.evaluation import _finite_or_none, summarise_frames
+    from stex.evaluation import summarise_frames
+    from stex.reporting import finite_or_none
 
     records = [{"frame": t, "position": t, "held_out": t in held_out, "motion_mm": 1.0,
                 "methods": {"ours": {"psnr": psnr + 0.1 * t, "flicker": math.nan},
@@ -176,7 +177,7 @@ def _fake_run(d, scene, psnr, held_out=(), sampling=None):
     summary.update(n_held_out=len(held_out), held_out_label="(1/2)" if held_out else "")
     (d / "evaluation").mkdir(parents=True)
     (d / "evaluation" / "evaluation.json").write_text(
-        json.dumps(_finite_or_none({"scene": scene, "summary": summary, "sampling": sampling})))
+        json.dumps(finite_or_none({"scene": scene, "summary": summary, "sampling": sampling})))
     (d / "benchmarks").mkdir()
     (d / "benchmarks" / "labeling.tsv").write_text("s\th:m:s\n120.0\t0:02:00\n")
     return d
@@ -234,7 +235,7 @@ def test_evaluate_never_replaces_a_folder_that_is_not_an_evaluation(tmp_path, ca
     assert (precious / "thesis.tex").read_text() == "x"
     assert (res / "scene.zarr").is_dir() and (res / "corrected" / "block_0000.zarr").is_dir()
     # an earlier evaluation's folder may be replaced
-    from stex.evaluation import check_replaceable
+    from stex.stages.evaluation import check_replaceable
 
     earlier = tmp_path / "earlier"
     earlier.mkdir()
@@ -278,6 +279,7 @@ def test_obj_export_writes_the_obj_last(tmp_path, monkeypatch):
     """The .obj names the .mtl: if the .mtl cannot be written there is no .obj; and an export that
     fails at its second frame leaves none of the first frame's files."""
     from stex import export
+    from stex.stages.export import export_results
 
     one = tmp_path / "one"
     one.mkdir()
@@ -299,10 +301,10 @@ def test_obj_export_writes_the_obj_last(tmp_path, monkeypatch):
 
     monkeypatch.setattr(export, "write_obj_frame", second_fails)
     with pytest.raises(OSError):
-        export.export_results(res, "obj", out)
+        export_results(res, "obj", out)
     assert len(calls) == 2 and list(out.iterdir()) == []
     monkeypatch.setattr(export, "write_obj_frame", real)
-    written = export.export_results(res, "obj", out)
+    written = export_results(res, "obj", out)
     assert [p.parent for p in written] == [out] * len(written) and all(p.exists() for p in written)
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 

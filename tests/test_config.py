@@ -73,7 +73,7 @@ def test_settings_that_only_a_late_stage_needed_are_checked_with_the_config():
     assert cfg["poses"]["icp_threshold_m"] == 0.01
     assert type(section_params("poses", {"ransac_iterations": 50.0})["ransac_iterations"]) is int
     from stex.config import RESERVED_METHOD_NAMES
-    from stex.evaluation import METHODS
+    from stex.reporting import METHODS
 
     assert set(RESERVED_METHOD_NAMES) == set(METHODS) | {"input", "truth"}
 

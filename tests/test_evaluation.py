@@ -9,29 +9,34 @@ import zarr
 
 from stex import metrics as ev
 from stex.camera import Calibration, transform_points
-from stex.evaluation import (METHODS, Atlas, TextureSlices, coverage_scores, dynamism_regions, image_scores,
-                             rst_tables, score_frame, score_frames, score_methods, truth_views,
-                             vertex_motion,
-                             write_evaluation)
+from stex.evaluation import (Atlas, coverage_scores, dynamism_regions, image_scores, score_frame,
+                             score_methods, truth_views, vertex_motion)
 from stex.stages.global_texture import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
+from stex.reporting import METHODS, rst_tables
+from stex.stages.evaluation import EvaluationInputs, TextureSlices, score_frames, write_evaluation
 
 
-def _args(P):
-    return (P["scene"], P["frames"], P["masks"], P["template"], P["tracking"], P["projection"],
-            P["labels"], P["volume"], P["corrected"])
+def _inputs(P, **stores):
+    """EvaluationInputs of the pipeline ``P`` (its global_texture store), with ``stores``
+    (truth, observations, data_term, records, ...) as given."""
+    return EvaluationInputs(scene=P["scene"], frames=P["frames"], masks=P["masks"], template=P["template"],
+                            tracking=P["tracking"], projection=P["projection"], labels=P["labels"],
+                            volume=P["volume"], corrected=P["corrected"], global_texture=P["global_texture"],
+                            **stores)
 
 
-def _evaluate(P, out, **kw):
+def _evaluate(P, out, params=None, frames=None, timing=None, threads=1, others=None, **stores):
     """write_evaluation of the pipeline ``P`` (its global_texture store) into ``out``."""
-    return write_evaluation(*_args(P), out, global_texture_path=P["global_texture"], **kw)
+    return write_evaluation(_inputs(P, **stores), out, params, frames=frames, timing=timing,
+                            threads=threads, others=others)
 
 
 @pytest.fixture(scope="module")
 def evaluation(tiny_pipeline, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval")
-    res = _evaluate(tiny_pipeline, out, truth_paths=tiny_pipeline["truth"],
-                    observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"],
+    res = _evaluate(tiny_pipeline, out, truth=tiny_pipeline["truth"],
+                    observations=tiny_pipeline["observations"], data_term=tiny_pipeline["data_term"],
                     timing={"labeling": 90.0, "volume": 30.0})
     return out, res
 
@@ -264,8 +269,8 @@ def test_threads_score_exactly_as_one(tiny_pipeline, evaluation, tmp_path):
     """Runs of frames in 3 threads (the flicker of a run's first frame re-renders its
     predecessor): every score equals the single-thread evaluation's."""
     _, res = evaluation
-    par = _evaluate(tiny_pipeline, tmp_path / "eval3", truth_paths=tiny_pipeline["truth"],
-                    observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"], threads=3)
+    par = _evaluate(tiny_pipeline, tmp_path / "eval3", truth=tiny_pipeline["truth"],
+                    observations=tiny_pipeline["observations"], data_term=tiny_pipeline["data_term"], threads=3)
     assert [r["frame"] for r in par["frames"]] == list(range(6))
     assert par["frames"] == res["frames"] and par["summary"] == res["summary"]
 
@@ -285,41 +290,39 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evalu
     for b, block in enumerate(blocks):
         P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
-        doc = score_frames(*_args(P), paths[-1], global_texture_path=P["global_texture"],
-                           truth_paths=P["truth"], data_term_paths=P["data_term"], block=block)
+        doc = score_frames(_inputs(P, truth=P["truth"], data_term=P["data_term"]), paths[-1], block=block)
         assert doc["scored_frames"] == list(range(*block))
         assert not list(tmp_path.glob(f"block_{b}.json.partial*"))
     # the second block alone lacks frame 3, its first frame's predecessor
     with pytest.raises(ValueError, match=r"frames \[3\] are needed"):
         P = _block_stores(tiny_pipeline, [1])
-        score_frames(*_args(P), tmp_path / "bad.json", global_texture_path=P["global_texture"],
-                     truth_paths=P["truth"], block=blocks[1])
+        score_frames(_inputs(P, truth=P["truth"]), tmp_path / "bad.json", block=blocks[1])
     assert not (tmp_path / "bad.json").exists()
-    merged = _evaluate(tiny_pipeline, tmp_path / "merged", truth_paths=tiny_pipeline["truth"],
-                       observations_path=tiny_pipeline["observations"], data_term_paths=tiny_pipeline["data_term"],
-                       records_paths=paths[::-1])
+    merged = _evaluate(tiny_pipeline, tmp_path / "merged", truth=tiny_pipeline["truth"],
+                       observations=tiny_pipeline["observations"], data_term=tiny_pipeline["data_term"],
+                       records=paths[::-1])
     assert merged["frames"] == res["frames"] and merged["summary"] == res["summary"]
     assert merged["tables"] == res["tables"]
     assert (tmp_path / "merged" / "side_by_side.png").exists()
 
     # records that do not make up the evaluation are refused, naming what is wrong
     with pytest.raises(ValueError, match=r"\[4, 5\] missing"):
-        _evaluate(tiny_pipeline, tmp_path / "m1", truth_paths=tiny_pipeline["truth"], records_paths=paths[:1])
+        _evaluate(tiny_pipeline, tmp_path / "m1", truth=tiny_pipeline["truth"], records=paths[:1])
     with pytest.raises(ValueError, match="twice"):
-        _evaluate(tiny_pipeline, tmp_path / "m2", truth_paths=tiny_pipeline["truth"],
-                  records_paths=paths + paths[1:])
+        _evaluate(tiny_pipeline, tmp_path / "m2", truth=tiny_pipeline["truth"],
+                  records=paths + paths[1:])
     with pytest.raises(ValueError, match="other evaluation settings .*radius"):
-        _evaluate(tiny_pipeline, tmp_path / "m3", params={"radius": 2}, truth_paths=tiny_pipeline["truth"],
-                  records_paths=paths)
+        _evaluate(tiny_pipeline, tmp_path / "m3", params={"radius": 2}, truth=tiny_pipeline["truth"],
+                  records=paths)
     # the figures' settings are the merge's own: other ones re-draw from the same records
     fig = _evaluate(tiny_pipeline, tmp_path / "m5", params={"figure_frame": 1, "dynamism_regions": 2},
-                    truth_paths=tiny_pipeline["truth"], observations_path=tiny_pipeline["observations"],
-                    data_term_paths=tiny_pipeline["data_term"], records_paths=paths)
+                    truth=tiny_pipeline["truth"], observations=tiny_pipeline["observations"],
+                    data_term=tiny_pipeline["data_term"], records=paths)
     assert fig["frames"] == res["frames"] and fig["summary"] == res["summary"]
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(StoreError, match="junk.json"):
-        _evaluate(tiny_pipeline, tmp_path / "m4", truth_paths=tiny_pipeline["truth"],
-                  records_paths=[tmp_path / "junk.json"])
+        _evaluate(tiny_pipeline, tmp_path / "m4", truth=tiny_pipeline["truth"],
+                  records=[tmp_path / "junk.json"])
     assert not any((tmp_path / f"m{k}").exists() for k in range(1, 5))
     assert not list(tmp_path.glob("m*.partial*"))
 
@@ -345,7 +348,7 @@ def test_other_methods_score_beside_ours(tiny_pipeline, evaluation, tmp_path):
     from PIL import Image
 
     from stex.cli import main
-    from stex.evaluation import evaluate_results
+    from stex.stages.evaluation import evaluate_results
     from stex.export import write_png_slices
 
     _, res = evaluation
@@ -422,7 +425,7 @@ def test_other_methods_in_another_uv_layout(tiny_pipeline, tmp_path, capsys):
     from PIL import Image
 
     from stex.cli import main
-    from stex.evaluation import evaluate_results
+    from stex.stages.evaluation import evaluate_results
     from stex.export import write_png_slices
     from stex.readers.meshes import Mesh, load_mesh, write_obj
     from stex.resample import atlas_transfer
@@ -510,12 +513,11 @@ def test_other_methods_from_the_settings_scored_in_blocks(tiny_pipeline, tmp_pat
     for b, block in enumerate(blocks):
         P = _block_stores(tiny_pipeline, [b - 1, b] if b else [b])
         paths.append(tmp_path / f"block_{b}.json")
-        score_frames(*_args(P), paths[-1], params, global_texture_path=P["global_texture"],
-                     truth_paths=P["truth"], data_term_paths=P["data_term"], block=block)
-    merged = _evaluate(tiny_pipeline, tmp_path / "merged", params=params, truth_paths=tiny_pipeline["truth"],
-                       data_term_paths=tiny_pipeline["data_term"], records_paths=paths)
-    direct = _evaluate(tiny_pipeline, tmp_path / "direct", truth_paths=tiny_pipeline["truth"],
-                       data_term_paths=tiny_pipeline["data_term"], others={"unc": tmp_path / "unc"})
+        score_frames(_inputs(P, truth=P["truth"], data_term=P["data_term"]), paths[-1], params, block=block)
+    merged = _evaluate(tiny_pipeline, tmp_path / "merged", params=params, truth=tiny_pipeline["truth"],
+                       data_term=tiny_pipeline["data_term"], records=paths)
+    direct = _evaluate(tiny_pipeline, tmp_path / "direct", truth=tiny_pipeline["truth"],
+                       data_term=tiny_pipeline["data_term"], others={"unc": tmp_path / "unc"})
     assert merged["methods"] == direct["methods"] == list(METHODS) + ["unc"]
     assert merged["params"]["other_methods"] == direct["params"]["other_methods"]
     assert merged["frames"] == direct["frames"] and merged["tables"] == direct["tables"]
@@ -523,29 +525,26 @@ def test_other_methods_from_the_settings_scored_in_blocks(tiny_pipeline, tmp_pat
         assert f["methods"]["unc"]["psnr"] == f["methods"]["ours_uncorrected"]["psnr"]
     # records scored without the other method do not make up this evaluation
     with pytest.raises(ValueError, match="other evaluation settings .*other_methods"):
-        _evaluate(tiny_pipeline, tmp_path / "m", truth_paths=tiny_pipeline["truth"],
-                  data_term_paths=tiny_pipeline["data_term"],
-                  records_paths=paths, others={"x": tmp_path / "unc"})
+        _evaluate(tiny_pipeline, tmp_path / "m", truth=tiny_pipeline["truth"],
+                  data_term=tiny_pipeline["data_term"],
+                  records=paths, others={"x": tmp_path / "unc"})
 
 
 def test_blocks_score_every_stride_th_frame_of_the_scene(tiny_pipeline, tmp_path):
     """With evaluation.stride the frames to score are every k-th of the whole scene, whichever
     block holds them; a block with none of them writes an empty record list."""
     blocks = open_store(tiny_pipeline["scene"], "scene").attrs["frame_blocks"]
-    docs = [score_frames(*_args(tiny_pipeline), tmp_path / f"b{b}.json", {"stride": 5},
-                         global_texture_path=tiny_pipeline["global_texture"], block=block)
+    docs = [score_frames(_inputs(tiny_pipeline), tmp_path / f"b{b}.json", {"stride": 5}, block=block)
             for b, block in enumerate(blocks)]
     assert [d["scored_frames"] for d in docs] == [[0], [5]]
     assert [[r["frame"] for r in d["frames"]] for d in docs] == [[0], [5]]
-    empty = score_frames(*_args(tiny_pipeline), tmp_path / "none.json", {"stride": 5},
-                         global_texture_path=tiny_pipeline["global_texture"], block=[1, 4])
+    empty = score_frames(_inputs(tiny_pipeline), tmp_path / "none.json", {"stride": 5}, block=[1, 4])
     assert empty["frames"] == [] and json.loads((tmp_path / "none.json").read_text())["frames"] == []
     res = _evaluate(tiny_pipeline, tmp_path / "eval", params={"stride": 5},
-                    records_paths=[tmp_path / "b0.json", tmp_path / "none.json", tmp_path / "b1.json"])
+                    records=[tmp_path / "b0.json", tmp_path / "none.json", tmp_path / "b1.json"])
     assert res["scored_frames"] == [0, 5] and [r["frame"] for r in res["frames"]] == [0, 5]
     with pytest.raises(ValueError, match="outside the scene"):
-        score_frames(*_args(tiny_pipeline), tmp_path / "x.json", global_texture_path=tiny_pipeline["global_texture"],
-                     block=[4, 9])
+        score_frames(_inputs(tiny_pipeline), tmp_path / "x.json", block=[4, 9])
 
 
 def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_path):
@@ -561,10 +560,10 @@ def test_held_out_frames_are_labelled_and_summarised_apart(tiny_pipeline, tmp_pa
     write_global_texture(P["scene"], P["frames"], P["template"], P["projection"], P["projection"], glob2,
                          {"source_stride": 2})
     with pytest.raises(ValueError, match="source_stride"):   # stride-1 global vs stride-2 tables
-        _evaluate(tiny_pipeline, tmp_path / "bad", data_term_paths=tables, frames=[1, 2])
+        _evaluate(tiny_pipeline, tmp_path / "bad", data_term=tables, frames=[1, 2])
     assert not (tmp_path / "bad").exists()
     res = _evaluate({**tiny_pipeline, "global_texture": glob2}, tmp_path / "eval",
-                    data_term_paths=tables, frames=[1, 2])
+                    data_term=tables, frames=[1, 2])
     assert [r["held_out"] for r in res["frames"]] == [True, False]
     assert res["source_frames"] == [0, 2, 4]
     assert res["seconds"]["global_texture"] == open_store(glob2, "global_texture").attrs["seconds"]
@@ -605,10 +604,10 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, t
 
     import zarr
 
-    from stex.stages.correction import write_corrected
-    from stex.evaluation import evaluate_results
-    from stex.export import _Results
     from stex.atlas import atlas_digest
+    from stex.stages.correction import write_corrected
+    from stex.stages.evaluation import evaluate_results
+    from stex.stages.export import RunResults
     from stex.stages.template import template_atlas_digest
 
     template = open_store(tiny_pipeline["template"], "template")
@@ -640,12 +639,12 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, t
     (R / "corrected").rename(R / "corrected_ours")
     (R / "corrected").symlink_to(moved)
     with pytest.raises(ValueError, match="another UV atlas"):
-        _Results(R)
+        RunResults(R)
     assert not any((tmp_path / x).exists() for x in ("e1", "e2", "c.zarr"))
     # stores written before the attr existed are read as before
     for b in range(len(tiny_pipeline["corrected"])):
         del zarr.open_group(str(moved / f"block_{b:04d}.zarr"), mode="r+").attrs["atlas_digest"]
-    assert _Results(R).frame_ids == FrameSequence(tiny_pipeline["corrected"], "corrected").frame_ids
+    assert RunResults(R).frame_ids == FrameSequence(tiny_pipeline["corrected"], "corrected").frame_ids
 
 
 def test_vertex_motion_and_dynamism_regions():
@@ -729,7 +728,8 @@ def test_ground_truth_table_says_over_how_many_frames_a_rare_region_was_scored()
     is not read as a whole-sequence figure."""
     import math
 
-    from stex.evaluation import summarise_frames, table_rows
+    from stex.evaluation import summarise_frames
+    from stex.reporting import table_rows
 
     records = [{"frame": t, "position": t, "held_out": False,
                 "methods": {"ours": {"psnr": 30.0, "gt_novel_psnr_all": 20.0,
@@ -919,7 +919,8 @@ def test_table_rows_by_hand():
     plain PSNR 25, 27, 15 -> 22.33; SSIM 0.9, 0.9, 0.6 -> 0.8000; the photo's blur 0.2 and
     ours' 0.3 in their own rows; coverage 0.5, 0.25, 0.125 of the faces -> 29.2 %; global's
     PSNR in "b", which has no global, shows '–'."""
-    from stex.evaluation import summarise_frames, table_rows
+    from stex.evaluation import summarise_frames
+    from stex.reporting import table_rows
 
     ours = {"psnr": [30.0, 33.0, 21.0], "psnr_plain": [25.0, 27.0, 15.0], "ssim": [0.9, 0.9, 0.6],
             "blur": [0.3] * 3, "blur_input": [0.2] * 3, "coverage_faces": [0.5, 0.25, 0.125]}

@@ -15,7 +15,6 @@ from PIL import Image
 
 from stex.camera import Calibration, Intrinsics
 from stex.export import (
-    export_results,
     opencv_to_viewer,
     parse_frame_range,
     preview_frame,
@@ -28,6 +27,7 @@ from stex.export import (
     write_texture_video,
 )
 from stex.io import StoreError, create_store
+from stex.stages.export import export_results
 
 W = 64  # texture side
 FRAME_IDS = [10, 11, 12, 13, 14]

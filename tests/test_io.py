@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from stex.io import (ARTIFACTS, FrameSequence, StoreError, artifacts_markdown, create_store, id_ranges, open_store,
-                     position_range, run_block_paths)
+from stex.artifacts import ARTIFACTS, artifacts_markdown
+from stex.io import FrameSequence, StoreError, create_store, id_ranges, open_store, position_range, run_block_paths
 
 
 def _frames(path, ids, H=4, W=5):
@@ -434,7 +434,7 @@ def test_frame_attr_is_the_entry_of_the_frame_in_its_own_block(tmp_path):
 
 def test_docs_page_is_generated_from_the_registry():
     doc = (REPO / "docs" / "artifacts.md").read_text()
-    assert doc == artifacts_markdown(), "regenerate: python -m stex.io > docs/artifacts.md"
+    assert doc == artifacts_markdown(), "regenerate: python -m stex.artifacts > docs/artifacts.md"
     for name, spec in ARTIFACTS.items():
         assert f"`{name}`" in doc
         for aname in spec.arrays:

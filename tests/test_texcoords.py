@@ -422,9 +422,9 @@ def test_sampling_table(drifted, tmp_path):
     and it reaches the evaluation's tables (rst and CSV)."""
     import json
 
-    from stex.evaluation import rst_tables, sampling_rows
-    from stex.texcoords import final_energy
+    from stex.reporting import rst_tables, sampling_rows
     from stex.stages.texcoords import write_sampling_table
+    from stex.texcoords import final_energy
 
     d = drifted["dir"]
     out = tmp_path / "sampling.json"

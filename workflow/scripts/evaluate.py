@@ -1,15 +1,16 @@
-"""Thin adapter: rule evaluate -> stex.evaluation.write_evaluation over the blocks' records
+"""Thin adapter: rule evaluate -> stex.stages.evaluation.write_evaluation over the blocks' records
 (+ the stage timings)."""
-from stex.evaluation import write_evaluation
 from stex.logs import setup_logging
 from stex.reporting import stage_timings
+from stex.stages.evaluation import EvaluationInputs, write_evaluation
 
 setup_logging(snakemake.log[0])
 i = snakemake.input
-out = snakemake.output[0]
-write_evaluation(i.scene, list(i.frames), list(i.masks), i.template, i.tracking, i.projection,
-                 i.labels, list(i.volume), list(i.corrected), out, snakemake.params.evaluation,
-                 global_texture_path=i.global_texture, truth_paths=list(i.truth) or None,
-                 coords_path=i.coords, observations_path=i.observations, data_term_paths=list(i.data_term),
-                 records_paths=list(i.records), timing=stage_timings(snakemake.params.benchmarks, len(i.corrected)),
-                 sampling_path=i.sampling[0] if i.sampling else None)
+inputs = EvaluationInputs(
+    scene=i.scene, frames=list(i.frames), masks=list(i.masks), template=i.template, tracking=i.tracking,
+    projection=i.projection, labels=i.labels, volume=list(i.volume), corrected=list(i.corrected),
+    global_texture=i.global_texture, truth=list(i.truth) or None, coords=i.coords,
+    observations=i.observations, data_term=list(i.data_term), records=list(i.records),
+    sampling=i.sampling[0] if i.sampling else None)
+write_evaluation(inputs, snakemake.output[0], snakemake.params.evaluation,
+                 timing=stage_timings(snakemake.params.benchmarks, len(i.corrected)))
