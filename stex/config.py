@@ -7,6 +7,7 @@ validate with :func:`validate_config`: one schema, one set of defaults, errors i
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 
 import jsonschema
@@ -55,8 +56,6 @@ def _numbers(instance, schema: dict, where: str = ""):
     and non-finite numbers refused (ValueError naming the key). JSON Schema counts 8.0 as an
     integer, but numpy and range() do not: ``frame_block: 8.0`` passed and failed later in a
     raw TypeError; ``.nan`` passes every minimum (a comparison with NaN is false)."""
-    import math
-
     if isinstance(instance, dict):
         props = schema.get("properties") or {}
         extra = schema.get("additionalProperties")

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
@@ -86,8 +87,8 @@ DEFAULT_RADIUS = 4
 #: Default re-blur filter size of :func:`blur` (skimage's default; Crete et al. use 9).
 DEFAULT_H_SIZE = 11
 #: Silhouette band (px) left out of the "interior" blur scores: a photo's pixels there mix the
-#: object with the background; the demo's and the Fox's motion blur smears 1.7 / 2.3 px at the
-#: median surface motion (exposure 0.5 x 3.5 / 4.6 px per frame), rounded up.
+#: object with the background over about the motion blur's extent, rounded up
+#: (docs/decisions/metrics.md).
 DEFAULT_BLUR_INTERIOR_PX = 3
 
 # SSIM as Wang et al. 2004: 11-tap Gaussian window, sigma 1.5, population covariance.
@@ -271,12 +272,12 @@ def patch_shift_psnr(reference, test, mask, patch=DEFAULT_PATCH, radius=DEFAULT_
     between render and photo (tracking / calibration error of a few mm: 4 px ~ 7 mm at 1 m with
     fx = 560, the demo camera); P ~ 8 r keeps the shift a local correction: a 32 x 32 x 3 patch has
     enough structure that a wrong texture cannot be shifted into agreement, and a shift search
-    over 81 candidates raises the PSNR of pure noise on flat patches by only ~0.1 dB (measured).
+    over 81 candidates raises the PSNR of pure noise on flat patches only slightly
+    (docs/decisions/metrics.md).
     For much larger images scale both with the focal length (e.g. P = 64, r = 8 at 3072p).
 
     Speed: a serial numba kernel (``nogil``) over patches and shifts that stops summing a shift
-    once it exceeds the patch's best so far (same result); 0.02-0.3 s for 0.3-3 MP images with
-    the defaults (up to ~1 s on flat, noisy images where no shift is clearly worse).
+    once it exceeds the patch's best so far (same result; timings in docs/decisions/metrics.md).
 
     Args:
         reference: (H, W, C) or (H, W) uint8/float image, grey levels (the input photo).
@@ -418,7 +419,7 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
 def _ssim_means(ref, tst, masks, data_range) -> list[dict]:
     """:func:`masked_ssim` of (H, W, C) float64 images over each of ``masks`` ((H, W) bool), from
     one SSIM map computed on the bounding box of their union (plus the margin)."""
-    from skimage.metrics import structural_similarity
+    from skimage.metrics import structural_similarity  # skimage loads slowly; only SSIM needs it
 
     H, W, C = ref.shape
     pad = _SSIM_PAD
@@ -485,7 +486,7 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
         ``h_size``, ``fill``, ``erode_px``, ``bbox`` (r0, r1, c0, c1) half-open, ``n_pixels``
         (masked pixels after the erosion).
     """
-    from skimage.measure import blur_effect
+    from skimage.measure import blur_effect  # skimage loads slowly; only the blur score needs it
 
     raw = np.asarray(image)
     if raw.ndim not in (2, 3) or (raw.ndim == 3 and raw.shape[2] not in (1, 3)):
@@ -497,7 +498,6 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
     if int(erode_px) != erode_px or erode_px < 0:
         raise ValueError(f"erode_px must be a whole number of pixels >= 0, got {erode_px!r}")
     if erode_px > 0 and m.any():
-        import cv2
         # the image's own border is not a silhouette: cv2 erodes only from mask edges
         m = cv2.erode(m.astype(np.uint8), np.ones((2 * int(erode_px) + 1,) * 2, np.uint8)) > 0
     res = {"h_size": int(h_size), "fill": fill, "erode_px": int(erode_px), "n_pixels": int(m.sum())}
@@ -532,11 +532,9 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
     two Laplacians, blind to constant, linear and most smooth shading); σ = sqrt(π/2) ·
     mean|response| / 6 is the standard deviation of i.i.d. Gaussian noise that would give that
     response. Texture edges respond too, so only the ``flat_fraction`` of the selected pixels
-    with the smallest Sobel gradient count. On the demo's renders (benchmarks/
-    bench_sensor_noise.py) this reads 0.22 grey levels without noise (the texture), 0.79 / 1.52
-    with Gaussian noise of σ 1 / 2 per channel, and 0.48-0.60 on the real 640-px colour frames of
-    the shared samples. It compares images of like content and resolution (a synthetic sensor
-    model against real frames); it is not an absolute noise level.
+    with the smallest Sobel gradient count (its readings on renders and real frames:
+    docs/decisions/metrics.md). It compares images of like content and resolution (a synthetic
+    sensor model against real frames); it is not an absolute noise level.
 
     Args:
         image: (H, W, 3) or (H, W) uint8/float image, grey levels.
@@ -546,8 +544,7 @@ def noise_sigma(image, mask=None, flat_fraction=0.3) -> dict:
     Returns:
         dict ``sigma`` (grey levels; NaN when nothing is selected), ``n_pixels`` (pixels used).
     """
-    import cv2
-    from skimage.color import rgb2gray
+    from skimage.color import rgb2gray  # skimage loads slowly; only the noise estimate needs it
 
     _check_scale(image, "image", 255.0, fix="give the image times 255")
     img = _image(image, "image")

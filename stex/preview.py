@@ -6,7 +6,9 @@ import cv2
 import numpy as np
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
+def label_image(img: np.ndarray, text: str) -> np.ndarray:
+    """A copy of the (H, W, 3) uint8 RGB ``img`` with ``text`` in white on a black band along
+    its top (22 px)."""
     out = img.copy()
     cv2.rectangle(out, (0, 0), (out.shape[1], 22), (0, 0, 0), -1)
     cv2.putText(out, text, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
@@ -20,7 +22,7 @@ def mask_overlay(color: np.ndarray, mask: np.ndarray, title: str = "") -> np.nda
     out = out.astype(np.uint8)
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     cv2.drawContours(out, contours, -1, (0, 255, 0), 2)
-    return _label(out, title) if title else out
+    return label_image(out, title) if title else out
 
 
 def montage(images: list[np.ndarray], columns: int = 3, width: int = 960) -> np.ndarray:
@@ -40,14 +42,15 @@ def montage(images: list[np.ndarray], columns: int = 3, width: int = 960) -> np.
 
 def pyplot():
     """matplotlib.pyplot on the file-only Agg backend (imported on first use: figures only)."""
-    import matplotlib
+    import matplotlib  # loaded on first use: only the figures need it, and it loads slowly
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg"), so no display backend is tried
 
     return plt
 
 
 def write_png(path, rgb: np.ndarray) -> None:
+    """Write the (H, W, 3) uint8 RGB ``rgb`` as a PNG at ``path`` (OSError when it cannot)."""
     if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
         raise OSError(f"cannot write image {path}")

@@ -31,7 +31,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from stex.atlas import outside_unit_square, texel_map
+from stex.mesh import nonmanifold_edges
 from stex.render import check_faces, check_vertices, sample_bilinear, texcoords_to_pixels
+from stex.sampling import fill_gutter
 
 log = logging.getLogger("stex.resample")
 
@@ -149,7 +152,7 @@ def closest_surface_points(points, vertices, faces):
         (face (n,) int64 index into ``faces``, bary (n, 3) float64 weights of its corners (sum 1),
         distance (n,) float64 m).
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # scipy.spatial loads slowly; only the closest points need it
 
     P = np.ascontiguousarray(points, np.float64)
     if P.ndim != 2 or P.shape[1] != 3:
@@ -190,7 +193,7 @@ def closest_surface_points(points, vertices, faces):
                                                  reach - spacing, cand_ptr, cand, tri)
     unproven = np.flatnonzero(~proven)
     if len(unproven):
-        import trimesh
+        import trimesh  # loads slowly; only the points the cells cannot prove need it
 
         tm = trimesh.Trimesh(V, F[keep], process=False, validate=False)
         closest, d, tid = trimesh.proximity.closest_point(tm, P[unproven])
@@ -231,9 +234,6 @@ class AtlasTransfer:
     def apply(self, texture) -> np.ndarray:
         """(W, W, 3) uint8: ``texture`` ((S, S, 3) uint8 in the other layout) in the run's atlas;
         texels that read nothing are black, and the run's gutter is filled from its charts."""
-        from stex.atlas import texel_map
-        from stex.sampling import fill_gutter
-
         tex = np.asarray(texture)
         if tex.ndim != 3 or tex.shape[2] != 3 or tex.dtype != np.uint8 or tex.shape[0] != tex.shape[1]:
             raise ValueError(f"expected a square (S, S, 3) uint8 texture in the other layout, got "
@@ -291,9 +291,6 @@ def atlas_transfer(texel_face, texel_bary, vertices, faces, other_vertices, othe
     F = np.asarray(faces, np.int64)
     TF = np.asarray(other_texcoord_faces, np.int64)
     T = np.asarray(other_texcoords, np.float64)
-    from stex.mesh import nonmanifold_edges
-    from stex.atlas import outside_unit_square
-
     used = T[np.unique(TF)]
     outside = int(outside_unit_square(used).sum())
     if outside:  # as template.uv: mesh refuses it

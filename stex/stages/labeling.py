@@ -12,7 +12,7 @@ from stex.dynamism import (label_set_min, spatial_edge_weight, spatial_face_weig
                            temporal_gate)
 from stex.io import FrameSequence, create_store, open_store, short_ids
 from stex.labeling import TableRows, glimpse_sources, label_sequence
-from stex.preview import _label, montage, write_png
+from stex.preview import label_image as _label, montage, write_png
 from stex.sampling import label_colors
 
 log = logging.getLogger("stex.labeling")

@@ -14,7 +14,7 @@ from stex.camera import Calibration
 from stex.config import section_params
 from stex.io import FrameSequence, create_store, open_store
 from stex.masks import GC_BGD, GC_FGD, compute_mask, mask_iou, plane_in_color, why_no_object_depth
-from stex.preview import _label, mask_overlay, montage, write_png
+from stex.preview import label_image as _label, mask_overlay, montage, write_png
 from stex.readers.folder import FolderDataset
 
 log = logging.getLogger("stex.masks")

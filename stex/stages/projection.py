@@ -12,7 +12,7 @@ import numpy as np
 
 from stex.camera import Calibration
 from stex.io import FrameSequence, create_store, open_store, short_ids
-from stex.preview import _label, montage, write_png
+from stex.preview import label_image as _label, montage, write_png
 from stex.projection import project_frame, projection_params
 
 log = logging.getLogger("stex.projection")

@@ -14,7 +14,7 @@ from stex.atlas import atlas_digest
 from stex.camera import Calibration
 from stex.config import section_params
 from stex.io import create_store, open_store
-from stex.preview import _label, write_png
+from stex.preview import label_image as _label, write_png
 from stex.readers.meshes import Mesh
 from stex.template import atlas_preview, prepare_template, template_from_frame
 

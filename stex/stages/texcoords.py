@@ -10,7 +10,7 @@ import numpy as np
 
 from stex.camera import Calibration
 from stex.io import FrameSequence, create_store, open_store, write_json
-from stex.preview import _label, montage, write_png
+from stex.preview import label_image as _label, montage, write_png
 from stex.texcoords import optimize_texcoords, sampling_table, texcoords_params
 
 __all__ = ["stage_inputs", "write_texcoords", "write_sampling_table", "displacement_picture",
