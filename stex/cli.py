@@ -120,12 +120,15 @@ def _store_line(path: Path, root: Path) -> list[str]:
         return [f"  {name:34s} not a readable store ({type(exc).__name__})"]
     if kind not in ARTIFACTS:
         return [f"  {name:34s} not a stex store (stex_artifact={kind!r})"]
-    try:
-        group, state = open_store(path, kind), "complete"
-    except StoreError as exc:
-        group = None
-        state = ("partial" if not raw.attrs.get("complete", False) or ".partial" in path.name
-                 else f"damaged ({str(exc).removeprefix(f'{path}: ')})")
+    group = None
+    if ".zarr.partial" in path.name:  # a writer's temporary name: not in place, whatever it holds
+        state = "partial"
+    else:
+        try:
+            group, state = open_store(path, kind), "complete"
+        except StoreError as exc:
+            state = ("partial" if not raw.attrs.get("complete", False)
+                     else f"damaged ({str(exc).removeprefix(f'{path}: ')})")
     declared = ARTIFACTS[kind].arrays
     # the required arrays are the store's main ones; a store with none (scene) shows what it has
     main = [a for a, spec in declared.items() if spec.required and a in raw] or [a for a in declared if a in raw]

@@ -448,11 +448,10 @@ def write_gltf_frame(path, vertices, faces, texcoords, texcoord_faces, texture,
         faces: (F, 3) int. texcoords: (Vt, 2) float. texcoord_faces: (F, 3) int.
         texture: (H, W, 3) uint8 RGB, row 0 = v 0.
     """
-    # trimesh (and its visual submodules) load slowly; only glTF exports need them
-    import trimesh
-    from trimesh.visual import TextureVisuals
-    from trimesh.visual.material import PBRMaterial
-    from PIL import Image
+    import trimesh  # trimesh loads slowly; only glTF exports need it
+    from PIL import Image  # with trimesh: it embeds the texture as a PIL image
+    from trimesh.visual import TextureVisuals  # trimesh's, as above
+    from trimesh.visual.material import PBRMaterial  # trimesh's, as above
 
     v, f, tc, tf = _mesh(vertices, faces, texcoords, texcoord_faces)
     tex = _rgb_image(texture, "texture")

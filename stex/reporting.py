@@ -297,7 +297,7 @@ def _block_count(scene_store) -> int | None:
 def tables_html(rst: str) -> bytes:
     """reStructuredText tables as a standalone HTML page (docutils), for the Snakemake report,
     which embeds HTML results (the evaluation folder's ``tables.html``)."""
-    from docutils.core import publish_string
+    from docutils.core import publish_string  # docutils loads slowly; only the HTML tables need it
 
     return publish_string(rst, writer="html5",
                           settings_overrides={"report_level": 4, "embed_stylesheet": True,

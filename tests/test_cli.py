@@ -31,6 +31,50 @@ from PIL import Image  # noqa: E402
 from test_export import FRAME_IDS, gradient_texture, make_results  # noqa: E402
 
 
+def test_version_prints_the_package_version(capsys):
+    from stex import __version__
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"stex {__version__}"
+
+
+def test_inspect_a_run_folder_summarises_every_store(tmp_path, capsys):
+    """`stex inspect results/<scene>`: one entry per store of the run (its own stores and the
+    frame-block ones), with kind, complete or partial, size on disk, frames and main arrays; a
+    store a killed writer left behind shows as partial, and a single store still reads alone."""
+    import zarr
+
+    res = make_results(tmp_path / "results" / "cube")
+    assert main(["inspect", str(res)]) == 0
+    out = capsys.readouterr().out
+    lines = out.splitlines()
+    assert lines[0].startswith(f"{res}: run of 5 frames in 2 block(s)")
+    stores = sorted(p.relative_to(res).as_posix() for p in res.rglob("*.zarr"))
+    assert len(stores) >= 6 and f"{len(stores)} stores" in lines[0]
+    for name in stores:
+        row = next(line for line in lines if line.split() and line.split()[0] == name)
+        kind = zarr.open_group(str(res / name), mode="r").attrs["stex_artifact"]
+        assert row.split()[1] == kind and row.split()[2] == "complete", row
+        assert any(u in row for u in (" B ", " KB ", " MB ")), row
+    block = next(line for line in lines if line.split() and line.split()[0] == "corrected/block_0001.zarr")
+    assert "frames 13..14 (2)" in block
+    tracking = lines[lines.index(next(line for line in lines if line.split()[:1] == ["tracking.zarr"])) + 1]
+    assert "vertices (5, " in tracking and "float32" in tracking
+    # a writer's unfinished store, and a store marked incomplete, are partial
+    shutil.copytree(res / "corrected" / "block_0001.zarr", res / "corrected" / "block_0002.zarr.partial-h-1")
+    zarr.open_group(str(res / "volume" / "block_0000.zarr"), mode="r+").attrs["complete"] = False
+    assert main(["inspect", str(res)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    states = {line.split()[0]: line.split()[2] for line in lines[1:] if ".zarr" in line.split()[0]}
+    assert states["corrected/block_0002.zarr.partial-h-1"] == "partial"
+    assert states["volume/block_0000.zarr"] == "partial"
+    assert states["corrected/block_0001.zarr"] == "complete"
+    assert main(["inspect", str(res / "tracking.zarr")]) == 0
+    assert "artifact 'tracking'" in capsys.readouterr().out
+
+
 def _video_frames(path):
     with av.open(str(path)) as c:
         return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
