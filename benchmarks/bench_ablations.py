@@ -4,7 +4,7 @@ On a finished synthetic run (``snakemake --cores 2`` → results/demo) every var
 stages it changes into a scratch folder — tables (similarity global-only / local-only, the
 strain term E_str off),
 labeling (temporal off / constant / selective, spatial selective weighting on), then the volume
-of every frame — and is scored by :func:`stex.evaluation.write_evaluation` on every
+of every frame — and is scored by :func:`stex.stages.evaluation.write_evaluation` on every
 ``--stride``-th frame, exactly as the workflow scores ``ours_uncorrected``: the variant's volume
 is passed as the uncorrected volume (the variants are not colour-corrected; the main run's
 ``ours`` row against its ``ours_uncorrected`` row gives the correction's own effect).
@@ -42,10 +42,10 @@ except ImportError:  # run from a source checkout without installing the package
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_labeling import gt_error, true_face_colours  # noqa: E402
-from stex.evaluation import write_evaluation  # noqa: E402
 from stex.io import open_store  # noqa: E402
-from stex.stages.labeling import write_labels  # noqa: E402
 from stex.stages.data_term import write_data_term  # noqa: E402
+from stex.stages.evaluation import EvaluationInputs, write_evaluation  # noqa: E402
+from stex.stages.labeling import write_labels  # noqa: E402
 from stex.stages.volume import write_volume  # noqa: E402
 
 # name -> (tables overrides, labeling overrides); the first is the main run's configuration
@@ -101,12 +101,12 @@ def run_variant(R: Path, out: Path, tables_over: dict, labels_over: dict, stride
     timing["volume_s"] = round(time.perf_counter() - t0, 1)
     t0 = time.perf_counter()
     ids = [int(i) for i in scene.attrs["frame_ids"]]
-    ev = write_evaluation(R / "scene.zarr", _blocks(R, "frames"), _blocks(R, "masks"), R / "template.zarr",
-                          R / "tracking.zarr", R / "projection.zarr", labels, volume, _blocks(R, "corrected"),
-                          out / "evaluation", {"stride": stride},
-                          truth_paths=_blocks(R, "truth"), coords_path=coords,
-                          global_texture_path=R / "global_texture.zarr",
-                          data_term_paths=tables, frames=ids[::stride])
+    inputs = EvaluationInputs(
+        scene=R / "scene.zarr", frames=_blocks(R, "frames"), masks=_blocks(R, "masks"), template=R / "template.zarr",
+        tracking=R / "tracking.zarr", projection=R / "projection.zarr", labels=labels, volume=volume,
+        corrected=_blocks(R, "corrected"), global_texture=R / "global_texture.zarr", truth=_blocks(R, "truth"),
+        coords=coords, data_term=tables)
+    ev = write_evaluation(inputs, out / "evaluation", {"stride": stride}, frames=ids[::stride])
     timing["evaluation_s"] = round(time.perf_counter() - t0, 1)
     return {"labels": str(labels), "summary": ev["summary"], "timing": timing}
 

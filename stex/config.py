@@ -124,7 +124,7 @@ def _error_message(e: jsonschema.ValidationError) -> str:
     return msg
 
 
-#: evaluation settings read only by the merge into figures (stex.evaluation.write_evaluation):
+#: evaluation settings read only by the merge into figures (stex.stages.evaluation.write_evaluation):
 #: left out of the per-block scoring jobs' parameters and records, so that changing them re-draws
 #: the figures without re-scoring every frame
 FIGURE_SETTINGS = ("figure_frame", "dynamism_regions")
@@ -135,7 +135,7 @@ def scoring_settings(evaluation: dict) -> dict:
     return {k: v for k, v in evaluation.items() if k not in FIGURE_SETTINGS}
 
 
-#: method names of the evaluation (stex.evaluation.METHODS, the input images and the truth): not
+#: method names of the evaluation (stex.reporting.METHODS, the input images and the truth): not
 #: for other methods (tests/test_config.py keeps the two in step)
 RESERVED_METHOD_NAMES = ("ours", "ours_uncorrected", "global", "projection", "input", "truth")
 

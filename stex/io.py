@@ -235,7 +235,7 @@ class StoreWriter:
 
     def _spec(self, name: str) -> ArraySpec:
         if name not in self.spec.arrays:
-            raise StoreError(f"artifact {self.artifact!r} declares no array {name!r} (see stex.io.ARTIFACTS)")
+            raise StoreError(f"artifact {self.artifact!r} declares no array {name!r} (see stex.artifacts.ARTIFACTS)")
         return self.spec.arrays[name]
 
     def create(self, name: str, shape: tuple[int, ...]) -> zarr.Array:
