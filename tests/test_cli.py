@@ -137,13 +137,17 @@ def test_export_errors_are_one_line_and_status_1(tmp_path, capsys):
     # output paths are checked before any work: a folder where a file goes, and the reverse
     afile = tmp_path / "afile"
     afile.write_text("x")
+    stores = tmp_path / "stores"
+    shutil.copytree(res / "template.zarr", stores / "template.zarr")
     for argv, message in [(["preview", str(res), "--out", str(tmp_path / "pdir") + "/"], "is a folder; give a .mp4 file"),
                           (["preview", str(res), "--out", str(tmp_path / "p.avi")], "give a .mp4 file name"),
                           (["export", str(res), "--what", "png", "--source", "volume", "--out", str(afile)],
                            "is a file; give a folder"),
                           (["evaluate", str(res), "--out", str(afile)], "is a file; give a folder"),
                           (["inspect", str(afile)], "afile: not a stex store (give a store a run writes"),
-                          (["inspect", str(res)], "not a stex store (a folder of stores: scene.zarr")]:
+                          # a folder of stores that is no run's (a run's folder is summarised: see
+                          # test_inspect_a_run_folder_summarises_every_store)
+                          (["inspect", str(stores)], "not a stex store (a folder of stores: template.zarr")]:
         assert main(argv) == 1, argv
         assert message in capsys.readouterr().err, argv
     assert afile.read_text() == "x" and not (tmp_path / "pdir").exists()
