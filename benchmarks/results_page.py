@@ -25,8 +25,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from stex.evaluation import nan_for_none, sampling_rows, table_rows, timing_rows
-from stex.reporting import stage_timings
+from stex.reporting import nan_for_none, sampling_rows, stage_timings, table_rows, timing_rows
 
 REPO = Path(__file__).resolve().parents[1]
 RUNS = REPO / "docs" / "runs"
