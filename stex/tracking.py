@@ -424,10 +424,18 @@ def _l0_step(r_jk, w_smooth, lam, beta):
     return np.where(keep[:, None], r_jk, 0.0)
 
 
-def _block_jacobi(blocks):
-    """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg."""
+def block_jacobi(blocks):
+    """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg.
+
+    A node whose data are degenerate (a few points on a line, one limb's last pixels) has a
+    rank-deficient block; with large entries the tiny ridge is lost to rounding and the block is
+    singular in floating point, so such a set of blocks is pseudo-inverted instead."""
     N = len(blocks)
-    inv = np.linalg.inv(blocks + np.eye(12) * 1e-12)
+    ridged = blocks + np.eye(12) * 1e-12
+    try:
+        inv = np.linalg.inv(ridged)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(ridged, hermitian=True)
     return LinearOperator((12 * N, 12 * N), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
 
 
@@ -498,7 +506,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
                 # 12x12 block-Jacobi preconditioner (of the damped matrix)
                 blocks = diag_blocks + mu * np.einsum("ni,ij->nij", diag.reshape(N, 12), np.eye(12))
                 lhs = JtJ if mu == 0 else JtJ + sp.diags(mu * diag)
-                return cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=_block_jacobi(blocks))[0]
+                return cg(lhs, -g, rtol=p.cg_tol, maxiter=200, M=block_jacobi(blocks))[0]
 
             def energy_after(delta):
                 x_new = x + delta.reshape(N, 12)
@@ -613,7 +621,7 @@ def fit_rest_warp(rest: np.ndarray, graph: DeformationGraph, x_init: np.ndarray,
             rr, Jr = rotation_terms(x)
             JtJ, g, diag_blocks = normal_equations(graph.normal_pattern, graph, local, vid, Dw, rw, rr * sr,
                                                     Jr * sr, smooth_res(x) - s, beta * w_smooth, d_jk, p.damping)
-            delta = cg(JtJ.tocsr(), -g, rtol=REST_FIT_CG_TOL, maxiter=200, M=_block_jacobi(diag_blocks))[0]
+            delta = cg(JtJ.tocsr(), -g, rtol=REST_FIT_CG_TOL, maxiter=200, M=block_jacobi(diag_blocks))[0]
             x = x + delta.reshape(N, 12)
             if np.abs(delta).max() < 1e-6:
                 break

@@ -9,7 +9,7 @@ from conftest import data_samples, real_pair_fits
 from stex.render import face_normals, rasterize, vertex_visibility
 from stex.synth.shapes import bumpy_sphere
 from stex.template import template_from_depth
-from stex.tracking import (Observation, TrackParams, _solve_frame, depth_residual, depth_target, fit_rest_warp,
+from stex.tracking import (Observation, TrackParams, _solve_frame, block_jacobi, depth_residual, depth_target, fit_rest_warp,
     track_sequence)
 from stex.deformation import build_graph, compose_rigid, deform, identity_params, rigid_fit
 
@@ -1107,3 +1107,22 @@ def test_unseen_from_rest_moves_only_what_the_depth_camera_does_not_see():
     assert 0.2 < seen.mean() < 0.8
     assert np.array_equal(out[True][seen], out[False][seen])
     assert np.linalg.norm(out[True][~seen] - out[False][~seen], axis=1).max() > 1e-5
+
+
+def test_block_jacobi_takes_a_node_with_degenerate_data():
+    """A node whose data span one direction only has a rank-deficient 12x12 block; with large
+    entries np.linalg.inv calls it singular (the crash a walking limb caused): the preconditioner
+    still applies, as the exact inverse on the regular blocks and finite on the degenerate one."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(12, 1)) * 1e4
+    m = rng.normal(size=(12, 12))
+    regular = m @ m.T + np.eye(12)
+    blocks = np.stack([regular, a @ a.T])
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.inv(blocks + np.eye(12) * 1e-12)
+    M = block_jacobi(blocks)
+    v = rng.normal(size=24)
+    out = M.matvec(v)
+    assert np.isfinite(out).all()
+    assert np.allclose(out[:12], np.linalg.solve(regular, v[:12]), rtol=1e-6)
+    assert np.allclose(block_jacobi(blocks[:1]).matvec(v[:12]), np.linalg.solve(regular, v[:12]))
