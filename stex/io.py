@@ -47,7 +47,7 @@ import zarr
 from stex import __version__
 from stex.artifacts import ARTIFACTS, CONVENTIONS, ArraySpec
 # re-exported: stages write their JSON files and folders through stex.io
-from stex.files import move_into_place, partial_path, write_json  # noqa: F401
+from stex.files import move_into_place, partial_path
 
 # Snakemake drops a .snakemake_timestamp file into directory outputs; zarr warns about it.
 warnings.filterwarnings("ignore", message=r".*\.snakemake_timestamp.*")

@@ -94,7 +94,7 @@ def prepare_template(mesh, params: dict, camera=None) -> dict:
             +z that frames the open parts.
 
     Returns:
-        dict with the ``template`` store's arrays (keys as in :data:`stex.io.ARTIFACTS`) and
+        dict with the ``template`` store's arrays (keys as in :data:`stex.artifacts.ARTIFACTS`) and
         ``"attrs"``: a JSON-able dict of the stage's report.
 
     A warning names faces that hold no texel centre of the atlas when they are more than

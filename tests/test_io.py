@@ -249,7 +249,7 @@ def test_two_writers_of_one_store_keep_to_their_own_folders(tmp_path):
     assert sorted(x.name for x in tmp_path.glob("f.zarr.partial*")) == [elsewhere.name]
 
     # JSON files and a dead writer's old store renamed aside are cleared the same way
-    from stex.io import write_json
+    from stex.files import write_json
     (tmp_path / f"r.json.partial-{host}-{dead}").write_text("{half")
     (tmp_path / f"f.zarr.partial-{host}-{dead}.old").mkdir()
     write_json(tmp_path / "r.json", {"a": 1})

@@ -53,8 +53,8 @@ from stex.evaluation import (Atlas, evaluation_params, frame_views, score_method
                              truth_views, vertex_motion)
 from stex.export import PNG_SLICE_NAME
 from stex.global_texture import projection_texture
-from stex.io import (FrameSequence, StoreError, library_versions, move_into_place, open_store,
-                     partial_path, run_block_paths, short_ids, write_json)
+from stex.files import move_into_place, partial_path, write_json
+from stex.io import FrameSequence, StoreError, library_versions, open_store, run_block_paths, short_ids
 from stex.mesh import transfer_vertices
 from stex.readers.meshes import load_mesh
 from stex.reporting import METHODS, finite_or_none, nan_for_none, rst_tables, table_rows, tables_html
@@ -567,7 +567,7 @@ def score_frames(inputs: EvaluationInputs, out_path, params: dict | None = None,
     Args:
         inputs, params, frames: the stores, settings and frames to score, as for
             :func:`write_evaluation` (``observations``, ``records`` and ``sampling`` unused).
-        out_path: JSON file to write (:func:`stex.io.write_json`: built aside, moved into place).
+        out_path: JSON file to write (:func:`stex.files.write_json`: built aside, moved into place).
         block: [start, stop) sequence positions: score only the frames to score in it. The
             frame-block stores may then be just the ones holding those frames (and, with
             truth, each one's predecessor, for the flicker).

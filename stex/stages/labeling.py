@@ -12,7 +12,7 @@ from stex.dynamism import (label_set_min, spatial_edge_weight, spatial_face_weig
                            temporal_gate)
 from stex.io import FrameSequence, create_store, open_store, short_ids
 from stex.labeling import TableRows, glimpse_sources, label_sequence
-from stex.preview import label_image as _label, montage, write_png
+from stex.preview import label_image, montage, write_png
 from stex.sampling import label_colors
 
 log = logging.getLogger("stex.labeling")
@@ -117,11 +117,11 @@ def preview_labels(volume_paths, corrected_paths, observations_path, template_pa
     tf = open_store(template_path, "template")["texel/face_id"][...]
     s_min = label_set_min(obs["dynamism"][...], np.asarray(obs["face_visible"][...], bool))
     rs = lambda im: cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA)
-    dyn = _label(rs(ssim_map_image(s_min, tf, theta=theta_omega)), "SSIM dynamism (min over frames)")
+    dyn = label_image(rs(ssim_map_image(s_min, tf, theta=theta_omega)), "SSIM dynamism (min over frames)")
     tiles = []
     for k, fid in enumerate(pick):
         lm = vol.read("label_map", fid)
-        tiles += [_label(rs(cor.read("texture", fid)), f"frame {fid}: corrected slice"),
-                  _label(rs(label_colors(lm)), f"frame {fid}: labels ({len(np.unique(lm[lm >= 0]))} sources)"),
+        tiles += [label_image(rs(cor.read("texture", fid)), f"frame {fid}: corrected slice"),
+                  label_image(rs(label_colors(lm)), f"frame {fid}: labels ({len(np.unique(lm[lm >= 0]))} sources)"),
                   dyn if k == 0 else np.zeros_like(dyn)]
     write_png(out, montage(tiles, columns=3, width=3 * size))

@@ -14,7 +14,7 @@ from stex.camera import Calibration
 from stex.config import section_params
 from stex.io import FrameSequence, create_store, open_store
 from stex.masks import GC_BGD, GC_FGD, compute_mask, mask_iou, plane_in_color, why_no_object_depth
-from stex.preview import label_image as _label, mask_overlay, montage, write_png
+from stex.preview import label_image, mask_overlay, montage, write_png
 from stex.readers.folder import FolderDataset
 
 log = logging.getLogger("stex.masks")
@@ -109,5 +109,5 @@ def preview_masks(frames_paths: list, masks_paths: list, truth_paths: list | Non
             blue = plane_in_color(frames.read("depth", fid), cal, plane, tol) & ~m
             tile[blue] = (0.5 * tile[blue] + [0, 40, 120]).astype(np.uint8)
             title += "  support plane (blue) left out"
-        tiles.append(_label(tile, title))
+        tiles.append(label_image(tile, title))
     write_png(out, montage(tiles))

@@ -12,7 +12,7 @@ import numpy as np
 
 from stex.camera import Calibration
 from stex.io import FrameSequence, create_store, open_store, short_ids
-from stex.preview import label_image as _label, montage, write_png
+from stex.preview import label_image, montage, write_png
 from stex.projection import project_frame, projection_params
 
 log = logging.getLogger("stex.projection")
@@ -135,7 +135,7 @@ def projection_overlay(color: np.ndarray, phi: np.ndarray, visible: np.ndarray, 
         radius = 1 if len(pts) > 3000 else 2
         for (x, y), cc in zip(np.round(q).astype(int), col):  # a few thousand dots: preview only
             cv2.circle(img, (int(x), int(y)), radius, tuple(int(t) for t in cc), -1, cv2.LINE_AA)
-    return _label(img, title) if title else img
+    return label_image(img, title) if title else img
 
 
 def preview_projection(frames_paths: list, projection_path, out, n_show: int = 6) -> None:

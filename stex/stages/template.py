@@ -14,7 +14,7 @@ from stex.atlas import atlas_digest
 from stex.camera import Calibration
 from stex.config import section_params
 from stex.io import create_store, open_store
-from stex.preview import label_image as _label, write_png
+from stex.preview import label_image, write_png
 from stex.readers.meshes import Mesh
 from stex.template import atlas_preview, prepare_template, template_from_frame
 
@@ -104,4 +104,4 @@ def preview_template(template_path, out_png, size: int = 1024) -> None:
     title = (f"atlas {g.attrs['atlas_size']}^2, {c['charts']} charts, {c['faces']} faces, "
              f"gutter {g.attrs['gutter_px']} px")
     Path(out_png).parent.mkdir(parents=True, exist_ok=True)
-    write_png(out_png, _label(img, title))
+    write_png(out_png, label_image(img, title))

@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 
 from stex.camera import Calibration
-from stex.io import FrameSequence, create_store, open_store, write_json
-from stex.preview import label_image as _label, montage, write_png
+from stex.files import write_json
+from stex.io import FrameSequence, create_store, open_store
+from stex.preview import label_image, montage, write_png
 from stex.texcoords import optimize_texcoords, sampling_table, texcoords_params
 
 __all__ = ["stage_inputs", "write_texcoords", "write_sampling_table", "displacement_picture",
@@ -80,7 +81,7 @@ def write_sampling_table(scene, template, projection, frames_paths, masks_paths,
                          steps, out_json) -> None:
     """:func:`stex.texcoords.sampling_table` of a run's stores (:func:`stage_inputs`), written as JSON
     ``{"steps": [rows], "params": the texcoords settings}`` to ``out_json`` (written under a
-    temporary name and renamed when complete: :func:`stex.io.write_json`)."""
+    temporary name and renamed when complete: :func:`stex.files.write_json`)."""
     inputs = stage_inputs(scene, template, projection, frames_paths, masks_paths)
     rows = sampling_table(inputs, params, steps)
     write_json(out_json, {"steps": rows, "params": texcoords_params(params)})
@@ -143,7 +144,7 @@ def displacement_picture(color: np.ndarray, phi, xi, valid, scale: float = 10.0,
     for p0, p1, c in zip(a, b, col):  # a few thousand arrows at most: preview only
         cv2.arrowedLine(img, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])),
                         tuple(int(t) for t in c), thick, cv2.LINE_AA, tipLength=0.3)
-    return _label(img, f"xi - phi x{scale:g}, colour 0..{top:.2f} px, {len(idx)} vertices")
+    return label_image(img, f"xi - phi x{scale:g}, colour 0..{top:.2f} px, {len(idx)} vertices")
 
 
 def preview_texcoords(frames_paths, projection_path, texcoords_path, out, n_show: int = 3) -> None:
@@ -163,6 +164,6 @@ def preview_texcoords(frames_paths, projection_path, texcoords_path, out, n_show
             (u0, v0), (u1, v1) = np.floor(pts.min(0)).astype(int) - 40, np.ceil(pts.max(0)).astype(int) + 40
             img = img[max(v0, 0):v1, max(u0, 0):u1]
         med = float(np.median(np.linalg.norm(xi[valid] - phi[valid], axis=1))) if valid.any() else 0.0
-        tiles.append(_label(cv2.resize(img, (360, 360), interpolation=cv2.INTER_AREA),
+        tiles.append(label_image(cv2.resize(img, (360, 360), interpolation=cv2.INTER_AREA),
                             f"frame {ids[k]}: median |xi - phi| {med:.2f} px"))
     write_png(out, montage(tiles, columns=len(tiles), width=360 * len(tiles)))
