@@ -176,7 +176,7 @@ class _Counter:
 def _run_export(args) -> int:
     paths = export_results(args.results, args.what, args.out, frames=args.frames,
                            source=args.source, fps=args.fps, crf=args.crf, pix_fmt=args.pix_fmt,
-                           progress=_Counter(f"export {args.what}"))
+                           every=args.every, progress=_Counter(f"export {args.what}"))
     print(f"wrote {len(paths)} {args.what} file(s) to {args.out}")
     return 0
 
@@ -280,9 +280,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--what", choices=EXPORT_KINDS, required=True)
     p.add_argument("--out", required=True, help="output folder (mp4: the video is <out>/texture.mp4)")
     p.add_argument("--frames", default=None, help=frames_help)
+    p.add_argument("--every", type=_positive_int, default=1, metavar="N",
+                   help="every N-th frame of the range, from its first (default 1: all)")
     p.add_argument("--source", choices=SOURCES, default="corrected",
-                   help="texture volume to export (default: corrected)")
-    p.add_argument("--fps", type=float, default=None, help="mp4 frame rate (default: from the frames' timestamps)")
+                   help="texture to export: corrected (default), volume (before colour correction) "
+                        "or global (Kim et al. 2019: one texture for the sequence; png writes "
+                        "<out>/global_texture.png)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="mp4 frame rate (default: from the frames' timestamps, divided by --every)")
     p.add_argument("--crf", type=int, default=18, help="mp4 x264 quality, 0..51, lower is better (default 18)")
     p.add_argument("--pix-fmt", choices=PIX_FMTS, default="yuv420p",
                    help="mp4 chroma layout: yuv420p plays everywhere, yuv444p keeps full colour detail")
@@ -293,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output .mp4")
     p.add_argument("--frames", default=None, help=frames_help)
     p.add_argument("--source", choices=SOURCES, default="corrected",
-                   help="texture volume to show (default: corrected)")
+                   help="texture to show: corrected (default), volume or global")
     p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the frames' timestamps)")
     p.add_argument("--size", type=_panel_size, default=360, help="panel height in pixels, 16..4096 (default 360)")
     p.set_defaults(run=_run_preview)

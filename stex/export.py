@@ -56,6 +56,7 @@ from stex.render import vertex_normals
 
 __all__ = [
     "opencv_to_viewer",
+    "write_png",
     "write_png_slices",
     "write_video",
     "write_texture_video",
@@ -77,7 +78,7 @@ log = logging.getLogger(__name__)
 Progress = Callable[[int, "int | None"], None]  # (frames done, total or None)
 
 EXPORT_KINDS = ("png", "mp4", "obj", "gltf")
-SOURCES = ("volume", "corrected")
+SOURCES = ("volume", "corrected", "global")
 PIX_FMTS = ("yuv420p", "yuv444p")
 
 
@@ -160,7 +161,9 @@ def _written_as_a_set(out_dir: Path):
     stage.rmdir()
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """Write one (H, W, 3) uint8 RGB image as a lossless PNG at ``path``, whole or not at all
+    (written beside it, then moved into place)."""
     # cv2 takes BGR. Its default PNG settings were the fastest (docs/decisions/export.md).
     with _written_whole(path) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[..., ::-1])):
@@ -191,7 +194,7 @@ def write_png_slices(textures: Iterable, frame_ids: Iterable[int], out_dir,
         The written paths, in order.
     """
     def write_one(folder, name, rgb):
-        _write_png(folder / name, rgb)
+        write_png(folder / name, rgb)
         return folder / name
 
     return _per_frame(None, textures, frame_ids, Path(out_dir), pattern, write_one, progress)
@@ -388,7 +391,8 @@ def _per_frame(vertices_seq, textures, frame_ids, out_dir: Path, pattern: str, w
 
 def write_obj_sequence(vertices_seq: Iterable, faces, texcoords, texcoord_faces, textures: Iterable,
                        frame_ids: Iterable[int], out_dir, pattern: str = "frame_{frame:05d}",
-                       viewer_axes: bool = True, progress: Progress | None = None) -> list[Path]:
+                       viewer_axes: bool = True, progress: Progress | None = None,
+                       shared_png: str | None = None) -> list[Path]:
     """One OBJ + MTL + PNG per frame: ``out_dir/frame_00012.{obj,mtl,png}``.
 
     Args:
@@ -398,14 +402,19 @@ def write_obj_sequence(vertices_seq: Iterable, faces, texcoords, texcoord_faces,
         frame_ids: global frame id of each frame (names the files).
         pattern: file stem with a ``{frame}`` field.
         viewer_axes, progress: as in :func:`write_obj_frame` / :func:`write_png_slices`.
+        shared_png: the frames share one texture (e.g. the global texture): the first frame's
+            is written once under this file name, which every MTL names, instead of a PNG per
+            frame (the others are not read back).
 
     Returns:
         The OBJ paths, in order.
     """
     def write_one(folder, stem, verts, rgb):
-        _write_png(folder / f"{stem}.png", rgb)
+        png = shared_png or f"{stem}.png"
+        if not (shared_png and (folder / png).exists()):
+            write_png(folder / png, rgb)
         return write_obj_frame(folder / f"{stem}.obj", verts, faces, texcoords, texcoord_faces,
-                               f"{stem}.png", viewer_axes=viewer_axes)[0]
+                               png, viewer_axes=viewer_axes)[0]
 
     out_dir = Path(out_dir)
     return _per_frame(vertices_seq, textures, frame_ids, out_dir, pattern, write_one, progress)
@@ -594,9 +603,11 @@ def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
                      f"START:, :STOP or one frame id")
 
 
-def select_frames(frame_ids, start: int | None, stop: int | None) -> list[int]:
-    """The frame ids ``start <= id < stop`` of a sequence; ValueError when the range is empty or
-    reaches outside the sequence's ids."""
+def select_frames(frame_ids, start: int | None, stop: int | None, every: int = 1) -> list[int]:
+    """The frame ids ``start <= id < stop`` of a sequence, then every ``every``-th of them from
+    the first; ValueError when the range is empty or reaches outside the sequence's ids."""
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+        raise ValueError(f"frame step must be an integer of 1 or more, got {every!r}")
     ids = [int(i) for i in frame_ids]
     if not ids:
         raise ValueError("the sequence has no frames")
@@ -605,7 +616,7 @@ def select_frames(frame_ids, start: int | None, stop: int | None) -> list[int]:
     b = hi + 1 if stop is None else stop
     if not (lo <= a < b <= hi + 1):
         raise ValueError(f"frame range {a}:{b} is outside the sequence (frames {lo}..{hi}) or empty")
-    return [i for i in ids if a <= i < b]
+    return [i for i in ids if a <= i < b][::every]
 
 
 def _check_writable(folder: Path, what: str, text) -> None:

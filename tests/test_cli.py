@@ -103,6 +103,24 @@ def test_export_every_kind_end_to_end(tmp_path, capsys):
     assert len(frames) == len(FRAME_IDS) and frames[0].shape == (64, 64, 3)
 
 
+def test_export_every_nth_frame_and_the_global_texture(tmp_path, capsys):
+    from test_export import _add_global_texture
+
+    res = _add_global_texture(make_results(tmp_path / "results" / "cube"))
+    out = tmp_path / "out"
+    assert main(["export", str(res), "--what", "gltf", "--every", "2", "--out", str(out / "glb")]) == 0
+    assert sorted(p.name for p in (out / "glb").iterdir()) == [
+        "frame_00010.glb", "frame_00012.glb", "frame_00014.glb"]
+    assert "wrote 3 gltf" in capsys.readouterr().out
+    assert main(["export", str(res), "--what", "png", "--source", "global", "--out", str(out / "g")]) == 0
+    np.testing.assert_array_equal(np.asarray(Image.open(out / "g" / "global_texture.png")), gradient_texture(50))
+    with pytest.raises(SystemExit):
+        main(["export", str(res), "--what", "png", "--every", "0", "--out", str(out / "x")])
+    assert "--every: must be 1 or more, got 0" in capsys.readouterr().err
+    assert main(["export", str(res), "--what", "mp4", "--source", "global", "--out", str(out / "v")]) == 1
+    assert "error: the global texture is one image for the whole sequence, not a video" in capsys.readouterr().err
+
+
 def test_preview_end_to_end(tmp_path, capsys):
     res = make_results(tmp_path / "cube")
     out = tmp_path / "preview.mp4"

@@ -444,3 +444,59 @@ def test_a_folder_of_another_export_is_not_mixed_into(tmp_path):
     write_obj_sequence([V, V], F, tc, tf, texs[:2], [4, 5], tmp_path / "obj")
     with pytest.raises(ValueError, match=r"3 file\(s\) of other frames \(frame_00005.mtl, frame_00005.obj, "):
         write_obj_sequence([V], F, tc, tf, texs[:1], [4], tmp_path / "obj")
+
+
+def _add_global_texture(root, atlas_digest=None):
+    """A global_texture store beside make_results' stores: one texture for the whole sequence."""
+    attrs = {"source_frames": FRAME_IDS[::2], "sequence_frame_ids": FRAME_IDS, "seconds": 0.1}
+    if atlas_digest:
+        attrs["atlas_digest"] = atlas_digest
+    with create_store(root / "global_texture.zarr", "global_texture", attrs=attrs) as s:
+        s.write("texture", gradient_texture(50))
+        s.write("weight_sum", np.ones((W, W), np.float32))
+        s.write("face_textured", np.ones(len(cube()[1]), bool))
+    return root
+
+
+def test_every_nth_frame_is_exported_and_the_video_keeps_its_pace(tmp_path):
+    res = make_results(tmp_path / "res")
+    paths = export_results(res, "png", tmp_path / "png", source="volume", every=2)
+    assert [p.name for p in paths] == ["texture_00010.png", "texture_00012.png", "texture_00014.png"]
+    np.testing.assert_array_equal(np.asarray(Image.open(paths[2])), gradient_texture(4))
+    paths = export_results(res, "obj", tmp_path / "obj", frames="11:", every=3)
+    assert [p.name for p in paths] == ["frame_00011.obj", "frame_00014.obj"]
+    m = trimesh.load(paths[1], force="mesh")
+    np.testing.assert_allclose(_faces_positions(m), opencv_to_viewer(frame_vertices(cube()[0], 4))[cube()[1]], atol=1e-6)
+    frames, rate = _read_video(export_results(res, "mp4", tmp_path / "mp4", every=2)[0])
+    assert len(frames) == 3 and rate == Fraction(15, 2)  # frames 15 fps apart, every 2nd: 7.5 fps
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="frame step must be an integer of 1 or more"):
+            export_results(res, "png", tmp_path / "bad", every=bad)
+    assert select_frames(FRAME_IDS, 11, None, every=2) == [11, 13]
+
+
+def test_the_global_texture_exports_as_one_image_and_on_the_meshes(tmp_path):
+    res = _add_global_texture(make_results(tmp_path / "res"))
+    (png,) = export_results(res, "png", tmp_path / "png", source="global")
+    assert png.name == "global_texture.png"
+    np.testing.assert_array_equal(np.asarray(Image.open(png)), gradient_texture(50))
+    objs = export_results(res, "obj", tmp_path / "obj", source="global", every=2)
+    assert [p.name for p in objs] == ["frame_00010.obj", "frame_00012.obj", "frame_00014.obj"]
+    # one PNG for all frames, named by every MTL
+    assert sorted(p.name for p in (tmp_path / "obj").glob("*.png")) == ["global_texture.png"]
+    for p in objs:
+        m = trimesh.load(p, force="mesh")
+        got, img = loaded_centroid_colors(m)
+        np.testing.assert_array_equal(img, gradient_texture(50))
+    (glb,) = export_results(res, "gltf", tmp_path / "glb", source="global", frames="13")
+    got, img = loaded_centroid_colors(trimesh.load(glb, force="mesh"))
+    np.testing.assert_array_equal(img, gradient_texture(50))
+    with pytest.raises(ValueError, match="not a video"):
+        export_results(res, "mp4", tmp_path / "mp4", source="global")
+    with pytest.raises(ValueError, match="--frames and --every do not apply"):
+        export_results(res, "png", tmp_path / "png2", source="global", every=2)
+    _add_global_texture(make_results(tmp_path / "other"), atlas_digest="another-atlas")
+    with pytest.raises(ValueError, match="global_texture.zarr holds textures of another UV atlas"):
+        export_results(tmp_path / "other", "png", tmp_path / "png3", source="global")
+    with pytest.raises(StoreError, match="global_texture.zarr: no such store"):
+        export_results(make_results(tmp_path / "none"), "png", tmp_path / "png4", source="global")
