@@ -5,6 +5,7 @@
     stex inspect results/demo/scene.zarr      # what a store holds: kind, frames, arrays, params
     stex export results/demo --what mp4 --out out/   # texture volume as PNG/MP4/OBJ/glTF
     stex preview results/demo --frames 0:50 --out preview.mp4   # input | textured mesh, 2 views
+    stex view results/demo --out view/       # web page playing the textured mesh (static folder)
     stex tables results/demo results/fox --out tables.html   # the paper's tables, a column per run
     stex evaluate results/demo --texture mine=my_slices/ --out eval_mine/   # another method beside ours
     stex evaluate results/demo --texture kim=their_out/ --uv-mesh kim=their_mesh.obj --out eval_kim/
@@ -31,6 +32,7 @@ from stex.io import StoreArray, StoreError, StoreGroup, id_ranges, open_store
 from stex.reporting import runs_tables, tables_html
 from stex.stages.evaluation import evaluate_results
 from stex.stages.export import export_results, preview_results
+from stex.viewer import IMAGE_FORMATS, write_view
 
 
 def _arrays(group: StoreGroup):
@@ -188,6 +190,16 @@ def _run_preview(args) -> int:
     return 0
 
 
+def _run_view(args) -> int:
+    index = write_view(args.results, args.out, frames=args.frames, every=args.every,
+                       source=args.source, image_format=args.format, quality=args.quality,
+                       texture_size=args.texture_size, color_height=args.color_height,
+                       labels=not args.no_labels, progress=_Counter("view"))
+    print(f"wrote {index.parent}: open it through a static file server, e.g. "
+          f"python -m http.server -d {index.parent} 8000, then http://127.0.0.1:8000/")
+    return 0
+
+
 def _run_tables(args) -> int:
     rst = runs_tables(args.results)
     if args.out is None:
@@ -302,6 +314,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fps", type=float, default=None, help="frame rate (default: from the frames' timestamps)")
     p.add_argument("--size", type=_panel_size, default=360, help="panel height in pixels, 16..4096 (default 360)")
     p.set_defaults(run=_run_preview)
+
+    p = sub.add_parser("view", help="a web page that plays the textured mesh: a static folder "
+                                    "(index.html, three.js, the frames' data)")
+    p.add_argument("results", help="results/<scene> folder of a finished run")
+    p.add_argument("--out", required=True, help="output folder: new, empty or an earlier view (replaced)")
+    p.add_argument("--frames", default=None, help=frames_help)
+    p.add_argument("--every", type=_positive_int, default=1, metavar="N",
+                   help="every N-th frame of the range (default 1: all); playback keeps the capture's pace")
+    p.add_argument("--source", choices=SOURCES, default="corrected",
+                   help="texture to show: corrected (default), volume or global")
+    p.add_argument("--format", choices=IMAGE_FORMATS, default="jpg",
+                   help="texture and colour images (default jpg)")
+    p.add_argument("--quality", type=int, default=90, help="JPEG quality, 1..100 (default 90)")
+    p.add_argument("--texture-size", type=_panel_size, default=1024,
+                   help="largest texture side written; larger atlases are downscaled (default 1024)")
+    p.add_argument("--color-height", type=_panel_size, default=480,
+                   help="height of the colour images written (default 480)")
+    p.add_argument("--no-labels", action="store_true", help="leave out the label-map overlay")
+    p.set_defaults(run=_run_view)
 
     p = sub.add_parser("tables", help="the paper-style tables over runs, one column per run "
                                       "(from each run's evaluation and job times)")

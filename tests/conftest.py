@@ -176,3 +176,18 @@ def run_pipeline(cfg: dict, d) -> dict:
                          P["global_texture"],
                          dict(cfg["global_texture"], source_stride=cfg["data_term"]["source_stride"]))
     return P
+
+
+def results_folder(P: dict, root) -> "Path":
+    """The stores of :func:`run_pipeline` (``P``) laid out as a workflow run's
+    ``results/<scene>`` (symlinks), as ``stex export``, ``stex view`` and the evaluation read it."""
+    root = Path(root)
+    root.mkdir(parents=True)
+    for name in ("scene", "template", "tracking", "projection", "labels", "observations",
+                 "global_texture"):
+        (root / f"{name}.zarr").symlink_to(P[name])
+    for kind in ("frames", "masks", "truth", "data_term", "volume", "corrected"):
+        (root / kind).mkdir()
+        for b, path in enumerate(P[kind]):
+            (root / kind / f"block_{b:04d}.zarr").symlink_to(path)
+    return root

@@ -104,9 +104,9 @@ def test_export_every_kind_end_to_end(tmp_path, capsys):
 
 
 def test_export_every_nth_frame_and_the_global_texture(tmp_path, capsys):
-    from test_export import _add_global_texture
+    from test_export import add_global_texture
 
-    res = _add_global_texture(make_results(tmp_path / "results" / "cube"))
+    res = add_global_texture(make_results(tmp_path / "results" / "cube"))
     out = tmp_path / "out"
     assert main(["export", str(res), "--what", "gltf", "--every", "2", "--out", str(out / "glb")]) == 0
     assert sorted(p.name for p in (out / "glb").iterdir()) == [
@@ -119,6 +119,22 @@ def test_export_every_nth_frame_and_the_global_texture(tmp_path, capsys):
     assert "--every: must be 1 or more, got 0" in capsys.readouterr().err
     assert main(["export", str(res), "--what", "mp4", "--source", "global", "--out", str(out / "v")]) == 1
     assert "error: the global texture is one image for the whole sequence, not a video" in capsys.readouterr().err
+
+
+def test_view_end_to_end(tmp_path, capsys):
+    import json
+
+    res = make_results(tmp_path / "results" / "cube")
+    out = tmp_path / "view"
+    assert main(["view", str(res), "--every", "2", "--source", "volume", "--out", str(out)]) == 0
+    assert "python -m http.server" in capsys.readouterr().out
+    view = json.loads((out / "view.json").read_text())
+    assert [f["id"] for f in view["frames"]] == [10, 12, 14] and view["labels"]
+    assert (out / "index.html").is_file() and (out / "three" / "LICENSE").is_file()
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "keep.txt").write_text("x")
+    assert main(["view", str(res), "--out", str(tmp_path / "other")]) == 1
+    assert "holds other files" in capsys.readouterr().err
 
 
 def test_preview_end_to_end(tmp_path, capsys):

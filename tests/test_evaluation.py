@@ -15,6 +15,7 @@ from stex.stages.global_texture import write_global_texture
 from stex.io import FrameSequence, StoreError, open_store
 from stex.reporting import METHODS, rst_tables
 from stex.stages.evaluation import EvaluationInputs, TextureSlices, score_frames, write_evaluation
+from conftest import results_folder
 
 
 def _inputs(P, **stores):
@@ -327,19 +328,6 @@ def test_blocks_scored_apart_merge_into_the_same_evaluation(tiny_pipeline, evalu
     assert not list(tmp_path.glob("m*.partial*"))
 
 
-def _results_folder(tiny_pipeline, root):
-    """The tiny pipeline's stores laid out as a workflow run's ``results/<scene>`` (symlinks)."""
-    root.mkdir(parents=True)
-    for name in ("scene", "template", "tracking", "projection", "labels", "observations",
-                 "global_texture"):
-        (root / f"{name}.zarr").symlink_to(tiny_pipeline[name])
-    for kind in ("frames", "masks", "truth", "data_term", "volume", "corrected"):
-        (root / kind).mkdir()
-        for b, path in enumerate(tiny_pipeline[kind]):
-            (root / kind / f"block_{b:04d}.zarr").symlink_to(path)
-    return root
-
-
 def test_other_methods_score_beside_ours(tiny_pipeline, evaluation, tmp_path):
     """Other methods' slices (PNG files as `stex export` writes them, or a texture store) are
     scored by the same code as ours: ours exported to PNG and ours_uncorrected's own stores score
@@ -355,7 +343,7 @@ def test_other_methods_score_beside_ours(tiny_pipeline, evaluation, tmp_path):
     ours = FrameSequence(tiny_pipeline["corrected"], "corrected")
     ids = ours.frame_ids
     write_png_slices((ours.read("texture", i) for i in ids), ids, tmp_path / "mine")
-    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
+    R = results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     # the run's sampling table (texcoords_sampling.json) goes into the new folder's tables too
     steps = [{"step": 1, "keyframes": 6, "energy": 2.0, "seconds": 4.0, "error_ratio": 1.0, "speedup": 1.0},
              {"step": 2, "keyframes": 3, "energy": 2.5, "seconds": 2.0, "error_ratio": 1.25, "speedup": 2.0}]
@@ -453,7 +441,7 @@ def test_other_methods_in_another_uv_layout(tiny_pipeline, tmp_path, capsys):
     by_hand = tmp_path / "by_hand"
     write_png_slices((back.apply(np.asarray(Image.open(theirs / f"texture_{i:05d}.png"))) for i in ids),
                      ids, by_hand)
-    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
+    R = results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     got = evaluate_results(R, tmp_path / "eval", {"theirs": {"slices": str(theirs),
                                                             "uv_mesh": str(tmp_path / "theirs.obj")},
                                                  "by_hand": by_hand})
@@ -623,7 +611,7 @@ def test_textures_of_another_atlas_of_the_same_side_are_refused(tiny_pipeline, t
     assert atlas_digest(template["texcoords"][...].astype(np.float64), template["texcoord_faces"][...], W) == mine
     assert atlas_digest(template["texcoords"][...], template["texcoord_faces"][...], W * 2) != mine
 
-    R = _results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
+    R = results_folder(tiny_pipeline, tmp_path / "results" / "tiny")
     moved = tmp_path / "moved"
     moved.mkdir()
     for b, path in enumerate(tiny_pipeline["corrected"]):

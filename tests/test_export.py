@@ -446,7 +446,7 @@ def test_a_folder_of_another_export_is_not_mixed_into(tmp_path):
         write_obj_sequence([V], F, tc, tf, texs[:1], [4], tmp_path / "obj")
 
 
-def _add_global_texture(root, atlas_digest=None):
+def add_global_texture(root, atlas_digest=None):
     """A global_texture store beside make_results' stores: one texture for the whole sequence."""
     attrs = {"source_frames": FRAME_IDS[::2], "sequence_frame_ids": FRAME_IDS, "seconds": 0.1}
     if atlas_digest:
@@ -476,7 +476,7 @@ def test_every_nth_frame_is_exported_and_the_video_keeps_its_pace(tmp_path):
 
 
 def test_the_global_texture_exports_as_one_image_and_on_the_meshes(tmp_path):
-    res = _add_global_texture(make_results(tmp_path / "res"))
+    res = add_global_texture(make_results(tmp_path / "res"))
     (png,) = export_results(res, "png", tmp_path / "png", source="global")
     assert png.name == "global_texture.png"
     np.testing.assert_array_equal(np.asarray(Image.open(png)), gradient_texture(50))
@@ -495,7 +495,7 @@ def test_the_global_texture_exports_as_one_image_and_on_the_meshes(tmp_path):
         export_results(res, "mp4", tmp_path / "mp4", source="global")
     with pytest.raises(ValueError, match="--frames and --every do not apply"):
         export_results(res, "png", tmp_path / "png2", source="global", every=2)
-    _add_global_texture(make_results(tmp_path / "other"), atlas_digest="another-atlas")
+    add_global_texture(make_results(tmp_path / "other"), atlas_digest="another-atlas")
     with pytest.raises(ValueError, match="global_texture.zarr holds textures of another UV atlas"):
         export_results(tmp_path / "other", "png", tmp_path / "png3", source="global")
     with pytest.raises(StoreError, match="global_texture.zarr: no such store"):
