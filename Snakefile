@@ -37,6 +37,7 @@ include: "workflow/rules/labeling.smk"
 include: "workflow/rules/volume.smk"
 include: "workflow/rules/correction.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/view.smk"
 
 
 rule all:

@@ -94,7 +94,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     jobs = set(re.findall(r"^rule (\w+):", out, flags=re.M))
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
     downstream = {"tracking", "tracking_preview", "poses", "projection", "projection_preview", "texcoords", "observations",
-                  "data_term", "labeling", "volume", "correction", "labels_preview", "preview_video",
+                  "data_term", "labeling", "volume", "correction", "labels_preview", "preview_video", "view",
                   "evaluate_frames", "evaluate", "texcoords_preview", "global_texture", "texcoords_sampling"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out

@@ -19,6 +19,7 @@ camera's intrinsics, and each frame's image files.
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import shutil
@@ -27,6 +28,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from stex.export import output_folder, parse_frame_range, select_frames
 from stex.files import move_into_place, partial_path
@@ -46,7 +48,7 @@ IMAGE_FORMATS = ("jpg", "png")
 MANIFEST = "view.json"
 
 
-def _encode(rgb: np.ndarray, fmt: str, quality: int) -> bytes:
+def _encode(rgb: np.ndarray, fmt: str, quality: int = 90) -> bytes:
     """(H, W, 3) uint8 RGB -> JPEG or PNG file bytes."""
     args = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if fmt == "jpg" else []
     ok, buf = cv2.imencode(f".{fmt}", np.ascontiguousarray(rgb[..., ::-1]), args)
@@ -55,10 +57,29 @@ def _encode(rgb: np.ndarray, fmt: str, quality: int) -> bytes:
     return buf.tobytes()
 
 
-def _resized(rgb: np.ndarray, width: int, height: int, nearest: bool = False) -> np.ndarray:
+def _resized(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     if rgb.shape[:2] == (height, width):
         return rgb
-    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_AREA)
+    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _label_png(label_map: np.ndarray, side: int) -> bytes:
+    """A (W, W) label map as a (side, side) PNG of its colours (:func:`stex.volume.label_colors`),
+    resized nearest first (the colours of a W = 2048 map took longer than everything else of a
+    frame). A frame's texels come from few source frames: an indexed PNG of those colours, less
+    than half the bytes of RGB; RGB when more than 256 labels."""
+    lm = np.asarray(label_map)
+    if lm.shape[0] != side:
+        lm = cv2.resize(lm, (side, side), interpolation=cv2.INTER_NEAREST)
+    labels, index = np.unique(lm, return_inverse=True)
+    colors = label_colors(labels[None, :])[0]
+    if len(labels) > 256:
+        return _encode(colors[index.reshape(lm.shape)], "png")
+    img = Image.fromarray(index.reshape(lm.shape).astype(np.uint8), "P")
+    img.putpalette(colors.reshape(-1).tolist())
+    buf = io.BytesIO()
+    img.save(buf, "PNG", compress_level=6)
+    return buf.getvalue()
 
 
 def _check_out(out: Path) -> None:
@@ -144,9 +165,8 @@ def write_view(results_dir, out, frames: str | None = None, every: int = 1,
             entry["color"] = f"data/color/{fid:05d}.{image_format}"
             (stage / entry["color"]).write_bytes(_encode(color, image_format, quality))
             if labels:
-                pic = _resized(label_colors(res.label_map(fid)), tex_side, tex_side, nearest=True)
                 entry["labels"] = f"data/labels/{fid:05d}.png"
-                (stage / entry["labels"]).write_bytes(_encode(pic, "png", quality))
+                (stage / entry["labels"]).write_bytes(_label_png(res.label_map(fid), tex_side))
             entries.append(entry)
             if progress:
                 progress(k + 1, len(ids))

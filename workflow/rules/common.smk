@@ -65,7 +65,7 @@ def all_outputs():
     # --source volume` read) is rebuilt even when nothing after it changed
     out += expand(f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["data_term", "volume", "corrected"],
                   block=BLOCK_IDS)
-    out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4"]
+    out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4", f"{RESULTS}/view"]
     out += [f"{RESULTS}/global_texture.zarr", f"{RESULTS}/evaluation"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
     out += expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS)
