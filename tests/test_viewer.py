@@ -191,20 +191,21 @@ def test_frames_advance_when_playing_and_stop_when_paused(page):
     p, url, errors = page
     _open(p, f"{url}?play=1", errors)
     seen, images, start = set(), {}, time.monotonic()
-    while time.monotonic() - start < 3.0 and len(seen) < 6:
+    while time.monotonic() - start < 10.0 and len(seen) < 6:
         k, slider = p.evaluate("[window.stexViewer.frame, document.getElementById('slider').value]")
         assert slider == str(k)  # the slider follows the shown frame
         seen.add(k)
         images.setdefault(k, _canvas(p))
         time.sleep(0.05)
-    assert len(seen) >= 4, seen  # six frames at 30 frames/s: every one comes by in 3 s
+    assert len(seen) >= 4, seen  # six frames at 30 frames/s: all of them come by in far less than 10 s
     a, b = sorted(images)[:2]
     assert (np.abs(images[a].astype(int) - images[b]) > 8).any()  # the mesh moves and its texture changes
     assert p.evaluate("document.getElementById('input').src").endswith(
         "data/color/%05d.jpg" % p.evaluate("window.stexViewer.frameId"))
     p.click("#play")  # pause
+    time.sleep(0.2)  # a frame already being shown when the button was clicked is drawn
     shown = p.evaluate("window.stexViewer.shown")
-    time.sleep(0.4)
+    time.sleep(0.5)
     assert p.evaluate("window.stexViewer.shown") == shown and not p.evaluate("window.stexViewer.playing")
     before = _canvas(p)
     p.click("#labels")  # the label map overlay changes the object, not the background
