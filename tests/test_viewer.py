@@ -21,7 +21,7 @@ from PIL import Image
 
 from conftest import results_folder
 from stex.camera import transform_points
-from stex.evaluate import render_texture
+from stex.metrics import render_texture
 from stex.export import RunResults, opencv_to_viewer, preview_frame
 from stex.viewer import write_view
 from stex.viewer.pack import corner_buffers, quantize_positions, viewer_positions
@@ -181,10 +181,16 @@ def _open(p, url, errors):
     assert p.evaluate("window.stexViewer.error") is None and not errors, (p.evaluate("window.stexViewer.error"), errors)
 
 
+_CANVAS = "document.getElementById('view').toDataURL('image/png')"
+
+
+def _pixels(data_url: str) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data_url.split(",", 1)[1]))).convert("RGB"))
+
+
 def _canvas(p) -> np.ndarray:
     """The canvas's pixels as drawn, (H, W, 3) uint8 (one canvas pixel per image pixel)."""
-    data = p.evaluate("document.getElementById('view').toDataURL('image/png')")
-    return np.asarray(Image.open(io.BytesIO(base64.b64decode(data.split(",", 1)[1]))).convert("RGB"))
+    return _pixels(p.evaluate(_CANVAS))
 
 
 def test_frames_advance_when_playing_and_stop_when_paused(page):
@@ -192,16 +198,17 @@ def test_frames_advance_when_playing_and_stop_when_paused(page):
     _open(p, f"{url}?play=1", errors)
     seen, images, start = set(), {}, time.monotonic()
     while time.monotonic() - start < 10.0 and len(seen) < 6:
-        k, slider = p.evaluate("[window.stexViewer.frame, document.getElementById('slider').value]")
+        # read in one go: the page shows the next frame between two evaluations
+        k, slider, pixels = p.evaluate(f"[window.stexViewer.frame, document.getElementById('slider').value, {_CANVAS}]")
         assert slider == str(k)  # the slider follows the shown frame
         seen.add(k)
-        images.setdefault(k, _canvas(p))
+        images.setdefault(k, _pixels(pixels))
         time.sleep(0.05)
     assert len(seen) >= 4, seen  # six frames at 30 frames/s: all of them come by in far less than 10 s
     a, b = sorted(images)[:2]
     assert (np.abs(images[a].astype(int) - images[b]) > 8).any()  # the mesh moves and its texture changes
-    assert p.evaluate("document.getElementById('input').src").endswith(
-        "data/color/%05d.jpg" % p.evaluate("window.stexViewer.frameId"))
+    src, fid = p.evaluate("[document.getElementById('input').src, window.stexViewer.frameId]")
+    assert src.endswith("data/color/%05d.jpg" % fid)  # the input frame beside it is the same frame's
     p.click("#play")  # pause
     time.sleep(0.2)  # a frame already being shown when the button was clicked is drawn
     shown = p.evaluate("window.stexViewer.shown")

@@ -90,6 +90,52 @@ def _check_out(out: Path) -> None:
                          f"'stex view'); give a new or empty folder")
 
 
+def _write_frames(stage: Path, res: RunResults, ids: list[int], image_format: str, quality: int,
+                  tex_side: int, color_size: tuple[int, int], labels: bool, progress):
+    """Each frame's texture, colour image and label map into ``stage/data``; returns the frames'
+    (V, 3) page positions and their ``view.json`` entries."""
+    for sub in ("texture", "color") + (("labels",) if labels else ()):
+        (stage / "data" / sub).mkdir(parents=True)
+    cal = res.calibration
+    positions, entries = [], []
+    for k, fid in enumerate(ids):
+        positions.append(viewer_positions(res.vertices(fid), cal.depth_to_color))
+        entry = {"id": fid, "texture": f"data/texture/{fid:05d}.{image_format}",
+                 "color": f"data/color/{fid:05d}.{image_format}"}
+        tex = _resized(res.texture(fid), tex_side, tex_side)
+        (stage / entry["texture"]).write_bytes(_encode(tex, image_format, quality))
+        color = _resized(res.color(fid), *color_size)
+        (stage / entry["color"]).write_bytes(_encode(color, image_format, quality))
+        if labels:
+            entry["labels"] = f"data/labels/{fid:05d}.png"
+            (stage / entry["labels"]).write_bytes(_label_png(res.label_map(fid), tex_side))
+        entries.append(entry)
+        if progress:
+            progress(k + 1, len(ids))
+    return positions, entries
+
+
+def _write_buffers(data: Path, res: RunResults, positions: list[np.ndarray]) -> dict:
+    """``data/mesh.bin`` and ``data/positions.bin``; returns their ``view.json`` entries and
+    where the object is at the first frame (centre, radius; m)."""
+    code, offset, step = quantize_positions(np.stack(positions))
+    layout, at = {}, 0
+    with open(data / "mesh.bin", "wb") as fh:
+        for name, arr in zip(("vertex_index", "uv", "index"),
+                             corner_buffers(res.faces, res.texcoords, res.texcoord_faces)):
+            fh.write(arr.tobytes())  # every part is 4-byte items: each starts aligned
+            layout[name] = {"offset": at, "count": int(arr.size)}
+            at += arr.nbytes
+    (data / "positions.bin").write_bytes(code.tobytes())
+    first = offset + code[0].astype(np.float64) * step
+    return {"n_vertices": int(code.shape[1]),
+            "mesh": {"file": "data/mesh.bin", **layout},
+            "positions": {"file": "data/positions.bin", "dtype": "uint16", "shape": list(code.shape),
+                          "offset": offset.tolist(), "step": step.tolist()},
+            "center": first.mean(axis=0).tolist(),
+            "radius": float(np.linalg.norm(first - first.mean(axis=0), axis=1).max())}
+
+
 def write_view(results_dir, out, frames: str | None = None, every: int = 1,
                source: str = "corrected", image_format: str = "jpg", quality: int = 90,
                texture_size: int | None = 1024, color_height: int = 480, labels: bool = True,
@@ -134,8 +180,7 @@ def write_view(results_dir, out, frames: str | None = None, every: int = 1,
     res = RunResults(results_dir, source)
     ids = select_frames(res.frame_ids, *parse_frame_range(frames), every=every)
     labels = labels and source != "global"
-    cal = res.calibration
-    cam = cal.color
+    cam = res.calibration.color
     res.vertices(ids[0]), res.color(ids[0])  # fail on missing stores before writing anything
     if labels:
         res.label_map(ids[0])
@@ -149,57 +194,19 @@ def write_view(results_dir, out, frames: str | None = None, every: int = 1,
     c_w = max(1, round(cam.width * c_h / cam.height))
 
     stage = partial_path(out)
-    shutil.copytree(STATIC, stage, ignore=shutil.ignore_patterns("VENDORED.txt"))
-    data = stage / "data"
-    for sub in ("texture", "color") + (("labels",) if labels else ()):
-        (data / sub).mkdir(parents=True)
     try:
-        positions, entries = [], []
-        for k, fid in enumerate(ids):
-            positions.append(viewer_positions(res.vertices(fid), cal.depth_to_color))
-            entry = {"id": fid}
-            tex = _resized(res.texture(fid), tex_side, tex_side)
-            entry["texture"] = f"data/texture/{fid:05d}.{image_format}"
-            (stage / entry["texture"]).write_bytes(_encode(tex, image_format, quality))
-            color = _resized(res.color(fid), c_w, c_h)
-            entry["color"] = f"data/color/{fid:05d}.{image_format}"
-            (stage / entry["color"]).write_bytes(_encode(color, image_format, quality))
-            if labels:
-                entry["labels"] = f"data/labels/{fid:05d}.png"
-                (stage / entry["labels"]).write_bytes(_label_png(res.label_map(fid), tex_side))
-            entries.append(entry)
-            if progress:
-                progress(k + 1, len(ids))
-        code, offset, step = quantize_positions(np.stack(positions))
-        vertex_index, uv, index = corner_buffers(res.faces, res.texcoords, res.texcoord_faces)
-        layout, offset_bytes = {}, 0
-        with open(data / "mesh.bin", "wb") as fh:
-            for name, arr in (("vertex_index", vertex_index), ("uv", uv), ("index", index)):
-                fh.write(arr.tobytes())  # every part is 4-byte items: each starts aligned
-                layout[name] = {"offset": offset_bytes, "count": int(arr.size)}
-                offset_bytes += arr.nbytes
-        (data / "positions.bin").write_bytes(code.tobytes())
-        first = offset + code[0].astype(np.float64) * step
-        manifest = {
-            "format": "stex-view 1",
-            "scene": Path(results_dir).resolve().name,
-            "source": source,
-            "fps": fps,
-            "n_vertices": int(code.shape[1]),
-            "atlas_size": int(atlas),
-            "texture_size": int(tex_side),
-            "mesh": {"file": "data/mesh.bin", **layout},
-            "positions": {"file": "data/positions.bin", "dtype": "uint16", "shape": list(code.shape),
-                          "offset": offset.tolist(), "step": step.tolist()},
-            # the input colour camera (its own pixel size; the page scales it as
-            # stex.camera.Intrinsics.scaled does) and where the object is at the first frame
-            "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-                       "width": cam.width, "height": cam.height},
-            "center": first.mean(axis=0).tolist(),
-            "radius": float(np.linalg.norm(first - first.mean(axis=0), axis=1).max()),
-            "labels": labels,
-            "frames": entries,
-        }
+        shutil.copytree(STATIC, stage, ignore=shutil.ignore_patterns("VENDORED.txt"))
+        positions, entries = _write_frames(stage, res, ids, image_format, quality, tex_side,
+                                           (c_w, c_h), labels, progress)
+        manifest = {"format": "stex-view 1", "scene": Path(results_dir).resolve().name,
+                    "source": source, "fps": fps, "atlas_size": int(atlas),
+                    "texture_size": int(tex_side),
+                    # the input colour camera at its own pixel size: the page scales it as
+                    # stex.camera.Intrinsics.scaled does
+                    "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                               "width": cam.width, "height": cam.height},
+                    **_write_buffers(stage / "data", res, positions),
+                    "labels": labels, "frames": entries}
         (stage / MANIFEST).write_text(json.dumps(manifest, indent=1))
         move_into_place(stage, out)
     except BaseException:
