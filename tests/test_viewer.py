@@ -25,7 +25,7 @@ from stex.metrics import render_texture
 from stex.export import RunResults, opencv_to_viewer, preview_frame
 from stex.viewer import write_view
 from stex.viewer.pack import corner_buffers, quantize_positions, viewer_positions
-from stex.volume import label_colors
+from stex.sampling import label_colors
 
 CHROMIUM = Path("/usr/bin/chromium")
 # what works headless on a machine without a GPU: WebGL through SwiftShader

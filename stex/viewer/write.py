@@ -10,7 +10,7 @@ The folder (any static file server serves it; nothing is fetched from elsewhere)
     data/positions.bin                       (T, V, 3) uint16 vertex positions per shown frame
     data/texture/00012.jpg                   the frame's texture slice (or .png)
     data/color/00012.jpg                     the frame's input colour image
-    data/labels/00012.png                    the frame's label map in colour (stex.volume.label_colors)
+    data/labels/00012.png                    the frame's label map in colour (stex.sampling.label_colors)
 
 ``view.json`` holds the frame ids, playback rate, the byte layout of the two .bin files, the
 position code's offset and step (:func:`stex.viewer.pack.quantize_positions`), the colour
@@ -64,7 +64,7 @@ def _resized(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def _label_png(label_map: np.ndarray, side: int) -> bytes:
-    """A (W, W) label map as a (side, side) PNG of its colours (:func:`stex.volume.label_colors`),
+    """A (W, W) label map as a (side, side) PNG of its colours (:func:`stex.sampling.label_colors`),
     resized nearest first (the colours of a W = 2048 map took longer than everything else of a
     frame). A frame's texels come from few source frames: an indexed PNG of those colours, less
     than half the bytes of RGB; RGB when more than 256 labels."""
