@@ -22,7 +22,8 @@ from PIL import Image
 from conftest import results_folder
 from stex.camera import transform_points
 from stex.metrics import render_texture
-from stex.export import RunResults, opencv_to_viewer, preview_frame
+from stex.export import opencv_to_viewer, preview_frame
+from stex.stages.export import RunResults
 from stex.viewer import write_view
 from stex.viewer.pack import corner_buffers, quantize_positions, viewer_positions
 from stex.sampling import label_colors

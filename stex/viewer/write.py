@@ -151,7 +151,7 @@ def write_view(results_dir, out, frames: str | None = None, every: int = 1,
         frames: frame-id range as in :func:`stex.export.parse_frame_range` (None = all).
         every: frame step: every ``every``-th frame of the range; playback keeps the capture's
             pace (the frame rate from the timestamps divided by ``every``).
-        source: texture shown: 'corrected', 'volume' or 'global' (see :class:`stex.export.RunResults`).
+        source: texture shown: 'corrected', 'volume' or 'global' (see :class:`stex.stages.export.RunResults`).
         image_format: 'jpg' or 'png' for the texture and colour images (label maps are PNG).
         quality: JPEG quality, 1..100.
         texture_size: largest texture side written (px); larger atlases are downscaled (area
