@@ -7,8 +7,9 @@ changed nothing a user gets.
     python benchmarks/compare_runs.py OLD NEW --rename tables=data_term   # a store folder renamed
 
 Exit 0 when they agree, 1 otherwise; every difference is printed, with the store and array.
-Store attributes that record when, where and with which library versions a store was written are
-not compared.
+Store attributes that record when, where and with which library versions a store was written,
+and every duration (``seconds``, ``*_s``, ``time_*``, speed-ups), are not compared; nor is the
+artifact kind of a store whose folder ``--rename`` maps.
 """
 from __future__ import annotations
 
@@ -32,17 +33,25 @@ def _stores(run: Path) -> list[Path]:
                   and not any(q.suffix == ".zarr" for q in p.relative_to(run).parents if str(q) != "."))
 
 
+def _timing(key: str) -> bool:
+    """Keys that hold a duration or a ratio of durations: they differ from run to run."""
+    return key.startswith("time_") or key.endswith("_s") or key in ("seconds", "speedup", "timings_s")
+
+
 def _strip(doc, keys):
     if isinstance(doc, dict):
-        return {k: _strip(v, keys) for k, v in doc.items() if k not in keys}
+        return {k: _strip(v, keys) for k, v in doc.items() if k not in keys and not _timing(k)}
     if isinstance(doc, list):
         return [_strip(v, keys) for v in doc]
     return doc
 
 
-def _compare_group(a, b, where: str, out: list) -> int:
+def _compare_group(a, b, where: str, out: list, renamed: bool = False) -> int:
     n = 0
     attrs_a, attrs_b = _strip(dict(a.attrs), PROVENANCE_ATTRS), _strip(dict(b.attrs), PROVENANCE_ATTRS)
+    if renamed:
+        attrs_a.pop("stex_artifact", None)
+        attrs_b.pop("stex_artifact", None)
     if attrs_a != attrs_b:
         diff = sorted(k for k in set(attrs_a) | set(attrs_b) if attrs_a.get(k) != attrs_b.get(k))
         out.append(f"{where}: attrs differ: {diff}")
@@ -52,9 +61,11 @@ def _compare_group(a, b, where: str, out: list) -> int:
     for name in sorted(set(names_a) & set(names_b)):
         x, y = names_a[name], names_b[name]
         if isinstance(x, zarr.Group):
-            n += _compare_group(x, y, f"{where}/{name}", out)
+            n += _compare_group(x, y, f"{where}/{name}", out, renamed)
             continue
         n += 1
+        if _timing(name):
+            continue
         u, v = x[...], y[...]
         if u.shape != v.shape or u.dtype != v.dtype:
             out.append(f"{where}/{name}: {u.shape} {u.dtype} against {v.shape} {v.dtype}")
@@ -76,7 +87,8 @@ def compare_runs(first: Path, second: Path, renames: dict | None = None) -> list
         out.append(f"{s}: only in {'first' if s in stores_a else 'second'} run")
     arrays = 0
     for s in sorted(set(stores_a) & set(stores_b)):
-        arrays += _compare_group(zarr.open_group(first / originals[s], mode="r"), zarr.open_group(second / s, mode="r"), str(s), out)
+        arrays += _compare_group(zarr.open_group(first / originals[s], mode="r"), zarr.open_group(second / s, mode="r"),
+                                 str(s), out, renamed=originals[s] != s)
     for name in ("evaluation/evaluation.json", "evaluation/per_frame.csv"):
         pa, pb = first / name, second / name
         if pa.exists() != pb.exists():
