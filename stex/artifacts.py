@@ -119,7 +119,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "texel/face_id": ArraySpec(("W", "W"), "int32", "index", "face whose UV triangle holds texel (r, c)'s centre ((c+.5)/W, (r+.5)/W); -1 = gutter/empty", (1024, 1024)),
             "texel/bary": ArraySpec(("W", "W", 3), "float32", "1", "barycentrics of the texel centre on texel/face_id (corners 0, 1, 2); 0 where empty", (1024, 1024, 3)),
             "embedding/face": ArraySpec(("V",), "int32", "index", "face of the ORIGINAL template (scene template/faces) on which each vertex lies"),
-            "embedding/bary": ArraySpec(("V", 3), "float32", "1", "barycentrics of each vertex on embedding/face (stex.template.transfer_vertices)"),
+            "embedding/bary": ArraySpec(("V", 3), "float32", "1", "barycentrics of each vertex on embedding/face (stex.mesh.transfer_vertices)"),
         },
         attrs={
             "atlas_size": "int: atlas side W (texels)",
@@ -314,7 +314,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "gutter_px": "int: rings of gutter texels filled around every chart",
             "first_position": "int: sequence position of the first slice (labels are sequence positions)",
             "never_seen_texels": "int: texels of never-seen faces, filled from the nearest seen surface point",
-            "atlas_digest": "str: the template atlas the slices are in (stex.template.atlas_digest: 16 hex digits "
+            "atlas_digest": "str: the template atlas the slices are in (stex.atlas.atlas_digest: 16 hex digits "
                             "of a hash of texcoords, texcoord_faces and atlas_size). Every reader of the store "
                             "(correction, evaluation, `stex evaluate --texture`, export) refuses it when the "
                             "template's differs: a texture of another atlas of the same side would read as noise. "
@@ -339,7 +339,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         },
     ),
     "global_texture": ArtifactSpec(
-        description="The comparison baseline of Kim et al. 2019 (stex.global_texture.write_global_texture): "
+        description="The comparison baseline of Kim et al. 2019 (stex.stages.global_texture.write_global_texture): "
         "ONE texture for the whole sequence in the template atlas, every texel the weighted mean "
         "of the source frames (held-out protocol: sequence positions 0, k, 2k, ..., k = "
         "data_term.source_stride) that see its face, sampled at the texture coordinates of the volume "
@@ -411,7 +411,7 @@ def artifacts_markdown() -> str:
         "`per_frame.csv`, `table_<name>.csv`, `tables.rst` / `tables.html` and the PNG figures; "
         "with the sampling table, `sampling` in `evaluation.json` and `table_sampling.csv`.",
         "- `results/<scene>/texcoords_sampling.json` — the paper's sampling table "
-        "(stex.texcoords.write_sampling_table; rule texcoords_sampling, when ξ is optimised and "
+        "(stex.stages.texcoords.write_sampling_table; rule texcoords_sampling, when ξ is optimised and "
         "`sampling_table.steps` is not empty), written atomically: `params` (the texcoords "
         "settings) and `steps`: one row per key-frame step, `{step, keyframes, energy (the final "
         "all-frame Eq. 1 energy), seconds, error_ratio (energy / that of step 1), speedup "

@@ -48,7 +48,7 @@ def write_global_texture(scene_path, frames_paths, template_path, projection_pat
     one used observation) and attrs ``source_frames`` (global frame ids of the source frames),
     ``sequence_frame_ids`` (every frame id of the scene), ``seconds`` (wall time of the blend, s).
 
-    Attr ``atlas_digest``: the template's atlas (:func:`stex.template.atlas_digest`).
+    Attr ``atlas_digest``: the template's atlas (:func:`stex.atlas.atlas_digest`).
 
     Raises:
         ValueError naming the store when frame counts, frame ids, face or vertex counts disagree.
