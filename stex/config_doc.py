@@ -25,7 +25,10 @@ Every setting of the workflow, generated from `stex/schema.yaml` by
 Put the settings you change in a scene file and run `snakemake --cores 2 --configfile
 my_scene.yaml`; everything left out takes the default below. `config/config.yaml` is the default
 scene (`demo`), `config/scenes/` holds the others (`paper.yaml` is paper scale), and
-`config/datasets/` runs several scenes at once (docs/datasets.md).
+`config/datasets/` runs several scenes at once (docs/datasets.md). `config/recipes/` holds settings
+to give after a scene file: `paper_tables.yaml` adds what the paper's tables need and the default
+run leaves out, the sampling table (`snakemake --cores 2 --configfile config/scenes/paper.yaml
+config/recipes/paper_tables.yaml`; docs/running.md).
 
 Threads are not a setting: `--cores N` caps the run, and each rule asks for its own (most 1, the
 poses, texture-coordinate and labeling jobs 2; `workflow/rules/*.smk`). Why each tuned default is

@@ -80,6 +80,38 @@ def test_scheduling_rounds_follow_the_jobs_that_finish(tmp_path):
     assert finished == 13 and limited > finished + 1, (limited, finished)
 
 
+TEXTURE_RULES = {"ingest_scene", "ingest_block", "masks", "template", "tracking", "poses", "projection",
+                 "texcoords", "observations", "data_term", "labeling", "volume", "correction"}
+EXTRA_RULES = {"masks_preview", "template_preview", "tracking_preview", "projection_preview", "texcoords_preview",
+               "texcoords_sampling", "global_texture", "labels_preview", "preview_video", "view",
+               "evaluate_frames", "evaluate"}
+
+
+def test_the_jobs_that_make_the_texture_go_before_the_extras(tmp_path):
+    """Every job of a run with the paper's recipe (so the sampling table too), as the dry run
+    lists it with its Snakemake priority: each texture job's is above every extra's, so a
+    labeling and a sampling table ready together on a busy machine start in that order. A rule
+    in neither list fails here: a new rule is put on one side or the other."""
+    cfg = {"scene": "tiny", "results": str(tmp_path / "results"), "frame_block": 4,
+           "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+           "observations": {"coordinates": "optimised"}}
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    shutil.copy(REPO / "config" / "recipes" / "paper_tables.yaml", tmp_path / "paper_tables.yaml")
+    run = snakemake(tmp_path, "-n", configfiles=("tiny.yaml", "paper_tables.yaml"))
+    out = run.stdout + run.stderr
+    assert run.returncode == 0, out[-3000:]
+    priorities = {}
+    for job in re.split(r"^(?=(?:local)?rule \w+:)", out, flags=re.M)[1:]:
+        name = re.match(r"(?:local)?rule (\w+):", job).group(1)
+        found = re.search(r"^\s+priority: (-?\d+)", job, flags=re.M)
+        priorities.setdefault(name, set()).add(int(found.group(1)) if found else 0)
+    priorities.pop("all")
+    assert set(priorities) == TEXTURE_RULES | EXTRA_RULES, sorted(set(priorities) ^ (TEXTURE_RULES | EXTRA_RULES))
+    lowest_texture = min(min(priorities[r]) for r in TEXTURE_RULES)
+    highest_extra = max(max(priorities[r]) for r in EXTRA_RULES)
+    assert lowest_texture > highest_extra, priorities
+
+
 def test_rerun_does_nothing(tiny_run):
     run = snakemake(tiny_run, "--cores", "2", "-n")
     assert run.returncode == 0
@@ -95,7 +127,7 @@ def test_changing_a_masks_parameter_reruns_only_masks(tiny_run):
     # masks and what is downstream of them re-run; nothing upstream (ingest) or beside them (template)
     downstream = {"tracking", "tracking_preview", "poses", "projection", "projection_preview", "texcoords", "observations",
                   "data_term", "labeling", "volume", "correction", "labels_preview", "preview_video", "view",
-                  "evaluate_frames", "evaluate", "texcoords_preview", "global_texture", "texcoords_sampling"}
+                  "evaluate_frames", "evaluate", "texcoords_preview", "global_texture"}
     assert jobs == {"all", "masks", "masks_preview"} | downstream, out
     assert "Params have changed since last execution" in out
 
@@ -152,9 +184,9 @@ def test_texture_outputs(tiny_run):
     assert (res / "benchmarks" / "labeling.tsv").exists()
     assert (res / "benchmarks" / "evaluate_frames_0001.tsv").exists()
     assert "evaluate_frames" in (res / "evaluation" / "tables.rst").read_text()   # timing table
-    # the paper's sampling table: the texcoords stage once per key-frame step, in the evaluation
-    sampling = json.loads((res / "texcoords_sampling.json").read_text())["steps"]
-    assert [r["step"] for r in sampling] == [1, 2, 3, 4, 5] and evaluation["sampling"] == sampling
+    # the paper's sampling table runs only when asked for (config/recipes/paper_tables.yaml)
+    assert not (res / "texcoords_sampling.json").exists() and evaluation["sampling"] is None
+    assert not (res / "evaluation" / "table_sampling.csv").exists()
 
 
 def test_report_holds_the_tables(tiny_run):
@@ -167,9 +199,9 @@ def test_report_holds_the_tables(tiny_run):
     html = report.read_text()
     embedded = "".join(base64.b64decode(m).decode("utf-8", "replace")
                        for m in re.findall(r"data:text/html;[^,]*base64,([A-Za-z0-9+/=]+)", html))
-    for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage",
-                "key-frame sampling", "error ratio"):
+    for row in ("PSNR, dB (every frame)", "Kim et al. 2019 (global)", "Blurriness", "Coverage", "evaluate_frames"):
         assert row in embedded, (row, embedded[:2000])
+    assert "key-frame sampling" not in embedded  # the default run has no sampling table
     # the tracking-fit plot is in the report, with its caption
     assert "tracking_fit.png" in html and "min_silhouette_iou" in html
 
@@ -200,3 +232,31 @@ def test_the_evaluation_merge_has_a_benchmark_that_its_own_timing_table_leaves_o
     run = snakemake(tiny_run, "--cores", "2", "--forcerun", "evaluate")
     assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
     assert "evaluate" not in stages() and merge_seconds() < 999
+
+
+def test_the_paper_tables_recipe_adds_the_sampling_table(tiny_run):
+    """config/recipes/paper_tables.yaml given after the scene file: a finished run makes only the
+    sampling table and merges the evaluation again (no block is re-scored, no texture stage
+    re-runs); the table is in evaluation.json, its CSV and the report."""
+    import base64
+    import json
+
+    shutil.copy(REPO / "config" / "recipes" / "paper_tables.yaml", tiny_run / "paper_tables.yaml")
+    configs = ("tiny.yaml", "paper_tables.yaml")
+    dry = snakemake(tiny_run, "--cores", "2", "-n", configfiles=configs)
+    out = dry.stdout + dry.stderr
+    assert dry.returncode == 0, out[-2000:]
+    assert set(re.findall(r"^rule (\w+):", out, flags=re.M)) == {"all", "texcoords_sampling", "evaluate"}, out
+    run = snakemake(tiny_run, "--cores", "2", configfiles=configs)
+    assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+    res = tiny_run / "results" / "tiny"
+    sampling = json.loads((res / "texcoords_sampling.json").read_text())["steps"]
+    evaluation = json.loads((res / "evaluation" / "evaluation.json").read_text())
+    assert [r["step"] for r in sampling] == [1, 2, 3, 4, 5] and evaluation["sampling"] == sampling
+    assert (res / "evaluation" / "table_sampling.csv").is_file()
+    report = tiny_run / "report_paper_tables.html"
+    run = snakemake(tiny_run, "--report", str(report), configfiles=configs)
+    assert run.returncode == 0, (run.stdout + run.stderr)[-3000:]
+    embedded = "".join(base64.b64decode(m).decode("utf-8", "replace") for m in re.findall(
+        r"data:text/html;[^,]*base64,([A-Za-z0-9+/=]+)", report.read_text()))
+    assert "key-frame sampling" in embedded and "error ratio" in embedded

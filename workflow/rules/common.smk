@@ -23,6 +23,11 @@ ENV = "../../envs/stex.yaml"
 # thousand frames. In the rules rather than the profile, so that it holds for prefixed rule names
 # too (workflow/dataset.smk).
 SEQUENCE_RUNTIME_MIN = 240
+# Snakemake priority of the jobs that make the texture (ingest to correction); the extras (the
+# sampling table, the previews, the comparison methods, the evaluation, the preview video) keep
+# the default 0. When both are ready and the cores are taken, the texture goes first: left to
+# itself Snakemake may start the optional job first and the texture waits for it.
+TEXTURE_PRIORITY = 10
 OPTIMISED = config["observations"]["coordinates"] == "optimised"
 # texture coordinates every stage after the projection samples: ξ, or Φ as an ablation
 COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.zarr"

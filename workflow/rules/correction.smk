@@ -16,6 +16,7 @@ rule correction:
         f"{RESULTS}/logs/correction_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/correction_{{block}}.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -18,6 +18,7 @@ rule data_term:
         f"{RESULTS}/logs/data_term_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/data_term_{{block}}.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -18,6 +18,7 @@ rule ingest_scene:
         f"{RESULTS}/logs/ingest_scene.log",
     benchmark:
         f"{RESULTS}/benchmarks/ingest_scene.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:
@@ -39,6 +40,7 @@ if SYNTHETIC:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
         benchmark:
             f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
+        priority: TEXTURE_PRIORITY
         conda:
             ENV
         script:
@@ -58,6 +60,7 @@ else:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
         benchmark:
             f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
+        priority: TEXTURE_PRIORITY
         conda:
             ENV
         script:

@@ -19,6 +19,7 @@ rule labeling:
         f"{RESULTS}/logs/labeling.log",
     benchmark:
         f"{RESULTS}/benchmarks/labeling.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -13,6 +13,7 @@ rule masks:
         f"{RESULTS}/logs/masks_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/masks_{{block}}.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

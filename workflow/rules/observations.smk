@@ -17,6 +17,7 @@ rule observations:
         f"{RESULTS}/logs/observations.log",
     benchmark:
         f"{RESULTS}/benchmarks/observations.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -14,6 +14,7 @@ rule poses:
         f"{RESULTS}/logs/poses.log",
     benchmark:
         f"{RESULTS}/benchmarks/poses.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -19,6 +19,7 @@ rule projection:
         f"{RESULTS}/logs/projection.log",
     benchmark:
         f"{RESULTS}/benchmarks/projection.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -18,6 +18,7 @@ rule template:
         f"{RESULTS}/logs/template.log",
     benchmark:
         f"{RESULTS}/benchmarks/template.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

@@ -19,6 +19,7 @@ rule texcoords:
     resources:
         runtime=SEQUENCE_RUNTIME_MIN,
     threads: 2
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

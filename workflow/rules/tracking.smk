@@ -17,6 +17,7 @@ rule tracking:
         f"{RESULTS}/logs/tracking.log",
     benchmark:
         f"{RESULTS}/benchmarks/tracking.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:

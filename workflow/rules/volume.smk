@@ -17,6 +17,7 @@ rule volume:
         f"{RESULTS}/logs/volume_{{block}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/volume_{{block}}.tsv",
+    priority: TEXTURE_PRIORITY
     conda:
         ENV
     script:
