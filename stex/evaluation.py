@@ -129,7 +129,7 @@ def reference_blur(reference, mask, h_size=ev.DEFAULT_H_SIZE,
 
 def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAULT_RADIUS,
                  h_size=ev.DEFAULT_H_SIZE, blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX,
-                 reference_scores=None) -> dict:
+                 reference_scores=None, ssim_cache=None) -> dict:
     """The input-view scores of one render against one photo, inside ``mask``.
 
     Args:
@@ -140,6 +140,8 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         blur_interior_px: the mask's erosion (px) for the ``*_interior`` blur scores.
         reference_scores: :func:`reference_blur` of ``reference`` in ``mask`` with the same
             settings, when several renders are scored against one photo; None computes it.
+        ssim_cache: :class:`stex.metrics.SsimCache` kept for the renders scored against this
+            photo in this mask (the same scores, sooner), or None.
 
     Returns:
         dict ``psnr`` (patch-shift, dB), ``psnr_unshifted`` (same patches, no shift, dB),
@@ -166,7 +168,7 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         "psnr": ps["psnr"],
         "psnr_unshifted": ps["psnr_unshifted"],
         "psnr_plain": ev.masked_psnr(ref, tst, m)["psnr"],
-        "ssim": ev.masked_ssim(ref, composite, m)["ssim"],
+        "ssim": ev.masked_ssim(ref, composite, m, cache=ssim_cache)["ssim"],
         "blur": ev.blur(tst, m, h_size=h_size)["blur"],
         "blur_input": rb["blur_input"],
         "blur_interior": ev.blur(tst, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
@@ -313,10 +315,11 @@ def method_views(texture, vertices, atlas, calibration, novel_transform=None,
 MIN_REGION_PX = 100
 
 
-def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen) -> dict:
+def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen, ssim_cache=None) -> dict:
     m = truth_mask & rec_mask
     region = np.zeros_like(m) if seen is None else seen
-    r = ev.region_psnr(truth_img, rec_img, m, region, ssim=True, min_pixels=MIN_REGION_PX)
+    r = ev.region_psnr(truth_img, rec_img, m, region, ssim=True, min_pixels=MIN_REGION_PX,
+                       ssim_cache=ssim_cache)
     out = {f"{prefix}_{k}": r[k] for k in ("psnr_all", "psnr_seen", "psnr_unseen",
                                            "ssim_all", "ssim_seen", "ssim_unseen")}
     out[f"{prefix}_n_seen"], out[f"{prefix}_n_unseen"] = r["n_seen"], r["n_unseen"]
@@ -324,13 +327,13 @@ def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen)
     return out
 
 
-def _novel_scores(prefix, truth, views, ever) -> dict:
+def _novel_scores(prefix, truth, views, ever, ssim_cache=None) -> dict:
     """Novel-view scores of one render (``views`` of :func:`method_views`) against the true
     render: :func:`_truth_region_scores`, and, with ``ever`` (the novel view's pixels on surface
     some source frame saw, or None), the unseen region split into surface some source frame saw
     (borrowed from another frame: what the labeling decides) and surface no frame saw (filled: a
-    guess for any method)."""
-    out = _truth_region_scores(prefix, *truth["novel"], *views["novel"], views["novel_seen"])
+    guess for any method). ``ssim_cache``: as :func:`_truth_region_scores`."""
+    out = _truth_region_scores(prefix, *truth["novel"], *views["novel"], views["novel_seen"], ssim_cache)
     if ever is not None:
         (t_img, t_mask), (r_img, r_mask) = truth["novel"], views["novel"]
         r = ev.region_psnr(t_img, r_img, t_mask & r_mask & ~views["novel_seen"], ever,
@@ -446,27 +449,33 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
             surface_geom = geom if same else frame_views(surface, a, calibration, novel_t, face_visible,
                                                          seen_faces)
     out = {}
+    # every method's render is compared with the same photo and true renders in the same masks
+    # (one geometry): their side of the SSIM maps is filtered once
+    ssim_cache = ev.SsimCache()
     for name, texture in textures.items():
         views = method_views(texture, vertices, a, calibration, geometry=geom)
         rec = views["input"][0]
         s = image_scores(img, rec, scored, patch=patch, radius=radius, h_size=h_size,
-                         blur_interior_px=blur_interior_px, reference_scores=photo_blur)
+                         blur_interior_px=blur_interior_px, reference_scores=photo_blur,
+                         ssim_cache=ssim_cache)
         s["mask_iou"] = mask_iou
         if face_has_texture is not None:
             s.update(coverage_scores(face_has_texture[name], area, seen_faces))
         if truth is not None:
-            s.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, geom["input_seen"]))
+            s.update(_truth_region_scores("gt_input", *truth["input"], rec, rmask, geom["input_seen"],
+                                          ssim_cache))
             s.update(truth_blur)
-            s.update(_novel_scores("gt_novel", truth, views, geom["novel_ever"]))
+            s.update(_novel_scores("gt_novel", truth, views, geom["novel_ever"], ssim_cache))
             if surface is not None:
                 on_surface = views if same else method_views(texture, surface, a, calibration,
                                                              geometry=surface_geom)
-                s.update(_novel_scores("gt_truegeom", truth, on_surface, surface_geom["novel_ever"]))
+                s.update(_novel_scores("gt_truegeom", truth, on_surface, surface_geom["novel_ever"],
+                                       ssim_cache))
                 # the input view too: on the tracked mesh the tracker's error cancels there (a
                 # texel read where the tracked mesh projects is rendered back to that pixel); on
                 # the true surface a texel read from the wrong place counts against the texture
                 s.update(_truth_region_scores("gt_truegeom_input", *truth["input"], *on_surface["input"],
-                                              surface_geom["input_seen"]))
+                                              surface_geom["input_seen"], ssim_cache))
         if return_views:
             s["views"] = views
         out[name] = s

@@ -41,6 +41,7 @@ Metrics
 
 from __future__ import annotations
 
+import hashlib
 from typing import NamedTuple
 
 import cv2
@@ -60,6 +61,7 @@ __all__ = [
     "patch_shift_psnr",
     "masked_psnr",
     "masked_ssim",
+    "SsimCache",
     "blur",
     "noise_sigma",
     "face_areas",
@@ -389,7 +391,7 @@ def masked_psnr(reference, test, mask=None, data_range=255.0) -> dict:
     return {"psnr": psnr_from_mse(mse, data_range), "mse": mse, "n_pixels": n}
 
 
-def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
+def masked_ssim(reference, test, mask=None, data_range=255.0, cache: SsimCache | None = None) -> dict:
     """Mean SSIM (Wang et al. 2004) over the masked pixels.
 
     The SSIM map is ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
@@ -405,6 +407,8 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
         reference, test: (H, W, C) or (H, W) uint8/float images, grey levels; at least 11 x 11.
         mask: (H, W) bool or None (= every pixel).
         data_range: value range of the images (255 for 8-bit grey levels).
+        cache: a :class:`SsimCache` kept while other tests are compared with this reference in
+            this mask (the same result, sooner), or None.
 
     Returns:
         dict ``ssim`` (dimensionless, <= 1), ``n_pixels`` (pixels averaged).
@@ -413,14 +417,82 @@ def masked_ssim(reference, test, mask=None, data_range=255.0) -> dict:
     # image border where the box reaches it (as region_psnr)
     mask, (reference, test) = _crop(mask, [reference, test], 2 * _SSIM_PAD + 2)
     ref, tst = _pair(reference, test, data_range)
-    return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range)[0]
+    return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range, cache)[0]
 
 
-def _ssim_means(ref, tst, masks, data_range) -> list[dict]:
+class SsimCache:
+    """The reference side of SSIM maps kept while several test images are compared with the same
+    reference crops (every method's render against one true render or photo).
+
+    An SSIM map filters five images (x, y, x², y², xy; Gaussian, per channel); x's two depend on
+    the reference alone. Entries are keyed by the reference crop's shape and bytes, so a crop
+    seen again, with the same pixels, reuses them; the maps are the ones computed afresh, bit
+    for bit. Holds two (h, w) float64 arrays per channel and crop: keep one per frame.
+    """
+
+    def __init__(self):
+        self._entries: dict = {}
+
+    def reference(self, ref: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per channel of ``ref`` ((h, w, C) float64), its Gaussian-weighted local mean ux and
+        variance vx ((h, w) float64 each), from the cache or computed now."""
+        key = (ref.shape, hashlib.blake2b(np.ascontiguousarray(ref).data, digest_size=20).digest())
+        stats = self._entries.get(key)
+        if stats is None:
+            stats = self._entries[key] = [_ssim_reference(ref[..., ch]) for ch in range(ref.shape[2])]
+        return stats
+
+
+def _ssim_filter(x: np.ndarray) -> np.ndarray:
+    """skimage's SSIM window (gaussian_weights=True): scipy's Gaussian, sigma 1.5, truncated at
+    3.5 sigma (11 taps), reflected at the edges, of a (h, w) float64 image."""
+    return ndi.gaussian_filter(x, _SSIM_SIGMA, mode="reflect", cval=0, truncate=3.5)
+
+
+def _ssim_reference(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ux, vx) of one (h, w) float64 reference channel, as skimage computes them (population
+    covariance: cov_norm 1)."""
+    ux = _ssim_filter(x)
+    uxx = _ssim_filter(x * x)
+    return ux, 1.0 * (uxx - ux * ux)
+
+
+def _ssim_map(ref: np.ndarray, tst: np.ndarray, data_range, cache: SsimCache | None) -> np.ndarray:
+    """The SSIM map of two (h, w, C) float64 images, averaged over channels: (h, w) float64.
+
+    The arithmetic of ``skimage.metrics.structural_similarity(ref, tst, data_range=data_range,
+    channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True)``
+    step for step (tests/test_metrics.py compares the two for equality), with the reference's
+    filtered images from ``cache`` when one is given.
+    """
+    if min(ref.shape[:2]) < 2 * _SSIM_PAD + 1:  # skimage's own error for an image under a window
+        from skimage.metrics import structural_similarity  # skimage loads slowly; only this needs it
+
+        _, S = structural_similarity(ref, tst, data_range=float(data_range), channel_axis=-1,
+                                     gaussian_weights=True, sigma=_SSIM_SIGMA, use_sample_covariance=False,
+                                     full=True)
+        return S.reshape(ref.shape[0], ref.shape[1], -1).mean(axis=-1)
+    stats = cache.reference(ref) if cache is not None else [_ssim_reference(ref[..., ch])
+                                                             for ch in range(ref.shape[2])]
+    R = float(data_range)
+    C1, C2 = (0.01 * R) ** 2, (0.03 * R) ** 2
+    S = np.empty(ref.shape, np.float64)
+    for ch, (ux, vx) in enumerate(stats):
+        x, y = ref[..., ch], tst[..., ch]
+        uy = _ssim_filter(y)
+        uyy = _ssim_filter(y * y)
+        uxy = _ssim_filter(x * y)
+        vy = 1.0 * (uyy - uy * uy)
+        vxy = 1.0 * (uxy - ux * uy)
+        A1, A2, B1, B2 = (2 * ux * uy + C1, 2 * vxy + C2, ux ** 2 + uy ** 2 + C1, vx + vy + C2)
+        S[..., ch] = (A1 * A2) / (B1 * B2)
+    return S.mean(axis=-1)
+
+
+def _ssim_means(ref, tst, masks, data_range, cache: SsimCache | None = None) -> list[dict]:
     """:func:`masked_ssim` of (H, W, C) float64 images over each of ``masks`` ((H, W) bool), from
-    one SSIM map computed on the bounding box of their union (plus the margin)."""
-    from skimage.metrics import structural_similarity  # skimage loads slowly; only SSIM needs it
-
+    one SSIM map computed on the bounding box of their union (plus the margin); ``cache``: a
+    :class:`SsimCache` shared by the calls with the same reference, or None."""
     H, W, C = ref.shape
     pad = _SSIM_PAD
     trimmed = []
@@ -436,10 +508,7 @@ def _ssim_means(ref, tst, masks, data_range) -> list[dict]:
     margin = pad + 2
     r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
     r1, c1 = min(H, r1 + margin), min(W, c1 + margin)
-    _, S = structural_similarity(
-        ref[r0:r1, c0:c1], tst[r0:r1, c0:c1], data_range=float(data_range), channel_axis=-1,
-        gaussian_weights=True, sigma=_SSIM_SIGMA, use_sample_covariance=False, full=True)
-    S = S.reshape(r1 - r0, c1 - c0, -1).mean(axis=-1)
+    S = _ssim_map(ref[r0:r1, c0:c1], tst[r0:r1, c0:c1], data_range, cache)
     out = []
     for m in trimmed:
         mc = m[r0:r1, c0:c1]
@@ -764,7 +833,7 @@ def seen_mask_in_view(vertices, faces, face_visible, K, width, height) -> np.nda
 
 
 def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False,
-                min_pixels: int = 1) -> dict:
+                min_pixels: int = 1, ssim_cache: SsimCache | None = None) -> dict:
     """PSNR (and optionally SSIM) over ``mask``, split into ``mask & region`` and ``mask & ~region``.
 
     Typical use: ``reference`` = render of the true texture from a novel view, ``test`` = render
@@ -774,7 +843,8 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False,
         dict with ``psnr_all``, ``psnr_seen``, ``psnr_unseen`` (dB, NaN if the region has fewer
         than ``min_pixels`` pixels: a score of a few pixels says nothing about the texture),
         ``mse_*`` and ``n_all``, ``n_seen``, ``n_unseen`` (pixels, always); with ``ssim=True``
-        also ``ssim_all``, ``ssim_seen``, ``ssim_unseen`` (:func:`masked_ssim` over each region).
+        also ``ssim_all``, ``ssim_seen``, ``ssim_unseen`` (:func:`masked_ssim` over each region;
+        ``ssim_cache``: as its ``cache``).
     """
     # every region lies in the mask: its bounding box, with room for the SSIM window, suffices
     # (a box edge that is not the image's stays more than the window from every scored pixel)
@@ -797,7 +867,8 @@ def region_psnr(reference, test, mask, region, data_range=255.0, ssim=False,
         if small[name]:
             out[f"psnr_{name}"] = out[f"mse_{name}"] = np.nan
     if ssim:  # one SSIM map for the three regions
-        for (name, _), s in zip(regions, _ssim_means(ref, tst, [sel for _, sel in regions], data_range)):
+        for (name, _), s in zip(regions, _ssim_means(ref, tst, [sel for _, sel in regions], data_range,
+                                                       ssim_cache)):
             out[f"ssim_{name}"] = np.nan if small[name] else s["ssim"]
     return out
 
