@@ -47,6 +47,7 @@ from stex import metrics as ev
 from stex.camera import Calibration, transform_points
 from stex.config import section_params
 from stex.reporting import METHODS
+from stex.ssim import SsimCache
 
 __all__ = [
     "Atlas",
@@ -140,7 +141,7 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         blur_interior_px: the mask's erosion (px) for the ``*_interior`` blur scores.
         reference_scores: :func:`reference_blur` of ``reference`` in ``mask`` with the same
             settings, when several renders are scored against one photo; None computes it.
-        ssim_cache: :class:`stex.metrics.SsimCache` kept for the renders scored against this
+        ssim_cache: :class:`stex.ssim.SsimCache` kept for the renders scored against this
             photo in this mask (the same scores, sooner), or None.
 
     Returns:
@@ -451,7 +452,7 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
     out = {}
     # every method's render is compared with the same photo and true renders in the same masks
     # (one geometry): their side of the SSIM maps is filtered once
-    ssim_cache = ev.SsimCache()
+    ssim_cache = SsimCache()
     for name, texture in textures.items():
         views = method_views(texture, vertices, a, calibration, geometry=geom)
         rec = views["input"][0]

@@ -48,6 +48,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage as ndi
 
+from stex.ssim import SSIM_RADIUS, SsimCache, ssim_map
 from stex.render import check_faces, check_vertices, face_visibility, rasterize, sample_texture, textured_raster
 
 __all__ = [
@@ -60,7 +61,6 @@ __all__ = [
     "patch_shift_psnr",
     "masked_psnr",
     "masked_ssim",
-    "SsimCache",
     "blur",
     "noise_sigma",
     "face_areas",
@@ -93,8 +93,7 @@ DEFAULT_H_SIZE = 11
 DEFAULT_BLUR_INTERIOR_PX = 3
 
 # SSIM as Wang et al. 2004: 11-tap Gaussian window, sigma 1.5, population covariance.
-_SSIM_SIGMA = 1.5
-_SSIM_PAD = int(3.5 * _SSIM_SIGMA + 0.5)  # window radius used by skimage (truncate 3.5) -> 5
+_SSIM_PAD = SSIM_RADIUS  # the SSIM window's radius (px): masked scores keep this much around the mask
 
 
 # --------------------------------------------------------------------------------------------
@@ -406,7 +405,7 @@ def masked_ssim(reference, test, mask=None, data_range=255.0, cache: SsimCache |
         reference, test: (H, W, C) or (H, W) uint8/float images, grey levels; at least 11 x 11.
         mask: (H, W) bool or None (= every pixel).
         data_range: value range of the images (255 for 8-bit grey levels).
-        cache: a :class:`SsimCache` kept while other tests are compared with this reference in
+        cache: a :class:`stex.ssim.SsimCache` kept while other tests are compared with this reference in
             this mask (the same result, sooner), or None.
 
     Returns:
@@ -419,147 +418,10 @@ def masked_ssim(reference, test, mask=None, data_range=255.0, cache: SsimCache |
     return _ssim_means(ref, tst, [_mask(mask, ref.shape[:2])], data_range, cache)[0]
 
 
-class SsimCache:
-    """The reference side of SSIM maps kept while several test images are compared with the same
-    reference crops (every method's render against one true render or photo).
-
-    An SSIM map filters five images (x, y, x², y², xy; Gaussian, per channel); x's two depend on
-    the reference alone. An entry is found by the reference crop's shape and a sparse sample of
-    its pixels and used only when the crop equals the stored one pixel for pixel, so the maps are
-    the ones computed afresh, bit for bit. Holds the crop and two (h, w) float64 arrays per
-    channel for every reference crop: keep one per frame.
-    """
-
-    def __init__(self):
-        self._entries: dict = {}
-
-    def reference(self, ref: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per channel of ``ref`` ((h, w, C) float64), its Gaussian-weighted local mean ux and
-        variance vx ((h, w) float64 each), from the cache or computed now."""
-        key = (ref.shape, ref[::17, ::13].tobytes())
-        for stored, stats in self._entries.get(key, ()):
-            if np.array_equal(stored, ref):
-                return stats
-        stats = [_ssim_reference(np.ascontiguousarray(ref[..., ch])) for ch in range(ref.shape[2])]
-        self._entries.setdefault(key, []).append((ref, stats))
-        return stats
-
-
-def _ssim_weights() -> np.ndarray:
-    """skimage's SSIM window (gaussian_weights=True): scipy's Gaussian of sigma 1.5 truncated at
-    3.5 sigma, (11,) float64, read from scipy itself as its response to a unit impulse (exact:
-    every other term of that sum is a zero)."""
-    impulse = np.zeros(2 * _SSIM_PAD + 1)
-    impulse[_SSIM_PAD] = 1.0
-    return ndi.gaussian_filter1d(impulse, _SSIM_SIGMA, mode="constant", truncate=3.5)
-
-
-_SSIM_WEIGHTS = _ssim_weights()
-
-
-@njit(cache=True, nogil=True)
-def _ssim_filter(x, w):
-    """``scipy.ndimage.gaussian_filter(x, 1.5, mode='reflect', truncate=3.5)`` of a (h, w)
-    float64 image with h, w >= 6, bit for bit: rows then columns, each output the centre tap times
-    its weight plus, outermost pair first, each symmetric pair's sum times its weight, as scipy's
-    correlate1d sums a symmetric kernel; edges reflected (d c b a | a b c d). w: the (2r + 1,)
-    weights (:func:`_ssim_weights`). A whole row at a time, so the sums vectorise."""
-    h, wd = x.shape
-    r = (w.shape[0] - 1) // 2
-    tmp = np.empty((h, wd))
-    for i in range(h):
-        for j in range(wd):
-            tmp[i, j] = x[i, j] * w[r]
-        for k in range(-r, 0):
-            ia, ib = i + k, i - k
-            if ia < 0:
-                ia = -ia - 1
-            if ib >= h:
-                ib = 2 * h - ib - 1
-            for j in range(wd):
-                tmp[i, j] += (x[ia, j] + x[ib, j]) * w[r + k]
-    out = np.empty((h, wd))
-    line = np.empty(wd + 2 * r)
-    for i in range(h):
-        for j in range(wd):
-            line[r + j] = tmp[i, j]
-        for k in range(r):
-            line[r - 1 - k] = tmp[i, k]
-            line[r + wd + k] = tmp[i, wd - 1 - k]
-        for j in range(wd):
-            out[i, j] = line[r + j] * w[r]
-        for k in range(-r, 0):
-            for j in range(wd):
-                out[i, j] += (line[r + j + k] + line[r + j - k]) * w[r + k]
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _ssim_reference_kernel(x, w):
-    ux = _ssim_filter(x, w)
-    uxx = _ssim_filter(x * x, w)
-    vx = np.empty_like(ux)
-    for i in range(ux.shape[0]):
-        for j in range(ux.shape[1]):
-            vx[i, j] = 1.0 * (uxx[i, j] - ux[i, j] * ux[i, j])
-    return ux, vx
-
-
-def _ssim_reference(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(ux, vx) of one (h, w) float64 reference channel, as skimage computes them (population
-    covariance: cov_norm 1)."""
-    return _ssim_reference_kernel(x, _SSIM_WEIGHTS)
-
-
-@njit(cache=True, nogil=True)
-def _ssim_channel(x, y, ux, vx, w, C1, C2, S, ch):
-    """One channel of skimage's SSIM map into S[:, :, ch]: its formulas, operation for operation
-    (A1 = 2 ux uy + C1, A2 = 2 vxy + C2, B1 = ux² + uy² + C1, B2 = vx + vy + C2, S = A1 A2 / B1 B2)."""
-    uy = _ssim_filter(y, w)
-    uyy = _ssim_filter(y * y, w)
-    uxy = _ssim_filter(x * y, w)
-    for i in range(x.shape[0]):
-        for j in range(x.shape[1]):
-            a, b = ux[i, j], uy[i, j]
-            vy = 1.0 * (uyy[i, j] - b * b)
-            vxy = 1.0 * (uxy[i, j] - a * b)
-            A1 = 2 * a * b + C1
-            A2 = 2 * vxy + C2
-            B1 = a * a + b * b + C1
-            B2 = vx[i, j] + vy + C2
-            S[i, j, ch] = (A1 * A2) / (B1 * B2)
-
-
-def _ssim_map(ref: np.ndarray, tst: np.ndarray, data_range, cache: SsimCache | None) -> np.ndarray:
-    """The SSIM map of two (h, w, C) float64 images, averaged over channels: (h, w) float64.
-
-    The arithmetic of ``skimage.metrics.structural_similarity(ref, tst, data_range=data_range,
-    channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True)``
-    step for step (tests/test_metrics.py compares the two for equality), with the reference's
-    filtered images from ``cache`` when one is given.
-    """
-    if min(ref.shape[:2]) < 2 * _SSIM_PAD + 1:  # skimage's own error for an image under a window
-        from skimage.metrics import structural_similarity  # skimage loads slowly; only this needs it
-
-        _, S = structural_similarity(ref, tst, data_range=float(data_range), channel_axis=-1,
-                                     gaussian_weights=True, sigma=_SSIM_SIGMA, use_sample_covariance=False,
-                                     full=True)
-        return S.reshape(ref.shape[0], ref.shape[1], -1).mean(axis=-1)
-    stats = cache.reference(ref) if cache is not None else [
-        _ssim_reference(np.ascontiguousarray(ref[..., ch])) for ch in range(ref.shape[2])]
-    R = float(data_range)
-    C1, C2 = (0.01 * R) ** 2, (0.03 * R) ** 2
-    S = np.empty(ref.shape, np.float64)
-    for ch, (ux, vx) in enumerate(stats):
-        _ssim_channel(np.ascontiguousarray(ref[..., ch]), np.ascontiguousarray(tst[..., ch]), ux, vx,
-                      _SSIM_WEIGHTS, C1, C2, S, ch)
-    return S.mean(axis=-1)
-
-
 def _ssim_means(ref, tst, masks, data_range, cache: SsimCache | None = None) -> list[dict]:
     """:func:`masked_ssim` of (H, W, C) float64 images over each of ``masks`` ((H, W) bool), from
     one SSIM map computed on the bounding box of their union (plus the margin); ``cache``: a
-    :class:`SsimCache` shared by the calls with the same reference, or None."""
+    :class:`stex.ssim.SsimCache` shared by the calls with the same reference, or None."""
     H, W, C = ref.shape
     pad = _SSIM_PAD
     trimmed = []
@@ -575,7 +437,7 @@ def _ssim_means(ref, tst, masks, data_range, cache: SsimCache | None = None) -> 
     margin = pad + 2
     r0, c0 = max(0, r0 - margin), max(0, c0 - margin)
     r1, c1 = min(H, r1 + margin), min(W, c1 + margin)
-    S = _ssim_map(ref[r0:r1, c0:c1], tst[r0:r1, c0:c1], data_range, cache)
+    S = ssim_map(ref[r0:r1, c0:c1], tst[r0:r1, c0:c1], data_range, cache)
     out = []
     for m in trimmed:
         mc = m[r0:r1, c0:c1]

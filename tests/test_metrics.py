@@ -6,6 +6,7 @@ from scipy import ndimage as ndi
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from stex import metrics as ev
+from stex.ssim import SSIM_WEIGHTS, SsimCache, ssim_filter, ssim_map
 from stex.camera import transform_points
 
 
@@ -204,28 +205,28 @@ def test_ssim_map_is_skimages_bit_for_bit():
     rng = np.random.default_rng(5)
     for shape in [(6, 9), (11, 40), (57, 43), (120, 90)]:
         x = rng.normal(120, 60, shape)
-        assert np.array_equal(ev._ssim_filter(x, ev._SSIM_WEIGHTS),
+        assert np.array_equal(ssim_filter(x, SSIM_WEIGHTS),
                               ndi.gaussian_filter(x, 1.5, mode="reflect", truncate=3.5)), shape
     for shape in [(11, 40, 3), (37, 23, 3), (64, 80, 1), (120, 90, 3)]:
         ref = rng.integers(0, 256, shape).astype(np.float64)
         tests = [np.clip(ref + rng.normal(0, s, shape), 0, 255).round() for s in (5, 30)]
         tests.append(rng.uniform(0, 255, shape))
-        cache = ev.SsimCache()
+        cache = SsimCache()
         for tst in tests:
             S = structural_similarity(ref, tst, full=True, **kw)[1].reshape(shape[0], shape[1], -1).mean(axis=-1)
-            assert np.array_equal(ev._ssim_map(ref, tst, 255.0, None), S), shape
-            assert np.array_equal(ev._ssim_map(ref, tst, 255.0, cache), S), shape
+            assert np.array_equal(ssim_map(ref, tst, 255.0, None), S), shape
+            assert np.array_equal(ssim_map(ref, tst, 255.0, cache), S), shape
         # the same shape and the same pixels on the cache's sparse sample, one pixel off it changed
         other = ref.copy()
         other[1, 1] = 255.0 - other[1, 1]
         S = structural_similarity(other, tests[0], full=True, **kw)[1].reshape(shape[0], shape[1], -1).mean(axis=-1)
-        assert np.array_equal(ev._ssim_map(other, tests[0], 255.0, cache), S), shape
+        assert np.array_equal(ssim_map(other, tests[0], 255.0, cache), S), shape
     # the masked mean on the mask's box equals the full-image map's mean exactly
     ref = textured_image(seed=10)
     tst = np.clip(ref + np.random.default_rng(11).normal(0, 10, ref.shape), 0, 255)
     S = structural_similarity(ref, tst, full=True, **kw)[1].mean(axis=-1)
     mask = disk(*ref.shape[:2], 30, cy=70, cx=150)
-    cache = ev.SsimCache()
+    cache = SsimCache()
     assert ev.masked_ssim(ref, tst, mask, cache=cache)["ssim"] == S[mask].mean()
     assert ev.masked_ssim(ref, tst, mask, cache=cache)["ssim"] == S[mask].mean()
 

@@ -1,0 +1,158 @@
+"""SSIM maps (Wang et al. 2004) as scikit-image computes them, bit for bit, in numba kernels, and a
+cache of the reference side of the maps for several test images compared with one reference.
+
+``skimage.metrics.structural_similarity(ref, tst, data_range=R, channel_axis=-1,
+gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True)`` is the definition;
+:func:`ssim_map` does the same floating-point operations in the same order (the Gaussian window
+as scipy's correlate1d sums a symmetric kernel, the map's formulas as skimage writes them), in
+one pass per filtered image, and tests/test_metrics.py checks the two for equality. Used by
+:mod:`stex.metrics` (masked SSIM, region scores), where the evaluation spends much of its time.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from scipy import ndimage as ndi
+
+__all__ = ["SSIM_SIGMA", "SSIM_RADIUS", "SSIM_WEIGHTS", "SsimCache", "ssim_weights", "ssim_filter", "ssim_map"]
+
+#: skimage's Gaussian SSIM window: sigma (px) and radius int(3.5 sigma + 0.5) (truncate 3.5): 11 taps
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = int(3.5 * SSIM_SIGMA + 0.5)
+
+
+class SsimCache:
+    """The reference side of SSIM maps kept while several test images are compared with the same
+    reference crops (every method's render against one true render or photo).
+
+    An SSIM map filters five images (x, y, x², y², xy; Gaussian, per channel); x's two depend on
+    the reference alone. An entry is found by the reference crop's shape and a sparse sample of
+    its pixels and used only when the crop equals the stored one pixel for pixel, so the maps are
+    the ones computed afresh, bit for bit. Holds the crop and two (h, w) float64 arrays per
+    channel for every reference crop: keep one per frame.
+    """
+
+    def __init__(self):
+        self._entries: dict = {}
+
+    def reference(self, ref: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per channel of ``ref`` ((h, w, C) float64), its Gaussian-weighted local mean ux and
+        variance vx ((h, w) float64 each), from the cache or computed now."""
+        key = (ref.shape, ref[::17, ::13].tobytes())
+        for stored, stats in self._entries.get(key, ()):
+            if np.array_equal(stored, ref):
+                return stats
+        stats = [_ssim_reference(np.ascontiguousarray(ref[..., ch])) for ch in range(ref.shape[2])]
+        self._entries.setdefault(key, []).append((ref, stats))
+        return stats
+
+
+def ssim_weights() -> np.ndarray:
+    """skimage's SSIM window (gaussian_weights=True): scipy's Gaussian of sigma 1.5 truncated at
+    3.5 sigma, (11,) float64, read from scipy itself as its response to a unit impulse (exact:
+    every other term of that sum is a zero)."""
+    impulse = np.zeros(2 * SSIM_RADIUS + 1)
+    impulse[SSIM_RADIUS] = 1.0
+    return ndi.gaussian_filter1d(impulse, SSIM_SIGMA, mode="constant", truncate=3.5)
+
+
+SSIM_WEIGHTS = ssim_weights()
+
+
+@njit(cache=True, nogil=True)
+def ssim_filter(x, w):
+    """``scipy.ndimage.gaussian_filter(x, 1.5, mode='reflect', truncate=3.5)`` of a (h, w)
+    float64 image with h, w >= 6, bit for bit: rows then columns, each output the centre tap times
+    its weight plus, outermost pair first, each symmetric pair's sum times its weight, as scipy's
+    correlate1d sums a symmetric kernel; edges reflected (d c b a | a b c d). w: the (2r + 1,)
+    weights (:func:`ssim_weights`). A whole row at a time, so the sums vectorise."""
+    h, wd = x.shape
+    r = (w.shape[0] - 1) // 2
+    tmp = np.empty((h, wd))
+    for i in range(h):
+        for j in range(wd):
+            tmp[i, j] = x[i, j] * w[r]
+        for k in range(-r, 0):
+            ia, ib = i + k, i - k
+            if ia < 0:
+                ia = -ia - 1
+            if ib >= h:
+                ib = 2 * h - ib - 1
+            for j in range(wd):
+                tmp[i, j] += (x[ia, j] + x[ib, j]) * w[r + k]
+    out = np.empty((h, wd))
+    line = np.empty(wd + 2 * r)
+    for i in range(h):
+        for j in range(wd):
+            line[r + j] = tmp[i, j]
+        for k in range(r):
+            line[r - 1 - k] = tmp[i, k]
+            line[r + wd + k] = tmp[i, wd - 1 - k]
+        for j in range(wd):
+            out[i, j] = line[r + j] * w[r]
+        for k in range(-r, 0):
+            for j in range(wd):
+                out[i, j] += (line[r + j + k] + line[r + j - k]) * w[r + k]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _ssim_reference_kernel(x, w):
+    ux = ssim_filter(x, w)
+    uxx = ssim_filter(x * x, w)
+    vx = np.empty_like(ux)
+    for i in range(ux.shape[0]):
+        for j in range(ux.shape[1]):
+            vx[i, j] = 1.0 * (uxx[i, j] - ux[i, j] * ux[i, j])
+    return ux, vx
+
+
+def _ssim_reference(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ux, vx) of one (h, w) float64 reference channel, as skimage computes them (population
+    covariance: cov_norm 1)."""
+    return _ssim_reference_kernel(x, SSIM_WEIGHTS)
+
+
+@njit(cache=True, nogil=True)
+def _ssim_channel(x, y, ux, vx, w, C1, C2, S, ch):
+    """One channel of skimage's SSIM map into S[:, :, ch]: its formulas, operation for operation
+    (A1 = 2 ux uy + C1, A2 = 2 vxy + C2, B1 = ux² + uy² + C1, B2 = vx + vy + C2, S = A1 A2 / B1 B2)."""
+    uy = ssim_filter(y, w)
+    uyy = ssim_filter(y * y, w)
+    uxy = ssim_filter(x * y, w)
+    for i in range(x.shape[0]):
+        for j in range(x.shape[1]):
+            a, b = ux[i, j], uy[i, j]
+            vy = 1.0 * (uyy[i, j] - b * b)
+            vxy = 1.0 * (uxy[i, j] - a * b)
+            A1 = 2 * a * b + C1
+            A2 = 2 * vxy + C2
+            B1 = a * a + b * b + C1
+            B2 = vx[i, j] + vy + C2
+            S[i, j, ch] = (A1 * A2) / (B1 * B2)
+
+
+def ssim_map(ref: np.ndarray, tst: np.ndarray, data_range, cache: SsimCache | None) -> np.ndarray:
+    """The SSIM map of two (h, w, C) float64 images, averaged over channels: (h, w) float64.
+
+    The arithmetic of ``skimage.metrics.structural_similarity(ref, tst, data_range=data_range,
+    channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True)``
+    step for step (tests/test_metrics.py compares the two for equality), with the reference's
+    filtered images from ``cache`` when one is given.
+    """
+    if min(ref.shape[:2]) < 2 * SSIM_RADIUS + 1:  # skimage's own error for an image under a window
+        from skimage.metrics import structural_similarity  # skimage loads slowly; only this needs it
+
+        _, S = structural_similarity(ref, tst, data_range=float(data_range), channel_axis=-1,
+                                     gaussian_weights=True, sigma=SSIM_SIGMA, use_sample_covariance=False,
+                                     full=True)
+        return S.reshape(ref.shape[0], ref.shape[1], -1).mean(axis=-1)
+    stats = cache.reference(ref) if cache is not None else [
+        _ssim_reference(np.ascontiguousarray(ref[..., ch])) for ch in range(ref.shape[2])]
+    R = float(data_range)
+    C1, C2 = (0.01 * R) ** 2, (0.03 * R) ** 2
+    S = np.empty(ref.shape, np.float64)
+    for ch, (ux, vx) in enumerate(stats):
+        _ssim_channel(np.ascontiguousarray(ref[..., ch]), np.ascontiguousarray(tst[..., ch]), ux, vx,
+                      SSIM_WEIGHTS, C1, C2, S, ch)
+    return S.mean(axis=-1)
