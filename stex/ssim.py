@@ -113,18 +113,59 @@ def _ssim_reference(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _ssim_reference_kernel(x, SSIM_WEIGHTS)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _reflect_ends(line, r, wd):
+    """Fill the r entries either side of line[r:r + wd] by reflection (d c b a | a b c d | d c b a)."""
+    for k in range(r):
+        line[r - 1 - k] = line[r + k]
+        line[r + wd + k] = line[r + wd - 1 - k]
+
+
 @njit(cache=True, nogil=True)
 def _ssim_channel(x, y, ux, vx, w, C1, C2, S, ch):
-    """One channel of skimage's SSIM map into S[:, :, ch]: its formulas, operation for operation
-    (A1 = 2 ux uy + C1, A2 = 2 vxy + C2, B1 = ux² + uy² + C1, B2 = vx + vy + C2, S = A1 A2 / B1 B2)."""
-    uy = ssim_filter(y, w)
-    uyy = ssim_filter(y * y, w)
-    uxy = ssim_filter(x * y, w)
-    for i in range(x.shape[0]):
-        for j in range(x.shape[1]):
-            a, b = ux[i, j], uy[i, j]
-            vy = 1.0 * (uyy[i, j] - b * b)
-            vxy = 1.0 * (uxy[i, j] - a * b)
+    """One channel of skimage's SSIM map into S[:, :, ch]: the test's three filtered images (y,
+    y², xy; :func:`ssim_filter`'s sums, products formed as numpy forms them) and its formulas,
+    operation for operation (A1 = 2 ux uy + C1, A2 = 2 vxy + C2, B1 = ux² + uy² + C1,
+    B2 = vx + vy + C2, S = A1 A2 / B1 B2). One output row at a time: the column pass of the
+    eleven input rows it reads goes into three line buffers, then the row pass and the formulas,
+    so no full-size intermediate image is written."""
+    h, wd = x.shape
+    r = (w.shape[0] - 1) // 2
+    w0 = w[r]
+    ly, lyy, lxy = np.empty(wd + 2 * r), np.empty(wd + 2 * r), np.empty(wd + 2 * r)
+    for i in range(h):
+        for j in range(wd):
+            q = y[i, j]
+            ly[r + j] = q * w0
+            lyy[r + j] = (q * q) * w0
+            lxy[r + j] = (x[i, j] * q) * w0
+        for k in range(-r, 0):
+            ia, ib = i + k, i - k
+            if ia < 0:
+                ia = -ia - 1
+            if ib >= h:
+                ib = 2 * h - ib - 1
+            wk = w[r + k]
+            for j in range(wd):
+                p, q = y[ia, j], y[ib, j]
+                ly[r + j] += (p + q) * wk
+                lyy[r + j] += (p * p + q * q) * wk
+                lxy[r + j] += (x[ia, j] * p + x[ib, j] * q) * wk
+        _reflect_ends(ly, r, wd)
+        _reflect_ends(lyy, r, wd)
+        _reflect_ends(lxy, r, wd)
+        for j in range(wd):
+            b = ly[r + j] * w0
+            byy = lyy[r + j] * w0
+            bxy = lxy[r + j] * w0
+            for k in range(-r, 0):
+                wk = w[r + k]
+                b += (ly[r + j + k] + ly[r + j - k]) * wk
+                byy += (lyy[r + j + k] + lyy[r + j - k]) * wk
+                bxy += (lxy[r + j + k] + lxy[r + j - k]) * wk
+            a = ux[i, j]
+            vy = 1.0 * (byy - b * b)
+            vxy = 1.0 * (bxy - a * b)
             A1 = 2 * a * b + C1
             A2 = 2 * vxy + C2
             B1 = a * a + b * b + C1
