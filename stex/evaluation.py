@@ -120,17 +120,18 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def reference_blur(reference, mask, h_size=ev.DEFAULT_H_SIZE,
-                   blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX) -> dict:
+                   blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX, blur_cache=None) -> dict:
     """``blur_input`` and ``blur_input_interior`` of :func:`image_scores`: the photo's own blur
-    inside ``mask`` and inside it eroded by ``blur_interior_px``, which depend on no render."""
-    return {"blur_input": ev.blur(reference, mask, h_size=h_size)["blur"],
-            "blur_input_interior": ev.blur(reference, mask, h_size=h_size,
-                                           erode_px=blur_interior_px)["blur"]}
+    inside ``mask`` and inside it eroded by ``blur_interior_px``, which depend on no render
+    (``blur_cache``: as :func:`stex.metrics.blur`'s ``cache``)."""
+    return {"blur_input": ev.blur(reference, mask, h_size=h_size, cache=blur_cache)["blur"],
+            "blur_input_interior": ev.blur(reference, mask, h_size=h_size, erode_px=blur_interior_px,
+                                           cache=blur_cache)["blur"]}
 
 
 def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAULT_RADIUS,
                  h_size=ev.DEFAULT_H_SIZE, blur_interior_px=ev.DEFAULT_BLUR_INTERIOR_PX,
-                 reference_scores=None, ssim_cache=None) -> dict:
+                 reference_scores=None, ssim_cache=None, blur_cache=None) -> dict:
     """The input-view scores of one render against one photo, inside ``mask``.
 
     Args:
@@ -142,7 +143,8 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         reference_scores: :func:`reference_blur` of ``reference`` in ``mask`` with the same
             settings, when several renders are scored against one photo; None computes it.
         ssim_cache: :class:`stex.ssim.SsimCache` kept for the renders scored against this
-            photo in this mask (the same scores, sooner), or None.
+            photo in this mask (the same scores, sooner), or None. blur_cache: the same for the
+            blur's mask work (:func:`stex.metrics.blur`'s ``cache``), or None.
 
     Returns:
         dict ``psnr`` (patch-shift, dB), ``psnr_unshifted`` (same patches, no shift, dB),
@@ -170,9 +172,9 @@ def image_scores(reference, test, mask, patch=ev.DEFAULT_PATCH, radius=ev.DEFAUL
         "psnr_unshifted": ps["psnr_unshifted"],
         "psnr_plain": ev.masked_psnr(ref, tst, m)["psnr"],
         "ssim": ev.masked_ssim(ref, composite, m, cache=ssim_cache)["ssim"],
-        "blur": ev.blur(tst, m, h_size=h_size)["blur"],
+        "blur": ev.blur(tst, m, h_size=h_size, cache=blur_cache)["blur"],
         "blur_input": rb["blur_input"],
-        "blur_interior": ev.blur(tst, m, h_size=h_size, erode_px=blur_interior_px)["blur"],
+        "blur_interior": ev.blur(tst, m, h_size=h_size, erode_px=blur_interior_px, cache=blur_cache)["blur"],
         "blur_input_interior": rb["blur_input_interior"],
         "mean_shift_px": ps["mean_shift_px"],
         "n_patches": ps["n_patches"],
@@ -317,6 +319,9 @@ MIN_REGION_PX = 100
 
 
 def _truth_region_scores(prefix, truth_img, truth_mask, rec_img, rec_mask, seen, ssim_cache=None) -> dict:
+    """A render's scores against the true render in one view (``region_psnr`` with SSIM over both
+    silhouettes, split by ``seen``), keys prefixed; ``ssim_cache``: a :class:`stex.ssim.SsimCache`
+    for the renders compared with this true render, or None."""
     m = truth_mask & rec_mask
     region = np.zeros_like(m) if seen is None else seen
     r = ev.region_psnr(truth_img, rec_img, m, region, ssim=True, min_pixels=MIN_REGION_PX,
@@ -428,7 +433,10 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
                        seen_faces if truth is not None else None)
     rmask = geom["input"].mask
     scored = m & rmask
-    photo_blur = reference_blur(img, scored, h_size, blur_interior_px)
+    # every method's render is compared with the same photo and true renders in the same masks
+    # (one geometry): the mask work of the blur and the references' side of the SSIM maps once
+    blur_cache, ssim_cache = {}, SsimCache()
+    photo_blur = reference_blur(img, scored, h_size, blur_interior_px, blur_cache)
     mask_iou = _iou(m, rmask)
     area = None if face_has_texture is None else ev.face_areas(vertices, a.faces)
     surface = surface_geom = same = None
@@ -450,15 +458,12 @@ def score_methods(textures: dict, vertices, atlas, image, mask, calibration, *,
             surface_geom = geom if same else frame_views(surface, a, calibration, novel_t, face_visible,
                                                          seen_faces)
     out = {}
-    # every method's render is compared with the same photo and true renders in the same masks
-    # (one geometry): their side of the SSIM maps is filtered once
-    ssim_cache = SsimCache()
     for name, texture in textures.items():
         views = method_views(texture, vertices, a, calibration, geometry=geom)
         rec = views["input"][0]
         s = image_scores(img, rec, scored, patch=patch, radius=radius, h_size=h_size,
                          blur_interior_px=blur_interior_px, reference_scores=photo_blur,
-                         ssim_cache=ssim_cache)
+                         ssim_cache=ssim_cache, blur_cache=blur_cache)
         s["mask_iou"] = mask_iou
         if face_has_texture is not None:
             s.update(coverage_scores(face_has_texture[name], area, seen_faces))

@@ -450,7 +450,25 @@ def _ssim_means(ref, tst, masks, data_range, cache: SsimCache | None = None) -> 
 # blur
 # --------------------------------------------------------------------------------------------
 
-def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255.0, erode_px=0) -> dict:
+def _blur_region(m, erode_px, fill):
+    """What :func:`blur` takes from the mask alone: the mask eroded by ``erode_px``, its pixel
+    count, its bounding box (None when empty) and, for ``fill="nearest"`` on a box the mask does
+    not fill, the nearest mask pixel of every box pixel ((2, h, w) indices into the box)."""
+    if erode_px > 0 and m.any():
+        # the image's own border is not a silhouette: cv2 erodes only from mask edges
+        m = cv2.erode(m.astype(np.uint8), np.ones((2 * int(erode_px) + 1,) * 2, np.uint8)) > 0
+    if not m.any():
+        return m, 0, None, None
+    r0, r1, c0, c1 = _bbox(m)
+    mc = m[r0:r1, c0:c1]
+    idx = None
+    if fill == "nearest" and not mc.all() and min(mc.shape) >= 4:
+        idx = ndi.distance_transform_edt(~mc, return_distances=False, return_indices=True)
+    return m, int(m.sum()), (r0, r1, c0, c1), idx
+
+
+def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255.0, erode_px=0,
+         cache: dict | None = None) -> dict:
     """Crete et al. 2007 no-reference blur of the object: 0 = sharp ... 1 = blurry.
 
     ``skimage.measure.blur_effect(crop, h_size, channel_axis=-1 (RGB -> grey), reduce_func=max)``
@@ -477,6 +495,9 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
         erode_px: the mask is first eroded by this many pixels (a (2e+1)-px square), so that a
             band along the silhouette, where a photo's pixels mix the object with the background
             (motion blur, defocus, the mask's own error), is left out; 0 = the mask as given.
+        cache: a dict kept while several images are scored in the same mask: the erosion and the
+            nearest-pixel fill's indices, which depend on the mask alone, are found once (keyed
+            by the mask's bits); None computes them.
 
     Returns:
         dict ``blur`` (dimensionless in [0, 1]; NaN when the mask is empty or its bounding box
@@ -495,13 +516,14 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
         raise ValueError(f"fill must be 'nearest', 'mean' or 'none', got {fill!r}")
     if int(erode_px) != erode_px or erode_px < 0:
         raise ValueError(f"erode_px must be a whole number of pixels >= 0, got {erode_px!r}")
-    if erode_px > 0 and m.any():
-        # the image's own border is not a silhouette: cv2 erodes only from mask edges
-        m = cv2.erode(m.astype(np.uint8), np.ones((2 * int(erode_px) + 1,) * 2, np.uint8)) > 0
-    res = {"h_size": int(h_size), "fill": fill, "erode_px": int(erode_px), "n_pixels": int(m.sum())}
-    if not m.any():
+    key = None if cache is None else (m.shape, int(erode_px), fill, np.packbits(m).tobytes())
+    m, n_pixels, box, idx = cache[key] if key in (cache or {}) else _blur_region(m, erode_px, fill)
+    if cache is not None:
+        cache[key] = (m, n_pixels, box, idx)
+    res = {"h_size": int(h_size), "fill": fill, "erode_px": int(erode_px), "n_pixels": n_pixels}
+    if box is None:
         return dict(res, blur=np.nan, bbox=None)
-    r0, r1, c0, c1 = _bbox(m)
+    r0, r1, c0, c1 = box
     crop = _image(raw[r0:r1, c0:c1], "image") / float(data_range)  # a new array: filled below
     C = crop.shape[2]
     mc = m[r0:r1, c0:c1]
@@ -509,7 +531,6 @@ def blur(image, mask=None, h_size=DEFAULT_H_SIZE, fill="nearest", data_range=255
         return dict(res, blur=np.nan, bbox=(r0, r1, c0, c1))
     if not mc.all():
         if fill == "nearest":
-            idx = ndi.distance_transform_edt(~mc, return_distances=False, return_indices=True)
             crop = crop[idx[0], idx[1]]
         elif fill == "mean":
             crop[~mc] = crop[mc].mean(axis=0)

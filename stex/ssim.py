@@ -173,6 +173,21 @@ def _ssim_channel(x, y, ux, vx, w, C1, C2, S, ch):
             S[i, j, ch] = (A1 * A2) / (B1 * B2)
 
 
+@njit(cache=True, nogil=True)
+def _channel_mean(S):
+    """``S.mean(axis=-1)`` of an (h, w, C) float64 array as numpy computes it for a few channels:
+    the channels summed in order, then divided by C."""
+    h, wd, C = S.shape
+    out = np.empty((h, wd))
+    for i in range(h):
+        for j in range(wd):
+            acc = S[i, j, 0]
+            for c in range(1, C):
+                acc += S[i, j, c]
+            out[i, j] = acc / C
+    return out
+
+
 def ssim_map(ref: np.ndarray, tst: np.ndarray, data_range, cache: SsimCache | None) -> np.ndarray:
     """The SSIM map of two (h, w, C) float64 images, averaged over channels: (h, w) float64.
 
@@ -196,4 +211,4 @@ def ssim_map(ref: np.ndarray, tst: np.ndarray, data_range, cache: SsimCache | No
     for ch, (ux, vx) in enumerate(stats):
         _ssim_channel(np.ascontiguousarray(ref[..., ch]), np.ascontiguousarray(tst[..., ch]), ux, vx,
                       SSIM_WEIGHTS, C1, C2, S, ch)
-    return S.mean(axis=-1)
+    return _channel_mean(S)

@@ -231,6 +231,25 @@ def test_ssim_map_is_skimages_bit_for_bit():
     assert ev.masked_ssim(ref, tst, mask, cache=cache)["ssim"] == S[mask].mean()
 
 
+def test_blur_with_a_cache_equals_blur_without():
+    """The mask's erosion and fill indices kept in a cache between images give the same blur; a
+    mask differing in one pixel is not confused with a cached one."""
+    rng = np.random.default_rng(8)
+    images = [textured_image(seed=s) for s in (1, 2, 3)]
+    mask = disk(*images[0].shape[:2], 40, cy=60, cx=90)
+    other = mask.copy()
+    other[60, 130 - 1] = ~other[60, 130 - 1]
+    cache = {}
+    for img in images:
+        for m in (mask, other, rng.random(mask.shape) > 0.3):
+            for erode in (0, 3):
+                for fill in ("nearest", "mean"):
+                    plain = ev.blur(img, m, fill=fill, erode_px=erode)
+                    cached = ev.blur(img, m, fill=fill, erode_px=erode, cache=cache)
+                    assert cached == plain or (np.isnan(plain["blur"]) and np.isnan(cached["blur"]))
+    assert len(cache) == 3 * 2 * 2 + 2 * 2 * 2   # the random masks are new each time
+
+
 def test_region_scores_on_the_masks_box_equal_the_full_image_ones():
     """region_psnr works on the mask's bounding box (plus the SSIM window): the same PSNR and
     SSIM as over the whole image, for a mask inside the image and one touching its border."""
