@@ -394,7 +394,7 @@ def masked_ssim(reference, test, mask=None, data_range=255.0, cache: SsimCache |
 
     The SSIM map is ``skimage.metrics.structural_similarity(..., gaussian_weights=True,
     sigma=1.5, use_sample_covariance=False, data_range=data_range, channel_axis=-1, full=True)``
-    (11 x 11 Gaussian window), averaged over channels and then over the masked pixels. Windows
+    (11 x 11 Gaussian window; computed bit for bit by :func:`stex.ssim.ssim_map`), averaged over channels and then over the masked pixels. Windows
     straddle the mask boundary (background inside a window near the silhouette does enter).
     Pixels within the window radius (5 px) of the **image** border are left out, as skimage's own
     mean does, so with an all-True mask the result equals skimage's MSSIM. For speed the map is
