@@ -38,6 +38,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(1, str(REPO / "tests"))   # the real pairs are the tests' own (conftest)
 
+from conftest import data_samples, real_tracking_pairs  # noqa: E402  (the tests' own reading of the samples)
 from stex.camera import mask_in_depth, project_points  # noqa: E402
 from stex.config import load_config  # noqa: E402
 from stex.deformation import rigid_fit  # noqa: E402
@@ -107,8 +108,6 @@ def photometric_error(grey0, grey1, K, V0, V1, F) -> float:
 
 
 def real_pairs(samples: Path, overrides: dict) -> None:
-    from conftest import real_tracking_pairs  # the tests' own reading of the samples
-
     dd = samples / "deepdeform_neuraltracking" / "example_data" / "test" / "seq017" / "color"
     greys = {"DeepDeform": [cv2.cvtColor(cv2.imread(str(dd / f"000{i}.jpg")), cv2.COLOR_BGR2GRAY).astype(np.float32)
                             for i in (300, 600)]}
@@ -137,7 +136,7 @@ def main() -> int:
     ap.add_argument("--scene", choices=[*SCENES, "real"], default="demo")
     ap.add_argument("--ks", type=int, nargs="+", default=[5, 10, 20, 30])
     ap.add_argument("--params", default="{}", help="JSON overrides of the tracking settings (TrackParams fields)")
-    ap.add_argument("--samples", type=Path, default=REPO.parent / "shared" / "data_samples")
+    ap.add_argument("--samples", type=Path, default=data_samples())
     args = ap.parse_args()
     overrides = json.loads(args.params)
     unknown = sorted(set(overrides) - set(TrackParams.__dataclass_fields__))

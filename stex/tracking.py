@@ -138,6 +138,8 @@ class TrackParams:
     association: str = "projective"
     rigid_association: str = "projective"
     rigid_iterations: int = 12
+    rigid_max_iterations: int = 60
+    rigid_coarse_distance_m: float = 0.4
     rigid_w_flow: float = 0.25
     w_point: float = 0.0
     w_silhouette: float = 4.0
@@ -525,29 +527,27 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     return x, stats
 
 
-def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
-    """Gauss-Newton for one rigid motion of the whole mesh ``V0`` (V, 3): returns (R (3, 3), t (3,),
-    stats), the moved vertices being ``V0 @ R.T + t``.
+RIGID_STEP_TOL_M = 1e-4    # the rigid stage has converged once a step moves no vertex farther (m)
+RIGID_MIN_COVERAGE = 0.5   # below this share of visible vertices with depth pairs, the fine level is not trusted
+RIGID_LEVEL_STEPS = 12     # Gauss-Newton steps per coarse level at most (the total is rigid_max_iterations)
 
-    The data terms, their association and the step acceptance are :func:`_solve_frame`'s
-    (``p.gn_iterations`` steps, no graph priors); the unknowns are 6: a rotation vector, applied
-    about the mesh's current centroid, and a translation. A turn is taken whole in one step,
-    where one graph node held rigid by a large rotation weight turns only a little per step (its
-    rotation term grows with the square of the turn, so a turn of a few degrees is still far
-    off after the rigid stage's steps).
-    """
-    c0 = V0.mean(0)
-    P0 = V0 - c0
-    R, t = np.eye(3), np.zeros(3)           # moved vertices: P0 @ R.T + c0 + t
-    stats = {"n_corr": 0, "data_rms_m": np.nan, "lm_rejected": 0, "lm_failed": 0}
+
+def _rigid_steps(P0, c0, R, t, faces, target, p: TrackParams, flow, silhouette, px_scale, max_steps, tol_m, stats):
+    """Gauss-Newton steps of :func:`_solve_rigid` at one association (``p.association``, radius
+    ``p.max_distance_m``) from the motion (R (3, 3), t (3,)) of the centred vertices ``P0`` (V, 3)
+    about ``c0``; stops after ``max_steps``, at a step below 1e-6 in every unknown, or (``tol_m``
+    > 0) once a step moves no vertex farther than ``tol_m`` metres. Returns (R, t, steps taken,
+    how far the last step moved the farthest vertex (m; 0 where no step descends any more), the
+    share of visible vertices with a depth pair at the last step)."""
     mu, nu = 0.0, 2.0
-    px_scale = _px_scale(V0, flow, silhouette)
-    vis_cos = None
-    for it in range(p.gn_iterations):
+    vis_cos, radius = None, np.linalg.norm(P0, axis=1).max()
+    last_m, coverage, it = np.inf, 0.0, 0
+    for it in range(max_steps):
         Q = P0 @ R.T
         depth, sil, vis_cos, cost, vid, Dw, rw = _step_terms(
             Q + c0 + t, faces, target, p, None if it % VISIBILITY_EVERY == 0 else vis_cos, flow, silhouette,
             px_scale, stats)
+        coverage = len(depth[0]) / max(int(vis_cos[0].sum()), 1)
         # x'_i = exp([w]) Q_i + c0 + t + dt: d r / dw = Q_i x D_i, d r / dt = D_i (D_i: d r / d x'_i)
         J = np.concatenate([np.cross(Q[vid], Dw), Dw], axis=1)
         JtJ = J.T @ J + p.damping * np.eye(6)
@@ -561,13 +561,103 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
             cost, g, JtJ, lambda mu: np.linalg.solve(JtJ + np.diag(mu * diag), -g),
             lambda delta: _data_rows(moved(delta), p, depth, flow, sil, rows=False, px_scale=px_scale)[0],
             mu, nu, stats)
-        if delta is None:
+        if delta is None:       # no damping descends: at the minimum of these pairs
+            last_m = 0.0
             break
         R = Rotation.from_rotvec(delta[:3]).as_matrix() @ R
         t = t + delta[3:]
-        if np.abs(delta).max() < 1e-6:
+        last_m = np.linalg.norm(delta[:3]) * radius + np.linalg.norm(delta[3:])
+        if np.abs(delta).max() < 1e-6 or last_m < tol_m:
             break
+    return R, t, it + 1, last_m, coverage
+
+
+def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
+    """Gauss-Newton for one rigid motion of the whole mesh ``V0`` (V, 3): returns (R (3, 3), t (3,),
+    stats), the moved vertices being ``V0 @ R.T + t``.
+
+    The data terms, their association and the step acceptance are :func:`_solve_frame`'s (no
+    graph priors); the unknowns are 6: a rotation vector, applied about the mesh's current
+    centroid, and a translation. A turn is taken whole in one step, where one graph node held
+    rigid by a large rotation weight turns only a little per step (its rotation term grows with
+    the square of the turn, so a turn of a few degrees is still far off after the rigid stage's
+    steps).
+
+    First ``p.gn_iterations`` steps at ``p.association`` within ``p.max_distance_m`` (the fine
+    level). Where they have not converged (the last step still moves a vertex by more than
+    RIGID_STEP_TOL_M, or fewer than RIGID_MIN_COVERAGE of the visible vertices found a depth
+    pair: the object has moved farther than the association reaches), the stage goes coarse to
+    fine (:func:`_rigid_coarse_to_fine`) and keeps whichever motion explains the depth better.
+    Why: a fixed count of fine steps, each moving a few cm, covers only part of a large jump,
+    and the non-rigid stage then shears the mesh from there (issue 55).
+    """
+    c0 = V0.mean(0)
+    P0 = V0 - c0
+    stats = {"n_corr": 0, "data_rms_m": np.nan, "lm_rejected": 0, "lm_failed": 0, "rigid_coarse_to_fine": 0}
+    px_scale = _px_scale(V0, flow, silhouette)
+    R, t, steps, last_m, coverage = _rigid_steps(P0, c0, np.eye(3), np.zeros(3), faces, target, p, flow,
+                                                 silhouette, px_scale, p.gn_iterations, 0.0, stats)
+    if last_m > RIGID_STEP_TOL_M or coverage < RIGID_MIN_COVERAGE:
+        R, t, steps = _rigid_coarse_to_fine(P0, c0, (R, t), faces, target, p, flow, silhouette, px_scale, steps,
+                                            stats)
+    stats["rigid_steps"] = steps
     return R, c0 + t - c0 @ R.T, stats
+
+
+RIGID_TURNS_DEG = (-90.0, -45.0, 45.0, 90.0, 180.0)  # turns about each principal axis the search starts from
+
+
+def _rigid_coarse_to_fine(P0, c0, fine, faces, target, p: TrackParams, flow, silhouette, px_scale, steps, stats):
+    """The rigid stage's coarse-to-fine search (see :func:`_solve_rigid`): (R, t, steps in all).
+
+    Start poses: no motion, and the translation that moves the visible vertices' centroid onto
+    the foreground depth's, alone and with the turns RIGID_TURNS_DEG about each principal axis of
+    the mesh (a turn of more than about 30 degrees leads closest-point pairs to the wrong side
+    of a round body). Each start runs one level of closest-point pairs within
+    ``p.rigid_coarse_distance_m``; the one that then explains the depth best (:func:`depth_residual`)
+    goes on, the radius halving per level down to ``p.max_distance_m``, ending at the fine
+    level's association; each level until a step moves no vertex by more than a fiftieth of its
+    radius (RIGID_STEP_TOL_M at the finest), ``p.rigid_max_iterations`` steps after the search at
+    most. The motion ``fine`` = (R, t) of the fine level alone is kept where it fits the depth
+    better."""
+    def fit(R, t):
+        return depth_residual(P0 @ R.T + c0 + t, faces, target, FRAME_GUARD_CLIP_M)
+
+    def level(R, t, radius, budget):
+        final = radius <= p.max_distance_m
+        lp = p if final else TrackParams(**{**p.__dict__, "association": "closest", "max_distance_m": radius})
+        return _rigid_steps(P0, c0, R, t, faces, target, lp, flow, silhouette, px_scale,
+                            budget if final else min(budget, RIGID_LEVEL_STEPS),
+                            RIGID_STEP_TOL_M if final else radius / 50, stats)[:3]
+
+    stats["rigid_coarse_to_fine"] = 1
+    H, W = target.valid.shape
+    starts = [(np.eye(3), np.zeros(3))]
+    V = P0 + c0
+    vis = vertex_visibility(V, faces, target.K, rasterize(V, faces, target.K, W, H).depth)[0]
+    if target.valid.any() and vis.any():
+        shift = target.points[target.valid].mean(0) - V[vis].mean(0)
+        axes = np.linalg.eigh(P0.T @ P0)[1].T
+        starts += [(np.eye(3), shift)] + [(Rotation.from_rotvec(np.deg2rad(a) * ax).as_matrix(), shift)
+                                          for ax in axes for a in RIGID_TURNS_DEG]
+    radius = max(p.rigid_coarse_distance_m, p.max_distance_m)
+    best = None
+    for R, t in starts:
+        R, t, n = level(R, t, radius, RIGID_LEVEL_STEPS)
+        steps += n
+        score = fit(R, t)
+        if best is None or score < best[0]:
+            best = (score, R, t)
+    _, R, t = best
+    budget = p.rigid_max_iterations
+    while budget > 0 and radius > p.max_distance_m:
+        radius = max(radius / 2, p.max_distance_m)
+        R, t, n = level(R, t, radius, budget)
+        budget -= n
+        steps += n
+    if fit(*fine) <= fit(R, t):
+        return *fine, steps
+    return R, t, steps
 
 
 REST_FIT_SEEN_WEIGHT = 1e4   # the rest-shape fit's weight of a seen vertex's position (against w_rot, w_reg)
@@ -728,7 +818,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         if params.unseen_from_rest and not params.rigid_only:
             cur, rest_warp = _pose_unseen_from_rest(V0, F, graph, rest_warp, prev, cur, obs.target, params, stats)
         stats["seconds"] = time.perf_counter() - tf
-        stats.update(guard, frame_fallback=int(fallback))
+        stats.update(guard, frame_fallback=int(fallback), rigid_steps=rstats["rigid_steps"],
+                     rigid_coarse_to_fine=rstats["rigid_coarse_to_fine"])
         if progress:
             # Overshooting steps are routine on thin parts (see _solve_frame), and a round near its
             # minimum often finds no step that still descends: counted on the progress line. A
