@@ -12,7 +12,7 @@ runs the template stage on the true frame-0 mesh (as the workflow does), tracks 
 per frame, the mean vertex error against the truth carried to the template's topology (exact:
 template vertices lie on the true surface) over the vertices visible in the depth camera and
 over all vertices, and the solve time; beside them, what the tracking stage records without any
-truth (stex.tracking.silhouette_iou against the true mask, and the clipped depth fit), to see
+truth (stex.frame_fit.silhouette_iou against the true mask, and the clipped depth fit), to see
 how well those track the true error.
 
 ``--ceiling`` replaces one input of the tracker by the truth, to measure how much of the error
@@ -60,7 +60,8 @@ from stex.readers.meshes import Mesh  # noqa: E402
 from stex.synth.scene import SyntheticScene  # noqa: E402
 from stex.template import prepare_template  # noqa: E402
 from stex.mesh import transfer_vertices  # noqa: E402
-from stex.tracking import Observation, TrackParams, depth_target, silhouette_iou, track_sequence  # noqa: E402
+from stex.frame_fit import silhouette_iou  # noqa: E402
+from stex.tracking import Observation, TrackParams, depth_target, track_sequence  # noqa: E402
 from stex.camera import mask_in_depth  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "paper": ["config/scenes/paper.yaml"]}
@@ -142,7 +143,8 @@ def main() -> int:
         err = np.linalg.norm(V - Vt, axis=1)
         iou = silhouette_iou(V, F, truth["mask"], cal)
         rows.append((err[vis].mean(), err.mean(), st["seconds"], st.get("lm_rejected", 0), st.get("lm_failed", 0),
-                     st.get("frame_fallback", 0), iou, st.get("depth_residual_m", np.nan)))
+                     st.get("frame_fallback", 0), iou, st.get("depth_residual_m", np.nan),
+                     st.get("rigid_coarse_to_fine", 0)))
         if pos % args.every == 0:
             cap = ""
             if args.capture_error and pos in capture_log:
@@ -160,7 +162,8 @@ def main() -> int:
           f"worst frame all: {1000 * r[:, 1].max():.2f} mm (frame {frames[r[:, 1].argmax()]}); "
           f"frames within 5 / 15 mm: {(r[:, 0] <= 0.005).mean() * 100:.0f} % / {(r[:, 1] <= 0.015).mean() * 100:.0f} %; "
           f"median {np.median(r[:, 2]):.2f} s per frame (first frame excluded: {np.median(r[1:, 2]) if len(r) > 1 else float('nan'):.2f} s); "
-          f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back")
+          f"step guard: {int(r[:, 3].sum())} steps re-solved with damping, {int(r[:, 4].sum())} rounds stopped, {int(r[:, 5].sum())} frames fell back; "
+          f"the rigid stage went coarse to fine at {int(r[:, 8].sum())} frames")
     return 0
 
 

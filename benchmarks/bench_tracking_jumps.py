@@ -47,7 +47,8 @@ from stex.readers.meshes import Mesh  # noqa: E402
 from stex.render import rasterize, vertex_visibility  # noqa: E402
 from stex.synth.scene import SyntheticScene  # noqa: E402
 from stex.template import prepare_template, template_from_depth  # noqa: E402
-from stex.tracking import Observation, TrackParams, depth_residual, depth_target, track_sequence  # noqa: E402
+from stex.frame_fit import depth_residual  # noqa: E402
+from stex.tracking import Observation, TrackParams, depth_target, track_sequence  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"]}
 

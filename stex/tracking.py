@@ -53,12 +53,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from stex.atlas import build_atlas
-from stex.camera import backproject_depth, project_points, transform_points
+from stex.camera import backproject_depth, project_points
 from stex.deformation import (
     DeformationGraph, NormalPattern, build_graph, compose_rigid, deform, identity_params, normal_equations,
     rigid_fit, rotation_terms)
 from stex.flow import AppearanceModel, flow_constraints, flow_image
-from stex.masks import mask_iou
+from stex.frame_fit import depth_residual
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
 
 log = logging.getLogger("stex.tracking")
@@ -881,51 +881,3 @@ def _pose_unseen_from_rest(rest, faces, graph, rest_warp, prev, cur, target: Dep
     posed = deform(rest, rest[graph.nodes], graph, rest_warp)
     stats["unseen_moved_m"] = float(np.linalg.norm(posed[~seen] - cur[~seen], axis=1).mean())
     return np.where(seen[:, None], cur, posed), rest_warp
-
-
-def depth_residual(vertices, faces, target: DepthTarget, clip_m: float = 0.05, union: bool = True) -> float:
-    """Mean |rendered - observed| depth (m), each difference clipped at ``clip_m``: how well a
-    mesh explains one depth frame. With ``union`` over the union of the mesh's and the
-    foreground's pixels, a pixel covered by only one counting ``clip_m`` (silhouette included);
-    otherwise over the pixels both cover."""
-    H, W = target.valid.shape
-    d = rasterize(vertices, faces, target.K, W, H).depth
-    obs = target.points[..., 2]
-    have_mesh, have_obs = d > 0, target.valid
-    if not union:
-        both = have_mesh & have_obs
-        return float(np.minimum(np.abs(d[both] - obs[both]), clip_m).mean()) if both.any() else 0.0
-    union = have_mesh | have_obs
-    if not union.any():
-        return 0.0
-    diff = np.full(union.sum(), clip_m)
-    both = (have_mesh & have_obs)[union]
-    diff[both] = np.minimum(np.abs(d[union][both] - obs[union][both]), clip_m)
-    return float(diff.mean())
-
-
-def depth_scale_ratio(vertices, faces, target: DepthTarget, min_pixels: int = 20) -> float | None:
-    """Median rendered depth over median observed depth on the pixels both the mesh and the
-    foreground depth cover, or None where they share fewer than ``min_pixels``: about 1 for a mesh
-    in metres in the depth camera's coordinates, 1000 for one in millimetres. The silhouette
-    cannot tell (a mesh 1000 times larger and farther projects the same), the depth can."""
-    H, W = target.valid.shape
-    d = rasterize(vertices, faces, target.K, W, H).depth
-    both = (d > 0) & target.valid
-    if both.sum() < min_pixels:
-        return None
-    return float(np.median(d[both]) / np.median(target.points[..., 2][both]))
-
-
-def silhouette_iou(vertices, faces, mask, calibration) -> float:
-    """Intersection over union of the mesh's silhouette in the colour camera and ``mask``.
-
-    vertices (V, 3) depth-camera metres, faces (F, 3), mask (Hc, Wc) bool foreground of the
-    colour image. How well a tracked mesh covers the object, without any ground truth: near 1
-    while the tracker follows, falling when it loses a part (:func:`stex.masks.mask_iou`).
-    """
-    c = calibration.color
-    if mask.shape != (c.height, c.width):
-        raise ValueError(f"mask is {mask.shape[1]}x{mask.shape[0]}, the colour camera {c.width}x{c.height}")
-    covered = rasterize(transform_points(calibration.depth_to_color, vertices), faces, c.K, c.width, c.height).depth > 0
-    return mask_iou(covered, mask)

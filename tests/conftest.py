@@ -46,7 +46,8 @@ def real_pair_fits(samples: Path, **params) -> list[tuple[str, float, float, flo
     the mean clipped depth difference (m) at the second frame over the pixels mesh and depth both
     cover: (name, template as it is, rigid fit (``rigid_only``), tracked)."""
     from stex.template import template_from_depth
-    from stex.tracking import Observation, TrackParams, depth_residual, depth_target, track_sequence
+    from stex.frame_fit import depth_residual
+    from stex.tracking import Observation, TrackParams, depth_target, track_sequence
 
     out = []
     for name, K, depths, masks in real_tracking_pairs(samples):

@@ -1,4 +1,5 @@
 """Embedded-deformation tracking with the L0 regulariser."""
+import re
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,8 @@ from conftest import data_samples, real_pair_fits
 from stex.render import face_normals, rasterize, vertex_visibility
 from stex.synth.shapes import bumpy_sphere
 from stex.template import template_from_depth
-from stex.tracking import (Observation, TrackParams, _solve_frame, block_jacobi, depth_residual, depth_target, fit_rest_warp,
+from stex.frame_fit import depth_residual
+from stex.tracking import (Observation, TrackParams, _solve_frame, block_jacobi, depth_target, fit_rest_warp,
     track_sequence)
 from stex.deformation import build_graph, compose_rigid, deform, identity_params, rigid_fit
 
@@ -451,7 +453,7 @@ def test_link_weights_enter_the_normal_equations_per_link():
 def test_silhouette_iou_of_a_mesh_and_its_own_mask(tiny_config):
     from stex.camera import transform_points
     from stex.synth.scene import SyntheticScene
-    from stex.tracking import silhouette_iou
+    from stex.frame_fit import silhouette_iou
 
     scene = SyntheticScene(tiny_config["source"]["synthetic"])
     cal = scene.calibration
@@ -844,7 +846,7 @@ def test_depth_scale_check_refuses_a_mesh_twice_as_far():
     """Scaling a mesh about the camera centre keeps its silhouette and scales its depth: the
     ratio is the scale, and the check refuses 2 (outside 1/1.5 .. 1.5) but passes 1.3 and 1/1.3."""
     from stex.stages.tracking import _check_depth_scale
-    from stex.tracking import depth_scale_ratio
+    from stex.frame_fit import depth_scale_ratio
     V, F = _sphere()
     t = _target(V, F)
     assert depth_scale_ratio(2.0 * V, F, t) == pytest.approx(2.0, rel=1e-3)
@@ -1126,3 +1128,114 @@ def test_block_jacobi_takes_a_node_with_degenerate_data():
     assert np.isfinite(out).all()
     assert np.allclose(out[:12], np.linalg.solve(regular, v[:12]), rtol=1e-6)
     assert np.allclose(block_jacobi(blocks[:1]).matvec(v[:12]), np.linalg.solve(regular, v[:12]))
+
+
+@pytest.mark.parametrize("axis, shift", [("x", [0.0, 0.15, 0.2]), ("y", [-0.15, 0.0, 0.2])])
+def test_rigid_stage_recovers_a_jump_of_25_cm_and_30_degrees(axis, shift):
+    """A 0.25 m jump with a 30 degree turn of the bumpy sphere, beyond the fine level's reach
+    (its rigid_iterations projective steps): the rigid stage goes coarse to fine and lands on
+    the moved sphere to within a millimetre, where the fine steps alone stop 5 cm or more off."""
+    V, F = _sphere()
+    c = V.mean(0)
+    assert np.linalg.norm(shift) == pytest.approx(0.25)
+    V1 = (V - c) @ Rotation.from_euler(axis, 30, degrees=True).as_matrix().T + c + shift
+    target = _target(V1, F)
+    p = TrackParams(rigid_only=True, w_flow=0.0)
+    (_, out, st), = track_sequence(V, F, [Observation(target)], p, progress=False)
+    assert st["rigid_coarse_to_fine"] == 1
+    assert np.linalg.norm(out - V1, axis=1).mean() < 0.001
+    # the fine level alone, as the stage ran before: a fixed count of projective steps
+    from stex.tracking import _rigid_steps
+    fine = TrackParams(**{**p.__dict__, "max_distance_m": 2 * p.max_distance_m})
+    R, t, steps, _, _ = _rigid_steps(V - c, c, np.eye(3), np.zeros(3), F.astype(np.int64), target, fine, None, None,
+                                     None, p.rigid_iterations, 0.0, {"n_corr": 0, "data_rms_m": 0.0,
+                                                                     "lm_rejected": 0, "lm_failed": 0})
+    assert steps == p.rigid_iterations
+    assert np.linalg.norm((V - c) @ R.T + c + t - V1, axis=1).mean() > 0.05
+
+
+def test_rigid_stage_keeps_its_fine_steps_where_they_converge():
+    """A small motion (1 cm, 3 degrees) converges within the fine level's rigid_iterations steps:
+    no coarse-to-fine search, the result that of the fine steps (as before the search existed)."""
+    V, F = _sphere()
+    c = V.mean(0)
+    V1 = (V - c) @ Rotation.from_euler("y", 3, degrees=True).as_matrix().T + c + [0.01, 0.0, 0.0]
+    (_, out, st), = track_sequence(V, F, [Observation(_target(V1, F))], TrackParams(rigid_only=True, w_flow=0.0),
+                                   progress=False)
+    assert st["rigid_coarse_to_fine"] == 0 and st["rigid_steps"] <= TrackParams.rigid_iterations
+    assert np.linalg.norm(out - V1, axis=1).mean() < 0.0005
+
+
+def test_rigid_stage_without_depth_stops_within_its_bound():
+    """No foreground depth at all: the rigid stage cannot converge on anything, searches, and
+    stops within its bound (rigid_max_iterations after the start poses' coarse level) with the
+    mesh where it was."""
+    from stex.tracking import RIGID_LEVEL_STEPS
+    V, F = _sphere()
+    empty = depth_target(np.zeros((180, 240)), K)
+    p = TrackParams(rigid_only=True, w_flow=0.0, rigid_max_iterations=7)
+    (_, out, st), = track_sequence(V, F, [Observation(empty)], p, progress=False)
+    assert st["rigid_steps"] <= p.rigid_iterations + RIGID_LEVEL_STEPS + p.rigid_max_iterations
+    assert np.abs(out - V).max() < 1e-9
+
+
+def test_template_fit_problem_names_what_is_wrong():
+    """The sphere in place fits; moved 0.8 m aside it shares no depth pixel with the object and
+    the offset is named (measured from the part of its camera-facing side in view); 0.6 m farther along the view it overlaps in the image but lies beyond
+    the rigid stage's reach; in millimetres its depth is 1000-odd times the object's; one face
+    is too few."""
+    from stex.frame_fit import template_fit_problem
+    V, F = _sphere()
+    t = _target(V, F)
+    assert template_fit_problem(V, F, t, 0.4) is None
+    aside = template_fit_problem(V + [0.8, 0.0, 0.0], F, t, 0.4)
+    assert aside.startswith("it shares 0 depth pixels")
+    assert float(re.search(r"depth lies ([\d.]+) m from", aside).group(1)) > 0.5 and "x -0.5" in aside
+    farther = template_fit_problem(V + [0.0, 0.0, 0.6], F, t, 0.4)
+    assert "farther than the tracker looks" in farther and "z -0.6" in farther
+    mm = template_fit_problem(1000 * V, F, t, 0.4)
+    assert re.search(r"1\d\d\d times as far .* metres", mm)
+    one = template_fit_problem(V, F[:1], t, 0.4)
+    assert one.startswith("it has 1 face of non-zero area")
+
+
+def test_tracking_stage_refuses_a_template_that_does_not_fit_the_object(tmp_path):
+    """Shifted 0.6 m, in millimetres, or one face: the tracking stage raises before tracking,
+    naming the template store, what is wrong and what to try, and writes no store; the tiny
+    scene's own template passes the same check."""
+    import shutil
+
+    import zarr
+
+    from conftest import run_stages, tiny_scene_config
+    from stex.camera import Calibration
+    from stex.io import FrameSequence, open_store
+    from stex.stages.tracking import _check_template_fit, observations_from_stores, write_tracking
+
+    cfg = tiny_scene_config(template={"atlas_size": 128})
+    P = run_stages(cfg, tmp_path)
+
+    def copy_edit(name, key, edit):
+        out = tmp_path / name
+        shutil.copytree(P["template"], out)
+        z = zarr.open_group(str(out), mode="r+")
+        z[key][...] = edit(z[key][...])
+        z.attrs["chunk_files"] = {}   # see the millimetre test above
+        return out
+
+    cases = {"shifted": (copy_edit("shifted.zarr", "vertices", lambda v: v + [0.6, 0.0, 0.0]), r"it shares \d+ depth pixels"),
+             "mm": (copy_edit("mm.zarr", "vertices", lambda v: 1000 * v), r"its vertices lie \d+ times as far .* metres"),
+             "one face": (copy_edit("one.zarr", "faces", lambda f: np.concatenate([f[:1], 0 * f[1:]])),
+                          "it has 1 face of non-zero area")}
+    for name, (store, what) in cases.items():
+        with pytest.raises(ValueError, match=rf"{store.name}: at frame \d+ the template does not fit the object: "
+                                             rf"{what}.*template\.from_depth: true"):
+            write_tracking(P["scene"], store, P["frames"], P["masks"], dict(cfg["tracking"], mode="track"),
+                           tmp_path / f"{name}_tracking.zarr")
+        assert not (tmp_path / f"{name}_tracking.zarr").exists()
+    cal = Calibration.from_dict(open_store(P["scene"], "scene").attrs["calibration"])
+    template = open_store(P["template"], "template")
+    first = next(observations_from_stores(FrameSequence(P["frames"], "frames"), FrameSequence(P["masks"], "masks"),
+                                          cal, use_flow=False))
+    _check_template_fit(template["vertices"][...], template["faces"][...], first.target, 0, P["template"],
+                        cfg["tracking"])

@@ -13,9 +13,8 @@ from stex.camera import Calibration, mask_in_depth
 from stex.io import FrameSequence, create_store, open_store
 from stex.mesh import is_closed, transfer_vertices
 from stex.preview import pyplot
-from stex.tracking import (
-    FRAME_GUARD_CLIP_M, DepthTarget, Observation, TrackParams, depth_residual, depth_scale_ratio, depth_target,
-    silhouette_iou, track_sequence)
+from stex.frame_fit import depth_residual, depth_scale_ratio, silhouette_iou, template_fit_problem
+from stex.tracking import FRAME_GUARD_CLIP_M, DepthTarget, Observation, TrackParams, depth_target, track_sequence
 
 log = logging.getLogger("stex.tracking")
 
@@ -56,7 +55,10 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     last = []   # the observation of the frame being tracked (track_sequence consumes them)
 
     def observed():
-        for ob in observations_from_stores(frames, masks, cal, use_flow=mode == "track" and params["w_flow"] > 0):
+        for k, ob in enumerate(observations_from_stores(frames, masks, cal,
+                                                        use_flow=mode == "track" and params["w_flow"] > 0)):
+            if k == 0 and mode == "track":   # before the tracker has moved the template
+                _check_template_fit(V0, F, ob.target, frames.frame_ids[0], template_path, params)
             last[:] = [ob]
             yield ob
 
@@ -147,6 +149,20 @@ def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, wher
             f"(millimetres give 1000, centimetres 100) and in the depth camera's coordinates. The depth is "
             f"read where the frame's mask puts the object, so a mask that marks the background instead (an "
             f"inverted mask) gives such a ratio too: look at the masks (previews/masks.png)")
+
+
+def _check_template_fit(vertices, faces, target: DepthTarget, frame_id: int, template_path, params: dict) -> None:
+    """Refuse a template that does not fit the object at the first frame (:func:`template_fit_problem`:
+    too few faces, wrong units, no overlap with the object's depth, or out of the tracker's reach),
+    naming the template store, what is wrong and what to try."""
+    problem = template_fit_problem(vertices, faces, target,
+                                   float(params.get("rigid_coarse_distance_m", TrackParams.rigid_coarse_distance_m)))
+    if problem is not None:
+        raise ValueError(
+            f"{template_path}: at frame {frame_id} the template does not fit the object: {problem}. The tracker "
+            f"starts from the template as it lies, so it must cover the object in the first frame. Check the source's template mesh (its units and pose), and the "
+            f"masks (previews/masks.png: the object's depth is read inside them), or build the template from the "
+            f"first frame's depth instead (template.from_depth: true)")
 
 
 def _lost_mesh_hint(from_first_frame: bool, params: dict, vertices, faces) -> str:
