@@ -82,8 +82,8 @@ def template_fit_problem(vertices, faces, target, reach_m: float) -> str | None:
     vertices TEMPLATE_UNITS_RATIO or more times the object's (or as much less: millimetres,
     centimetres, or not in the depth camera's frame); a mesh that projects to no depth pixel; one
     that shares less than MIN_TEMPLATE_OVERLAP of the smaller of its own and the object's depth
-    pixels (wrong place); one whose camera-facing side's centroid is farther than ``reach_m``
-    from the object's depth (wrong place along the view). The answer is a sentence naming the
+    pixels (wrong place); one whose depth differs from the object's by more than ``reach_m``
+    (median over the pixels both cover: wrong place along the view). The answer is a sentence naming the
     figures. Without foreground depth at the frame there is nothing to compare: None (the
     tracking stage warns about frames without depth).
     Why: such a template is tracked without one depth correspondence and every later stage runs
@@ -123,6 +123,11 @@ def template_fit_problem(vertices, faces, target, reach_m: float) -> str | None:
     if share < MIN_TEMPLATE_OVERLAP:
         return (f"it shares {both} depth pixels with the object ({100 * share:.1f} % of the smaller of the two, "
                 f"below {100 * MIN_TEMPLATE_OVERLAP:g} %): {off}")
-    if np.linalg.norm(offset) > reach_m:
-        return f"{off}, farther than the tracker looks for it (tracking.rigid_coarse_distance_m {reach_m:g} m)"
+    # along the view, where both cover the image: a loose mask's background does not count there
+    overlap = covered & target.valid
+    gap = float(np.median(raster[overlap] - target.points[..., 2][overlap]))
+    if abs(gap) > reach_m:
+        return (f"where it overlaps the object in the depth image it lies {abs(gap):.2f} m "
+                f"{'behind' if gap > 0 else 'in front of'} the object's depth (median), farther than the tracker "
+                f"looks for it (tracking.rigid_coarse_distance_m {reach_m:g} m)")
     return None
