@@ -610,16 +610,15 @@ RIGID_TURNS_DEG = (-90.0, -45.0, 45.0, 90.0, 180.0)  # turns about each principa
 def _rigid_coarse_to_fine(P0, c0, fine, faces, target, p: TrackParams, flow, silhouette, px_scale, steps, stats):
     """The rigid stage's coarse-to-fine search (see :func:`_solve_rigid`): (R, t, steps in all).
 
-    Start poses: no motion, and the translation that moves the visible vertices' centroid onto
-    the foreground depth's, alone and with the turns RIGID_TURNS_DEG about each principal axis of
-    the mesh (a turn of more than about 30 degrees leads closest-point pairs to the wrong side
+    Start poses: no motion, the fine level's motion ``fine`` = (R, t), and the translation that
+    moves the visible vertices' centroid onto the foreground depth's, alone and with the turns
+    RIGID_TURNS_DEG about each principal axis of the mesh (a turn of more than about 30 degrees leads closest-point pairs to the wrong side
     of a round body). Each start runs one level of closest-point pairs within
     ``p.rigid_coarse_distance_m``; the one that then explains the depth best (:func:`depth_residual`)
     goes on, the radius halving per level down to ``p.max_distance_m``, ending at the fine
     level's association; each level until a step moves no vertex by more than a fiftieth of its
     radius (RIGID_STEP_TOL_M at the finest), ``p.rigid_max_iterations`` steps after the search at
-    most. The motion ``fine`` = (R, t) of the fine level alone is kept where it fits the depth
-    better."""
+    most. The fine level's motion is kept where it fits the depth better."""
     def fit(R, t):
         return depth_residual(P0 @ R.T + c0 + t, faces, target, FRAME_GUARD_CLIP_M)
 
@@ -632,7 +631,7 @@ def _rigid_coarse_to_fine(P0, c0, fine, faces, target, p: TrackParams, flow, sil
 
     stats["rigid_coarse_to_fine"] = 1
     H, W = target.valid.shape
-    starts = [(np.eye(3), np.zeros(3))]
+    starts = [(np.eye(3), np.zeros(3)), fine]
     V = P0 + c0
     vis = vertex_visibility(V, faces, target.K, rasterize(V, faces, target.K, W, H).depth)[0]
     if target.valid.any() and vis.any():
