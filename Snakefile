@@ -23,6 +23,12 @@ report: "workflow/report/workflow.rst"
 
 include: "workflow/rules/common.smk"
 include: "workflow/rules/scheduling.smk"
+
+
+LOCKED_RESULTS = [RESULTS]  # one writer per results folder (workflow/rules/hooks.smk)
+
+
+include: "workflow/rules/hooks.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/template.smk"

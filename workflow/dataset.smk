@@ -47,6 +47,13 @@ for scene_name, scene_config in SCENES.items():
     use rule * from scene_name as prefix*
 
 
+# one writer per results folder: the run holds every scene's (rules/hooks.smk)
+LOCKED_RESULTS = [f"{c['results']}/{name}" for name, c in SCENES.items()]
+
+
+include: "rules/hooks.smk"
+
+
 # A report of a scene with missing results: Snakemake's own refusal names one missing file of one
 # scene; name every unfinished scene and the option that reports the others. Snakemake tells a
 # workflow nothing about a report, so it is read from the command line (--report, or --reporter

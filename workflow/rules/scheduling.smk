@@ -8,8 +8,11 @@
 # timespan long enough to be harmless leaves timer threads that keep the process alive), so this
 # sets the scheduler's attribute; tests/test_scheduling.py fails when Snakemake changes what it
 # relies on. Why and what it was measured to cost: docs/decisions/scheduling.md. Included by
-# ../../Snakefile and ../dataset.smk; Snakemake runs the onstart of the top-level workflow only.
-onstart:
+# ../../Snakefile and ../dataset.smk; called from the onstart in hooks.smk (Snakemake runs the
+# onstart of the top-level workflow only, and one of them).
+
+
+def local_scheduling_without_rate_limiter():
     _scheduler = getattr(workflow, "scheduler", None)  # set just before onstart (snakemake >= 8)
     if getattr(workflow, "local_exec", False) and getattr(_scheduler, "job_rate_limiter", None) is not None:
         _scheduler.job_rate_limiter = None
