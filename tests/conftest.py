@@ -66,6 +66,28 @@ def real_pair_fits(samples: Path, **params) -> list[tuple[str, float, float, flo
 TINY_SYNTHETIC = yaml.safe_load((REPO / "tests" / "tiny_synthetic.yaml").read_text())
 
 
+def tiny_workflow_config(results) -> dict:
+    """A config file's content for the whole workflow on the tiny scene in one frame block, with
+    given meshes and texture coordinates at Φ (every stage, each job a few seconds), into
+    ``results``."""
+    return {"scene": "tiny", "results": str(results), "frame_block": 6,
+            "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
+            "template": {"atlas_size": 256}, "tracking": {"mode": "given"},
+            "observations": {"coordinates": "projected"}}
+
+
+def pytest_terminal_summary(terminalreporter):
+    """What tests recorded with ``record_property("summary", text)`` (e.g. the jobs a real SLURM
+    cluster saw, tests/test_slurm_real.py), printed at the end of the run also under -q and from
+    xdist workers, so that a CI log shows it."""
+    lines = [value for report in terminalreporter.stats.get("passed", [])
+             for name, value in getattr(report, "user_properties", ()) if name == "summary"]
+    if lines:
+        terminalreporter.write_sep("-", "recorded by the tests")
+        for text in lines:
+            terminalreporter.write_line(text)
+
+
 def grid_atlas(n: int = 9):
     """A flat n x n vertex grid covering [0.05, 0.95]^2 of an atlas whose texcoords are the
     vertices: (texcoords (n², 2) float64, faces (2 (n-1)², 3) int32)."""

@@ -7,7 +7,8 @@ through the real ``snakemake-executor-plugin-slurm`` in a test.
   a job id and runs the ``--wrap`` command in the background, in ``-D``, with its output in
   ``--output`` and its CPU affinity cut to ``--cpus-per-task`` CPUs (as a cgroup would);
 - ``sacct``: every job's state (``RUNNING`` until its command ends, then ``COMPLETED`` or
-  ``FAILED``), as ``sacct --parsable2 --format=JobIdRaw,State`` prints them;
+  ``FAILED``), as ``sacct --parsable2 --format=JobIdRaw,State`` prints them; after
+  ``$FAKE_SLURM_SACCT_ANSWERS`` calls (when set) it fails as on a cluster without accounting;
 - ``srun``: runs its command (options dropped);
 - ``sinfo``, ``scontrol``, ``sacctmgr``, ``sshare``: know nothing (no partitions, no
   configuration, no accounts to check a given account against).
@@ -65,10 +66,17 @@ print(jobid)
 '''
 
 SACCT = r'''#!{python}
-import os
+import os, sys
 
+state = os.environ["FAKE_SLURM_STATE"]
+with open(os.path.join(state, "sacct.calls"), "a+") as f:
+    f.write("x")
+    f.seek(0)
+    calls = len(f.read())
+if calls > int(os.environ.get("FAKE_SLURM_SACCT_ANSWERS", "1000000")):
+    sys.exit("Slurm accounting storage is disabled")
 states = {}
-path = os.path.join(os.environ["FAKE_SLURM_STATE"], "jobs")
+path = os.path.join(state, "jobs")
 if os.path.exists(path):
     with open(path) as f:
         for line in f:

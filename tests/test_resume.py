@@ -3,31 +3,25 @@
 The README's command (``snakemake --cores 2``) loads the workflow profile ``profiles/default``
 (``rerun-incomplete``), and workflow/rules/hooks.smk clears the Snakemake locks a killed run left
 behind, so that neither ``--rerun-incomplete`` nor ``--unlock`` is needed."""
+import dataclasses
 import glob
+import json
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
-import pytest
 import yaml
 import zarr
 
-from conftest import REPO, TINY_SYNTHETIC
-from stex.runlock import LOCK_NAME, read_holder
-
-# the tiny scene in one frame block, with given meshes and texture coordinates at Φ: every stage
-# of the workflow (ingest to evaluation) in a few seconds each
-TINY = {"scene": "tiny", "frame_block": 6, "source": {"kind": "synthetic", "synthetic": TINY_SYNTHETIC},
-        "template": {"atlas_size": 256}, "tracking": {"mode": "given"},
-        "observations": {"coordinates": "projected"}}
+from conftest import REPO, tiny_workflow_config
+from stex.runlock import LOCK_NAME, process_start, read_holder, this_process
 
 
 def workdir(path, results):
     path.mkdir(parents=True, exist_ok=True)
-    (path / "tiny.yaml").write_text(yaml.safe_dump({**TINY, "results": str(results)}))
+    (path / "tiny.yaml").write_text(yaml.safe_dump(tiny_workflow_config(results)))
     return path
 
 
@@ -39,6 +33,18 @@ def command(work, *extra):
 
 def run(work, *extra, timeout=600):
     return subprocess.run(command(work, *extra), capture_output=True, text=True, timeout=timeout)
+
+
+def timed(cmd, log):
+    """Run ``cmd`` with its output in the file ``log``: (exit status, output, wall time (s), CPU time
+    (s, user + system, the process and its children)). The CPU time says how fast a refusal is on
+    a machine whose other work stretches the wall time."""
+    start = time.monotonic()
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, log.read_text(), time.monotonic() - start, usage.ru_utime + usage.ru_stime
 
 
 def run_and_kill_when(work, pattern, log):
@@ -124,18 +130,43 @@ def test_a_second_run_on_one_results_folder_from_another_directory_fails_naming_
         while not lock.exists() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert lock.exists(), (tmp_path / "first.log").read_text()[-3000:]
-        start = time.monotonic()
-        other = run(second)
-        seconds = time.monotonic() - start
+        status, log, seconds, cpu = timed(command(second), tmp_path / "second.log")
         assert proc.poll() is None, "the first run ended before the second tried"
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    log = other.stdout + other.stderr
-    assert other.returncode != 0
+    assert status != 0
     assert f"is being written by another stex run: pid {proc.pid} on host" in log, log[-3000:]
     assert f"in {first} " in log and str(lock) in log
-    assert seconds < 5, seconds
+    # refused at the start: no job of its own, a few seconds of Snakemake reading the workflow
+    assert "rule " not in log and cpu < 5, (seconds, cpu)
     # a dry run neither takes the lock nor fails on it
     dry = run(second, "-n")
     assert dry.returncode == 0, dry.stderr[-3000:]
+
+
+def test_a_dataset_run_holds_every_scene_and_a_dry_run_none(tmp_path):
+    """workflow/dataset.smk takes the lock of each of its scenes: one held by another live run
+    stops it at the start naming that run, and the scene it had taken is let go again."""
+    for name in ("a", "b"):
+        (tmp_path / f"{name}.yaml").write_text(yaml.safe_dump({**tiny_workflow_config(tmp_path / "results"), "scene": name}))
+    (tmp_path / "dataset.yaml").write_text(yaml.safe_dump({"scene_files": ["a.yaml", "b.yaml"]}))
+    other = subprocess.Popen(["sleep", "60"])
+    try:
+        holder = {**dataclasses.asdict(this_process("the other run")), "pid": other.pid,
+                  "process_start": process_start(other.pid)}
+        (tmp_path / "results" / "b").mkdir(parents=True)
+        (tmp_path / "results" / "b" / LOCK_NAME).write_text(json.dumps(holder))
+        cmd = ["snakemake", "--snakefile", str(REPO / "workflow" / "dataset.smk"), "--directory", str(tmp_path),
+               "--configfile", str(tmp_path / "dataset.yaml"), "--cores", "2"]
+        dry = subprocess.run(cmd + ["-n"], capture_output=True, text=True, timeout=300)
+        assert dry.returncode == 0, dry.stderr[-3000:]
+        status, log, seconds, cpu = timed(cmd, tmp_path / "refused.log")
+    finally:
+        other.kill()
+        other.wait()
+    assert status != 0
+    assert f"{tmp_path / 'results' / 'b'} is being written by another stex run: pid {other.pid}" in log, log[-3000:]
+    assert not (tmp_path / "results" / "a" / LOCK_NAME).exists()
+    assert "rule " not in log and not (tmp_path / "results" / "a" / "scene.zarr").exists()
+    assert cpu < 5, (seconds, cpu)

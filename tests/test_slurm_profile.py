@@ -1,6 +1,7 @@
 """The workflow's SLURM profile, run through the real snakemake-executor-plugin-slurm against a
 stand-in cluster on this machine (tests/fake_slurm.py): the jobs are submitted with their
 rule's threads as CPUs, the profile's memory and time, and they produce the stores."""
+import re
 import subprocess
 import sys
 
@@ -18,8 +19,6 @@ import fake_slurm  # noqa: E402
 def rule_threads_and_runtime():
     """threads declared by each rule of the workflow (1 where none is declared), and the wall time
     (minutes) of the rules that declare one (``runtime=SEQUENCE_RUNTIME_MIN``)."""
-    import re
-
     rules = REPO / "workflow" / "rules"
     sequence_minutes = int(re.search(r"^SEQUENCE_RUNTIME_MIN = (\d+)$", (rules / "common.smk").read_text(), re.M)[1])
     threads, runtime = {}, {}
@@ -33,7 +32,10 @@ def rule_threads_and_runtime():
     return threads, runtime
 
 
-def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
+def stand_in_run(tmp_path, *targets):
+    """The tiny scene in ``tmp_path``/wf and snakemake's command line with the slurm profile on the
+    stand-in cluster (installed in ``tmp_path``), building ``targets`` (paths relative to its
+    results/tiny). Returns (command, environment, results/tiny, the profile's settings)."""
     work = tmp_path / "wf"
     work.mkdir()
     # one frame block and the jobs up to the poses (two threads, after the sequence-long tracking):
@@ -47,12 +49,8 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     profile = REPO / "workflow" / "profiles" / "slurm"
     settings = yaml.safe_load((profile / "config.yaml").read_text())
     defaults = settings["default-resources"]
-    # per-rule resources live in the rules, so that they also hold for workflow/dataset.smk's
-    # prefixed rule names, which a profile's set-resources would not reach
-    assert "set-resources" not in settings
-    assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     # snakemake's command line, its slurm status checks at most 2 s apart (fake_slurm's __main__)
-    cmd = [sys.executable, fake_slurm.__file__, str(res / "poses.zarr"),
+    cmd = [sys.executable, fake_slurm.__file__, *[str(res / t) for t in targets],
            "--snakefile", str(REPO / "Snakefile"),
            "--workflow-profile", str(profile),
            "--directory", str(work), "--configfile", str(work / "tiny.yaml"),
@@ -61,6 +59,16 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
            # --default-resources replaces the profile's list, so its values are repeated
            "--default-resources", *[f"{k}={v}" for k, v in defaults.items()],
            "slurm_account=acct", "slurm_partition=part"]
+    return cmd, env, res, settings
+
+
+def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
+    cmd, env, res, settings = stand_in_run(tmp_path, "poses.zarr")
+    defaults = settings["default-resources"]
+    # per-rule resources live in the rules, so that they also hold for workflow/dataset.smk's
+    # prefixed rule names, which a profile's set-resources would not reach
+    assert "set-resources" not in settings
+    assert "cpus_per_task" not in defaults  # it would replace every rule's threads
     run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     out = run.stdout + run.stderr
     assert run.returncode == 0, out[-4000:]
@@ -83,3 +91,34 @@ def test_slurm_profile_submits_each_rule_with_its_threads(tmp_path):
     # the jobs ran on the stand-in nodes and wrote complete stores
     assert open_store(res / "poses.zarr", "poses")["poses"].shape[:2] == (6, 6)
     assert open_store(res / "tracking.zarr", "tracking")["vertices"].shape[0] == 6
+
+
+def test_a_cluster_without_accounting_whose_squeue_cannot_follow_the_jobs_is_an_error_at_once(tmp_path):
+    """sacct fails (no accounting) and the controller does not say how long squeue lists ended
+    jobs (the stand-in's scontrol prints nothing): the run stops before it submits a job, instead
+    of waiting for ever (workflow/rules/hooks.smk, stex.slurm)."""
+    cmd, env, res, _ = stand_in_run(tmp_path, "scene.zarr")
+    run = subprocess.run(cmd, env=dict(env, FAKE_SLURM_SACCT_ANSWERS="0"), capture_output=True, text=True, timeout=300)
+    out = run.stdout + run.stderr
+    assert run.returncode != 0
+    assert ("this cluster has no job accounting (sacct: Slurm accounting storage is disabled), and squeue "
+            "forgets a finished job after MinJobAge = unknown") in out, out[-4000:]
+    assert fake_slurm.submissions(tmp_path / "slurm") == []
+    assert not (res / ".stex-run.lock").exists()  # released as the run ended
+
+
+def test_a_status_command_that_keeps_failing_ends_the_run_with_its_error(tmp_path):
+    """sacct answers at the start, then fails at every status check: the run ends with that
+    error once the failures have lasted STEX_SLURM_STATUS_FAILURE_LIMIT_S (4 s here), naming the
+    command and how to find the run's jobs."""
+    cmd, env, res, _ = stand_in_run(tmp_path, "scene.zarr")
+    env = dict(env, FAKE_SLURM_SACCT_ANSWERS="1", STEX_SLURM_STATUS_FAILURE_LIMIT_S="4")
+    run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    out = run.stdout + run.stderr
+    assert run.returncode != 0
+    assert len(fake_slurm.submissions(tmp_path / "slurm")) == 1
+    failed = re.search(r"the job status command has failed (\d+) times over (\d+) s \(sacct .*--name (\S+): "
+                       r"Slurm accounting storage is disabled\)", out)
+    assert failed, out[-4000:]
+    assert int(failed[1]) >= 2 and 4 <= int(failed[2]) < 60, failed[0]
+    assert f"scancel --name {failed[3]}" in out
