@@ -85,9 +85,11 @@ class Cluster:
     def _munge(self) -> None:
         if _ok("sh", "-c", "munge -n | unmunge"):
             return  # this machine's munged answers already
-        for d in ("/run/munge", "/var/lib/munge", "/var/log/munge"):
+        for d in ("/etc/munge", "/run/munge", "/var/lib/munge", "/var/log/munge"):
             os.makedirs(d, exist_ok=True)
             shutil.chown(d, "munge", "munge")
+        if not Path("/etc/munge/munge.key").exists():  # the package makes one; an image may lack it
+            subprocess.run(["runuser", "-u", "munge", "--", "mungekey", "--create"], check=True, capture_output=True)
         # munged refuses to run as root; in the foreground so that stop() ends it
         self._spawn("munged", ["runuser", "-u", "munge", "--", "munged", "--foreground"])
         _wait("munged", lambda: _ok("sh", "-c", "munge -n | unmunge"))

@@ -86,7 +86,7 @@ def test_an_installed_wheel_has_its_schema_outside_the_checkout(tmp_path):
 
     src = tmp_path / "src"  # a copy, so that the build leaves nothing in the checkout
     shutil.copytree(REPO / "stex", src / "stex", ignore=shutil.ignore_patterns("__pycache__"))
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(REPO / name, src / name)
     run = dict(check=True, capture_output=True, text=True, cwd=tmp_path)
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
@@ -107,3 +107,57 @@ def test_an_installed_wheel_has_its_schema_outside_the_checkout(tmp_path):
         env={"PATH": str(python.parent)}, **run).stdout.split()
     assert str(tmp_path / "venv") in out[0] and "site-packages" in out[0], out
     assert float(out[1]) > 0
+
+
+# what a copy of the checkout leaves out: version control, run outputs, caches, build outputs
+_NOT_SOURCES = (".git", "results", ".snakemake", "__pycache__", "*.egg-info", "build", "dist",
+                ".pytest_cache", ".benchmarks", "*.partial", "*.partial-*", "report.html")
+
+
+def test_the_sdist_has_an_spdx_license_and_runs_the_tests(tmp_path):
+    """``python -m build --sdist``: the license as an SPDX expression with its file (PEP 639; the
+    table form is deprecated), and everything the tests read (tests/, the workflow, configs,
+    profiles, docs, the conda environment, the CI script), so that tests run from the unpacked
+    sdist. It once lacked tests/conftest.py, tests/fake_slurm.py and tests/tiny_synthetic.yaml."""
+    import shutil
+    import subprocess
+    import sys
+    import tarfile
+
+    src = tmp_path / "src"  # a copy, so that the build leaves nothing in the checkout
+    shutil.copytree(REPO, src, symlinks=True, ignore=shutil.ignore_patterns(*_NOT_SOURCES))
+    subprocess.run([sys.executable, "-m", "build", "--sdist", "--outdir", str(tmp_path / "dist"), str(src)],
+                   check=True, capture_output=True, text=True)
+    sdist = next((tmp_path / "dist").glob("stex-*.tar.gz"))
+    with tarfile.open(sdist) as tar:
+        top = tar.getnames()[0].split("/")[0]
+        names = {n.removeprefix(top + "/") for n in tar.getnames()}
+        pkg_info = tar.extractfile(f"{top}/PKG-INFO").read().decode()
+        tar.extractall(tmp_path, filter="data")
+    assert "License-Expression: MIT" in pkg_info and "License-File: LICENSE" in pkg_info, pkg_info[:2000]
+    assert not re.search(r"^License: ", pkg_info, flags=re.M)  # the deprecated field
+    needed = {"LICENSE", "README.md", "Snakefile", "pyproject.toml", ".ci/run",
+              "tests/conftest.py", "tests/fake_slurm.py", "tests/tiny_synthetic.yaml",
+              "profiles/default/config.yaml", "profiles/slurm/config.yaml"}
+    for folder in ("tests", "workflow", "config", "envs", "docs", "benchmarks", "stex"):
+        needed |= {str(p.relative_to(src)) for p in (src / folder).rglob("*") if p.is_file()}
+    assert not needed - names, sorted(needed - names)
+    # from the unpacked sdist: the tests that read the README, the CI script, envs/ and the docs
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                          "tests/test_packaging.py", "-k", "conda_env or readme or config_examples"],
+                         cwd=tmp_path / top, capture_output=True, text=True)
+    assert run.returncode == 0 and "3 passed" in run.stdout, run.stdout[-3000:] + run.stderr[-2000:]
+
+
+def test_the_workflow_files_are_formatted_with_snakefmt():
+    """``snakefmt --check`` (the settings in pyproject.toml) finds nothing to change in the
+    Snakefile and the workflow's .smk files."""
+    import subprocess
+    import sys
+
+    files = [REPO / "Snakefile", *sorted((REPO / "workflow").glob("*.smk")),
+             *sorted((REPO / "workflow" / "rules").glob("*.smk"))]
+    run = subprocess.run([sys.executable, "-m", "snakefmt", "--check", *map(str, files)],
+                         cwd=REPO, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-4000:]
+    assert f"{len(files)} file(s) would be left unchanged" in run.stderr, run.stderr[-2000:]
