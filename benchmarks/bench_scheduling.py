@@ -7,7 +7,8 @@ each way, alternating:
 - **limiter off**: the workflow as shipped (``workflow/rules/scheduling.smk`` turns Snakemake's
   job rate limiter off in its ``onstart``);
 - **limiter on**: the same with ``--no-hooks``, which skips that ``onstart``: Snakemake's own
-  scheduling (the workflow has no other hooks).
+  scheduling (the workflow's other hooks, the results folder's run lock and a SLURM run's
+  status checks, workflow/rules/hooks.smk, do not touch the scheduling).
 
 Reports per run the scheduling rounds (``--verbose``'s "Resources before job selection" lines),
 the jobs finished, the CPU time of the snakemake process itself (user + system, from

@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import time
+import warnings
 
 import numpy as np
 import yaml
@@ -72,7 +73,10 @@ def zarr_arrays(results):
     arrays = {}
     for store in sorted(results.rglob("*.zarr")):
         group = zarr.open_group(str(store), mode="r")
-        for name, node in group.members(max_depth=None):
+        with warnings.catch_warnings():  # Snakemake's .snakemake_timestamp in directory outputs
+            warnings.filterwarnings("ignore", message=".*snakemake_timestamp is not recognized")
+            members = group.members(max_depth=None)
+        for name, node in members:
             if isinstance(node, zarr.Array):
                 arrays[(str(store.relative_to(results)), name)] = node[...]
     return arrays
