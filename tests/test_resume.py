@@ -91,11 +91,11 @@ def test_kill_9_at_three_stages_then_the_same_command_gives_the_uninterrupted_ar
     res = work / "results" / "tiny"
     logs = []
     # ingest and the correction killed while their store is written (stores are built at
-    # <store>.partial-<host>-<pid> and moved into place when complete); the data term (tables)
+    # <store>.partial-<host>-<pid> and moved into place when complete); the data term
     # killed once its store is in place, before Snakemake has seen its job end: the store is
     # there, but marked incomplete
     kills = {"ingest": res / "frames" / "block_0000.zarr.partial-*",
-             "tables": res / "tables" / "block_0000.zarr",
+             "data_term": res / "data_term" / "block_0000.zarr",
              "correction": res / "corrected" / "block_0000.zarr.partial-*"}
     for stage, pattern in kills.items():
         logs.append(tmp_path / f"killed_in_{stage}.log")
@@ -112,8 +112,8 @@ def test_kill_9_at_three_stages_then_the_same_command_gives_the_uninterrupted_ar
     for log in [p.read_text() for p in logs[1:]] + [final]:
         assert "ended without finishing" in log, log[-3000:]
         assert "--unlock" not in log and "--rerun-incomplete" not in log, log[-3000:]
-    # the tables store killed in place was redone (marked incomplete), not taken as finished
-    assert "rule tables:" in logs[2].read_text()
+    # the data term store killed in place was redone (marked incomplete), not taken as finished
+    assert "rule data_term:" in logs[2].read_text()
 
     want, got = zarr_arrays(reference / "results" / "tiny"), zarr_arrays(res)
     assert sorted(want) == sorted(got)
