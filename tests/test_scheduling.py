@@ -16,7 +16,10 @@ from conftest import REPO
 
 def test_the_patch_sets_the_attribute_these_tests_pin():
     text = (REPO / "workflow" / "rules" / "scheduling.smk").read_text()
-    assert "onstart:" in text
+    # the workflow's one onstart (workflow/rules/hooks.smk) calls it
+    hooks = (REPO / "workflow" / "rules" / "hooks.smk").read_text()
+    assert re.search(r"^onstart:\n    local_scheduling_without_rate_limiter\(\)$", hooks, flags=re.M)
+    assert "def local_scheduling_without_rate_limiter():" in text
     assert '_scheduler = getattr(workflow, "scheduler", None)' in text
     assert 'getattr(workflow, "local_exec", False)' in text
     assert "_scheduler.job_rate_limiter = None" in text

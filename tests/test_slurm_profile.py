@@ -122,3 +122,28 @@ def test_a_status_command_that_keeps_failing_ends_the_run_with_its_error(tmp_pat
     assert failed, out[-4000:]
     assert int(failed[1]) >= 2 and 4 <= int(failed[2]) < 60, failed[0]
     assert f"scancel --name {failed[3]}" in out
+
+
+def test_what_the_hooks_rely_on_in_the_slurm_plugin():
+    """workflow/rules/hooks.smk wraps the plugin's ``query_job_status`` and reads its settings;
+    stex.slurm knows its longest wait between checks and its own threshold for squeue. These
+    fail when a plugin release changes any of it: then update the hooks (docs/cluster.md)."""
+    import inspect
+
+    import snakemake_executor_plugin_slurm as plugin
+    from snakemake_executor_plugin_slurm import job_status_query
+
+    from stex.slurm import PLUGIN_MAX_CHECK_INTERVAL_S
+
+    check = inspect.getsource(plugin.Executor.check_active_jobs)
+    # looked up in the plugin's module at every call: the wrapper replaces it there
+    assert "= await query_job_status(" in check and plugin.query_job_status is job_status_query.query_job_status
+    # a failed query is (None, None), and a check whose queries all fail yields none of its jobs
+    assert "return None, None" in inspect.getsource(job_status_query.query_job_status)
+    assert "if status_of_jobs is None and sacct_query_duration is None:" in check
+    assert f"max_sleep_time = {PLUGIN_MAX_CHECK_INTERVAL_S}" in check
+    assert "dynamic_check_threshold = 3 * initial_interval" in check
+    assert 'if status_command_name == "sacct":\n            status_command = query_job_status_sacct(self.run_uuid)' in check
+    fields = plugin.ExecutorSettings.__dataclass_fields__
+    assert {"status_command", "init_seconds_before_status_checks"} <= set(fields)
+    assert "--name" in job_status_query.query_job_status_sacct("run-id").split()
