@@ -47,6 +47,6 @@ include: "workflow/rules/view.smk"
 
 
 rule all:
+    default_target: True
     input:
         all_outputs(),
-    default_target: True

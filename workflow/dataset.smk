@@ -36,13 +36,17 @@ for scene_name, scene_config in SCENES.items():
     # a rule name is a Python identifier: '-' and '.' of a scene name become '_'
     prefix = re.sub(r"\W", "_", scene_name if scene_name[0].isalpha() else f"scene_{scene_name}") + "_"
     if prefix in _PREFIXES:
-        raise ValueError(f"scenes {_PREFIXES[prefix]!r} and {scene_name!r} give the same rule names ({prefix}*): rename one")
+        raise ValueError(
+            f"scenes {_PREFIXES[prefix]!r} and {scene_name!r} give the same rule names ({prefix}*): rename one"
+        )
     _PREFIXES[prefix] = scene_name
 
     module:
         name: scene_name
-        snakefile: "../Snakefile"
-        config: scene_config
+        snakefile:
+            "../Snakefile"
+        config:
+            scene_config
 
     use rule * from scene_name as prefix*
 
@@ -59,21 +63,31 @@ include: "rules/hooks.smk"
 # workflow nothing about a report, so it is read from the command line (--report, or --reporter
 # with its options; --report-after-run reports after the run, when the results exist).
 if "--report-after-run" not in sys.argv and any(a.split("=")[0] in ("--report", "--reporter") for a in sys.argv):
-    _missing = {name: [f for f in getattr(rules, f"{prefix}all").input if not os.path.exists(f)]
-                for prefix, name in _PREFIXES.items()}
+    _missing = {
+        name: [f for f in getattr(rules, f"{prefix}all").input if not os.path.exists(f)]
+        for prefix, name in _PREFIXES.items()
+    }
     _unfinished = [
         f"scene {name!r} is incomplete: {files[0]}"
         + (f" and {len(files) - 1} more of its results are" if len(files) > 1 else " is")
         + f" missing (its run failed or has not finished: see {SCENES[name]['results']}/{name}/logs)"
-        for name, files in _missing.items() if files]
+        for name, files in _missing.items()
+        if files
+    ]
     if _unfinished:
         _finished = [name for name, files in _missing.items() if not files]
-        raise ValueError("; ".join(_unfinished) + ". " + (
-            f"Report the complete scenes with --config scenes=[{','.join(_finished)}]" if _finished
-            else "None of these scenes is complete: finish their runs first"))
+        raise ValueError(
+            "; ".join(_unfinished)
+            + ". "
+            + (
+                f"Report the complete scenes with --config scenes=[{','.join(_finished)}]"
+                if _finished
+                else "None of these scenes is complete: finish their runs first"
+            )
+        )
 
 
 rule all:
+    default_target: True
     input:
         [getattr(rules, f"{prefix}all").input for prefix in _PREFIXES],
-    default_target: True

@@ -35,8 +35,9 @@ COORDS = f"{RESULTS}/texcoords.zarr" if OPTIMISED else f"{RESULTS}/projection.za
 SAMPLING = [f"{RESULTS}/texcoords_sampling.json"] if OPTIMISED and config["sampling_table"]["steps"] else []
 # other methods' texture slices (and the meshes of their UV layouts) scored beside ours
 # (evaluation.other_methods: {name: path or {slices, uv_mesh}})
-OTHER_METHODS = [p for pair in other_method_paths(config["evaluation"].get("other_methods")).values()
-                 for p in pair if p]
+OTHER_METHODS = [
+    p for pair in other_method_paths(config["evaluation"].get("other_methods")).values() for p in pair if p
+]
 
 
 wildcard_constraints:
@@ -68,8 +69,9 @@ def all_outputs():
         out += [f"{RESULTS}/previews/texcoords.png"]
     # every block store is a target: a deleted one (which `stex evaluate` and `stex export
     # --source volume` read) is rebuilt even when nothing after it changed
-    out += expand(f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["data_term", "volume", "corrected"],
-                  block=BLOCK_IDS)
+    out += expand(
+        f"{RESULTS}/{{kind}}/block_{{block}}.zarr", kind=["data_term", "volume", "corrected"], block=BLOCK_IDS
+    )
     out += [f"{RESULTS}/previews/labels.png", f"{RESULTS}/previews/preview.mp4", f"{RESULTS}/view"]
     out += [f"{RESULTS}/global_texture.zarr", f"{RESULTS}/evaluation"]
     out += expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS)
@@ -90,7 +92,9 @@ def previous_corrected(wildcards):
 def evaluation_blocks(kind):
     """Input function: the ``kind`` block stores a frame block's scoring reads: its own and the
     previous block's (the flicker of its first frame compares it with its predecessor)."""
+
     def blocks(wildcards):
         b = int(wildcards.block)
         return [f"{RESULTS}/{kind}/block_{k:04d}.zarr" for k in range(max(0, b - 1), b + 1)]
+
     return blocks

@@ -2,7 +2,6 @@
 # when the temporal coupling is on).
 
 
-
 rule correction:
     input:
         template=f"{RESULTS}/template.zarr",
@@ -10,15 +9,15 @@ rule correction:
         previous=previous_corrected,
     output:
         directory(f"{RESULTS}/corrected/block_{{block}}.zarr"),
-    params:
-        correction=config["correction"],
     log:
         f"{RESULTS}/logs/correction_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/correction_{{block}}.tsv",
+        f"{RESULTS}/benchmarks/correction_{{block}}.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        correction=config["correction"],
     script:
         "../scripts/correction.py"
 
@@ -36,14 +35,14 @@ rule labels_preview:
             category="Labeling",
             subcategory=config["scene"],
         ),
-    params:
-        theta_omega=config["labeling"]["theta_omega"],
     log:
         f"{RESULTS}/logs/labels_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/labels_preview.tsv",
+        f"{RESULTS}/benchmarks/labels_preview.tsv"
     conda:
         ENV
+    params:
+        theta_omega=config["labeling"]["theta_omega"],
     script:
         "../scripts/labels_preview.py"
 
@@ -62,13 +61,13 @@ rule preview_video:
             category="Result",
             subcategory=config["scene"],
         ),
-    params:
-        results=lambda wildcards: RESULTS,
     log:
         f"{RESULTS}/logs/preview_video.log",
     benchmark:
-        f"{RESULTS}/benchmarks/preview_video.tsv",
+        f"{RESULTS}/benchmarks/preview_video.tsv"
     conda:
         ENV
+    params:
+        results=lambda wildcards: RESULTS,
     script:
         "../scripts/preview_video.py"

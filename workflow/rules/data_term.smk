@@ -11,15 +11,15 @@ rule data_term:
         observations=f"{RESULTS}/observations.zarr",
     output:
         directory(f"{RESULTS}/data_term/block_{{block}}.zarr"),
-    params:
-        data_term=config["data_term"],
-        positions=block_range,
     log:
         f"{RESULTS}/logs/data_term_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/data_term_{{block}}.tsv",
+        f"{RESULTS}/benchmarks/data_term_{{block}}.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        data_term=config["data_term"],
+        positions=block_range,
     script:
         "../scripts/data_term.py"

@@ -21,16 +21,16 @@ rule evaluate_frames:
         others=OTHER_METHODS,
     output:
         f"{RESULTS}/evaluation_frames/block_{{block}}.json",
+    log:
+        f"{RESULTS}/logs/evaluate_frames_{{block}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/evaluate_frames_{{block}}.tsv"
+    conda:
+        ENV
     params:
         # figure_frame and dynamism_regions are the merge's: changing them re-draws, not re-scores
         evaluation=scoring_settings(config["evaluation"]),
         positions=block_range,
-    log:
-        f"{RESULTS}/logs/evaluate_frames_{{block}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/evaluate_frames_{{block}}.tsv",
-    conda:
-        ENV
     script:
         "../scripts/evaluate_frames.py"
 
@@ -61,9 +61,6 @@ rule evaluate:
             category="Evaluation",
             subcategory=config["scene"],
         ),
-    params:
-        evaluation=config["evaluation"],
-        benchmarks=lambda wildcards: f"{RESULTS}/benchmarks",
     log:
         f"{RESULTS}/logs/evaluate.log",
         # The merge writes the timing table from benchmarks/*.tsv while it runs, so that table
@@ -72,8 +69,11 @@ rule evaluate:
         # report the previous merge's time as its own. `stex tables` over finished runs reads it.
         own_benchmark=f"{RESULTS}/benchmarks/evaluate.tsv",
     benchmark:
-        f"{RESULTS}/benchmarks/evaluate.tsv",
+        f"{RESULTS}/benchmarks/evaluate.tsv"
     conda:
         ENV
+    params:
+        evaluation=config["evaluation"],
+        benchmarks=lambda wildcards: f"{RESULTS}/benchmarks",
     script:
         "../scripts/evaluate.py"

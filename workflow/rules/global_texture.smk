@@ -11,14 +11,14 @@ rule global_texture:
         coords=COORDS,
     output:
         directory(f"{RESULTS}/global_texture.zarr"),
-    params:
-        global_texture=config["global_texture"],
-        source_stride=config["data_term"]["source_stride"],
     log:
         f"{RESULTS}/logs/global_texture.log",
     benchmark:
-        f"{RESULTS}/benchmarks/global_texture.tsv",
+        f"{RESULTS}/benchmarks/global_texture.tsv"
     conda:
         ENV
+    params:
+        global_texture=config["global_texture"],
+        source_stride=config["data_term"]["source_stride"],
     script:
         "../scripts/global_texture.py"

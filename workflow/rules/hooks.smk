@@ -48,9 +48,12 @@ def forget_stale_snakemake_locks(folders):
             os.remove(path)
             removed += 1
     for folder, holder in stale.items():
-        print(f"stex: the run that wrote {folder.rstrip(os.sep)} ({holder.describe()}) ended without "
-              f"finishing; removed {removed} Snakemake lock file(s) it left here, and this run "
-              f"redoes its incomplete jobs", file=sys.stderr)
+        print(
+            f"stex: the run that wrote {folder.rstrip(os.sep)} ({holder.describe()}) ended without "
+            f"finishing; removed {removed} Snakemake lock file(s) it left here, and this run "
+            f"redoes its incomplete jobs",
+            file=sys.stderr,
+        )
 
 
 def follow_slurm_jobs():
@@ -61,16 +64,20 @@ def follow_slurm_jobs():
     settings = workflow.executor_settings
     # the plugin's own sacct query (a name no job has), so that the probe fails as its checks would
     sacct_error = command_error(query_job_status_sacct("stex-accounting-probe"))
-    chosen = choose_status_command(settings.status_command, sacct_error, min_job_age_s(),
-                                   settings.init_seconds_before_status_checks)
+    chosen = choose_status_command(
+        settings.status_command, sacct_error, min_job_age_s(), settings.init_seconds_before_status_checks
+    )
     if chosen != settings.status_command:
         why = f"sacct: {sacct_error}" if sacct_error else "squeue forgets finished jobs too soon here"
         print(f"stex: job status from {chosen}, not {settings.status_command} ({why})", file=sys.stderr)
         settings.status_command = chosen
     original = getattr(plugin, "query_job_status", None)
     if original is None:
-        print("stex: this snakemake-executor-plugin-slurm has no query_job_status: status queries "
-              "that keep failing are not caught (docs/cluster.md)", file=sys.stderr)
+        print(
+            "stex: this snakemake-executor-plugin-slurm has no query_job_status: status queries "
+            "that keep failing are not caught (docs/cluster.md)",
+            file=sys.stderr,
+        )
         return
     if getattr(original, "stex_failures", None) is not None:
         return

@@ -7,20 +7,20 @@ rule ingest_scene:
         scene_source_files,
     output:
         directory(f"{RESULTS}/scene.zarr"),
+    log:
+        f"{RESULTS}/logs/ingest_scene.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/ingest_scene.tsv"
+    priority: TEXTURE_PRIORITY
+    conda:
+        ENV
     params:
+        **({} if SYNTHETIC else {"frame_ids": id_ranges(_SOURCE.frame_ids)}),
         source=SOURCE,
         frame_block=config["frame_block"],
         # a dataset's frames are found on disk, not set: their ids are a parameter, so frames
         # added to (or removed from) its folder after a run re-write the scene store's frame list
         # (a synthetic scene's frames follow from its settings; no new parameter re-runs it)
-        **({} if SYNTHETIC else {"frame_ids": id_ranges(_SOURCE.frame_ids)}),
-    log:
-        f"{RESULTS}/logs/ingest_scene.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/ingest_scene.tsv",
-    priority: TEXTURE_PRIORITY
-    conda:
-        ENV
     script:
         "../scripts/ingest_scene.py"
 
@@ -33,16 +33,16 @@ if SYNTHETIC:
         output:
             frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
             truth=directory(f"{RESULTS}/truth/block_{{block}}.zarr"),
-        params:
-            source=SOURCE,
-            frames=block_range,
         log:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
         benchmark:
-            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
+            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv"
         priority: TEXTURE_PRIORITY
         conda:
             ENV
+        params:
+            source=SOURCE,
+            frames=block_range,
         script:
             "../scripts/ingest_block.py"
 
@@ -53,15 +53,15 @@ else:
             block_source_files,
         output:
             frames=directory(f"{RESULTS}/frames/block_{{block}}.zarr"),
-        params:
-            source=SOURCE,
-            frames=block_range,
         log:
             f"{RESULTS}/logs/ingest_block_{{block}}.log",
         benchmark:
-            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv",
+            f"{RESULTS}/benchmarks/ingest_block_{{block}}.tsv"
         priority: TEXTURE_PRIORITY
         conda:
             ENV
+        params:
+            source=SOURCE,
+            frames=block_range,
         script:
             "../scripts/ingest_block.py"

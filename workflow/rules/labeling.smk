@@ -10,17 +10,17 @@ rule labeling:
         data_term=expand(f"{RESULTS}/data_term/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/labels.zarr"),
-    params:
-        labeling=config["labeling"],
-    resources:
-        runtime=SEQUENCE_RUNTIME_MIN,
-    threads: 2
     log:
         f"{RESULTS}/logs/labeling.log",
     benchmark:
-        f"{RESULTS}/benchmarks/labeling.tsv",
+        f"{RESULTS}/benchmarks/labeling.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    threads: 2
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
+    params:
+        labeling=config["labeling"],
     script:
         "../scripts/labeling.py"

@@ -7,15 +7,15 @@ rule masks:
         frames=f"{RESULTS}/frames/block_{{block}}.zarr",
     output:
         directory(f"{RESULTS}/masks/block_{{block}}.zarr"),
-    params:
-        masks=config["masks"],
     log:
         f"{RESULTS}/logs/masks_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/masks_{{block}}.tsv",
+        f"{RESULTS}/benchmarks/masks_{{block}}.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        masks=config["masks"],
     script:
         "../scripts/masks.py"
 
@@ -36,7 +36,7 @@ rule masks_preview:
     log:
         f"{RESULTS}/logs/masks_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/masks_preview.tsv",
+        f"{RESULTS}/benchmarks/masks_preview.tsv"
     conda:
         ENV
     script:

@@ -11,14 +11,14 @@ rule observations:
         frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/observations.zarr"),
-    params:
-        observations=config["observations"],
     log:
         f"{RESULTS}/logs/observations.log",
     benchmark:
-        f"{RESULTS}/benchmarks/observations.tsv",
+        f"{RESULTS}/benchmarks/observations.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        observations=config["observations"],
     script:
         "../scripts/observations.py"

@@ -7,15 +7,15 @@ rule poses:
         template=f"{RESULTS}/template.zarr",
     output:
         directory(f"{RESULTS}/poses.zarr"),
-    params:
-        poses=config["poses"],
-    threads: 2
     log:
         f"{RESULTS}/logs/poses.log",
     benchmark:
-        f"{RESULTS}/benchmarks/poses.tsv",
+        f"{RESULTS}/benchmarks/poses.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    threads: 2
+    params:
+        poses=config["poses"],
     script:
         "../scripts/poses.py"

@@ -13,15 +13,15 @@ rule projection:
         ),
     output:
         directory(f"{RESULTS}/projection.zarr"),
-    params:
-        projection=config["projection"],
     log:
         f"{RESULTS}/logs/projection.log",
     benchmark:
-        f"{RESULTS}/benchmarks/projection.tsv",
+        f"{RESULTS}/benchmarks/projection.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        projection=config["projection"],
     script:
         "../scripts/projection.py"
 
@@ -40,7 +40,7 @@ rule projection_preview:
     log:
         f"{RESULTS}/logs/projection_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/projection_preview.tsv",
+        f"{RESULTS}/benchmarks/projection_preview.tsv"
     conda:
         ENV
     script:

@@ -12,15 +12,15 @@ rule template:
         ),
     output:
         directory(f"{RESULTS}/template.zarr"),
-    params:
-        template=config["template"],
     log:
         f"{RESULTS}/logs/template.log",
     benchmark:
-        f"{RESULTS}/benchmarks/template.tsv",
+        f"{RESULTS}/benchmarks/template.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        template=config["template"],
     script:
         "../scripts/template.py"
 
@@ -38,7 +38,7 @@ rule template_preview:
     log:
         f"{RESULTS}/logs/template_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/template_preview.tsv",
+        f"{RESULTS}/benchmarks/template_preview.tsv"
     conda:
         ENV
     script:

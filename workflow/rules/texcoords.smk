@@ -10,18 +10,18 @@ rule texcoords:
         masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/texcoords.zarr"),
-    params:
-        texcoords=config["texcoords"],
     log:
         f"{RESULTS}/logs/texcoords.log",
     benchmark:
-        f"{RESULTS}/benchmarks/texcoords.tsv",
-    resources:
-        runtime=SEQUENCE_RUNTIME_MIN,
-    threads: 2
+        f"{RESULTS}/benchmarks/texcoords.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    threads: 2
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
+    params:
+        texcoords=config["texcoords"],
     script:
         "../scripts/texcoords.py"
 
@@ -41,7 +41,7 @@ rule texcoords_preview:
     log:
         f"{RESULTS}/logs/texcoords_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/texcoords_preview.tsv",
+        f"{RESULTS}/benchmarks/texcoords_preview.tsv"
     conda:
         ENV
     script:
@@ -57,17 +57,17 @@ rule texcoords_sampling:
         masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         f"{RESULTS}/texcoords_sampling.json",
-    params:
-        texcoords=config["texcoords"],
-        steps=config["sampling_table"]["steps"],
     log:
         f"{RESULTS}/logs/texcoords_sampling.log",
     benchmark:
-        f"{RESULTS}/benchmarks/texcoords_sampling.tsv",
-    resources:
-        runtime=SEQUENCE_RUNTIME_MIN,
-    threads: 2
+        f"{RESULTS}/benchmarks/texcoords_sampling.tsv"
     conda:
         ENV
+    threads: 2
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
+    params:
+        texcoords=config["texcoords"],
+        steps=config["sampling_table"]["steps"],
     script:
         "../scripts/texcoords_sampling.py"

@@ -9,17 +9,17 @@ rule tracking:
         masks=expand(f"{RESULTS}/masks/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/tracking.zarr"),
-    params:
-        tracking=config["tracking"],
-    resources:
-        runtime=SEQUENCE_RUNTIME_MIN,
     log:
         f"{RESULTS}/logs/tracking.log",
     benchmark:
-        f"{RESULTS}/benchmarks/tracking.tsv",
+        f"{RESULTS}/benchmarks/tracking.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    resources:
+        runtime=SEQUENCE_RUNTIME_MIN,
+    params:
+        tracking=config["tracking"],
     script:
         "../scripts/tracking.py"
 
@@ -37,7 +37,7 @@ rule tracking_preview:
     log:
         f"{RESULTS}/logs/tracking_preview.log",
     benchmark:
-        f"{RESULTS}/benchmarks/tracking_preview.tsv",
+        f"{RESULTS}/benchmarks/tracking_preview.tsv"
     conda:
         ENV
     script:

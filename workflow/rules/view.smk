@@ -14,13 +14,13 @@ rule view:
         corrected=expand(f"{RESULTS}/corrected/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/view"),
-    params:
-        results=lambda wildcards: RESULTS,
     log:
         f"{RESULTS}/logs/view.log",
     benchmark:
-        f"{RESULTS}/benchmarks/view.tsv",
+        f"{RESULTS}/benchmarks/view.tsv"
     conda:
         ENV
+    params:
+        results=lambda wildcards: RESULTS,
     script:
         "../scripts/view.py"

@@ -10,15 +10,15 @@ rule volume:
         frames=expand(f"{RESULTS}/frames/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/volume/block_{{block}}.zarr"),
-    params:
-        volume=config["volume"],
-        positions=block_range,
     log:
         f"{RESULTS}/logs/volume_{{block}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/volume_{{block}}.tsv",
+        f"{RESULTS}/benchmarks/volume_{{block}}.tsv"
     priority: TEXTURE_PRIORITY
     conda:
         ENV
+    params:
+        volume=config["volume"],
+        positions=block_range,
     script:
         "../scripts/volume.py"
