@@ -100,6 +100,29 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
                                  "or null: the support plane removed (masks.support_plane_tolerance_m > 0; null = none "
                                  "qualified, nothing removed); absent when the option is off or the masks are the source's"},
     ),
+    "scan": ArtifactSpec(
+        description="template.from_scan: the closed mesh fused from the scan capture of the motionless "
+        "object (stex.scan: masks, frame-to-model coloured ICP, TSDF fusion, marching cubes, hole "
+        "closing), in the depth-camera coordinates of the scan's first fused frame, and the pose of "
+        "every scan frame tried. T = scan frames tried.",
+        path="scan.zarr",
+        arrays={
+            "vertices": ArraySpec(("V", 3), "float32", "m", "fused mesh vertices, the scan's first depth frame's coordinates"),
+            "faces": ArraySpec(("F", 3), "int32", "index", "triangles into vertices, counter-clockwise seen from outside; the mesh is closed"),
+            "poses": ArraySpec(("T", 4, 4), "float64", "m", "rigid transform of each scan frame's depth-camera coordinates to the first frame's (identity for frames without object)"),
+            "fitness": ArraySpec(("T",), "float32", "1", "fraction of the frame's points matched to the model by the ICP (0 for frames without object)"),
+            "fused": ArraySpec(("T",), "bool", "1", "whether the frame was fused into the volume"),
+        },
+        attrs={
+            "calibration": "dict: the scan capture's calibration",
+            "frame_ids": "list[int]: the scan frames tried (template.scan.step apart)",
+            "source": "dict: what the scan capture is (kind, path)",
+            "turned_deg": "float: total rotation of the fused frames, summed frame to frame (degrees)",
+            "fused_frames": "int: frames fused",
+            "empty_frames": "int: frames without object in their mask, left out",
+            "seconds": "float: wall time of reading, masking and fusing (s)",
+        },
+    ),
     "template": ArtifactSpec(
         description="The template mesh of the whole sequence (stex.template): the scene's template "
         "cleaned and decimated (vertices kept on the original surface, depth-camera coordinates), "
@@ -138,7 +161,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "border_gap_px": "int: empty texels between the atlas border and the nearest covered texel (>= gutter_px expected)",
             "embedding_max_distance_m": "float: largest move of a decimated vertex onto the original surface (m)",
             "origin": "str: 'source' (the scene's template/*; embedding/* refer to it) or 'depth of frame N' "
-                      "(template.from_depth: built from that frame's depth inside its mask; embedding/* refer to that mesh)",
+                      "(template.from_depth: built from that frame's depth inside its mask; embedding/* refer to that mesh) "
+                      "or 'scan' (template.from_scan: the scan store's fused mesh; embedding/* refer to it)",
+            "alignment": "dict or null: template.align / from_scan: the rigid transform (4x4, template -> depth camera "
+                         "at the first frame), fitness (fraction of that frame's object points within 5 mm), rmse_m, "
+                         "frame, rotation_deg, translation_m; null when the template was not aligned",
             "timings_s": "dict: wall time (s) of clean, decimate, embed, atlas, adjacency_texels",
         },
     ),

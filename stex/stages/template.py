@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from stex.atlas import atlas_digest
-from stex.camera import Calibration
+from stex.camera import Calibration, mask_in_depth
 from stex.config import section_params
 from stex.io import create_store, open_store
 from stex.preview import label_image, write_png
 from stex.readers.meshes import Mesh
+from stex.scan import align_to_view, frame_points, rotation_angle_deg
 from stex.template import atlas_preview, prepare_template, template_from_frame
 
 log = logging.getLogger("stex.template")
@@ -42,17 +43,65 @@ def check_atlas(stores, template, template_where) -> str:
     return have
 
 
-def write_template(scene_path, params: dict, out, frames_path=None, masks_path=None) -> None:
+def align_template(mesh: Mesh, frames_path, masks_path, calibration: Calibration, params: dict,
+                   masks_params: dict | None = None) -> tuple[Mesh, dict]:
+    """``mesh`` moved rigidly to where the first frame of ``frames_path`` sees the object inside
+    its mask from ``masks_path`` (:func:`stex.scan.align_to_view`); returns it and a record
+    (transform 4x4 as lists, fitness, rmse_m, rotation_deg, translation_m). ValueError when the
+    fit is below ``params['align_min_fitness']``."""
+    if frames_path is None or masks_path is None:
+        raise ValueError("template.align and template.from_scan need the first frame block and its masks")
+    frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
+    fid = int(frames.attrs["frame_ids"][0])
+    m = section_params("masks", masks_params)
+    depth = frames["depth"][0]
+    P = frame_points(depth, mask_in_depth(masks["mask"][0], depth, calibration), frames["color"][0], calibration,
+                     m["depth_near_m"], m["depth_far_m"])[0]
+    try:
+        a = align_to_view(mesh.vertices, mesh.faces, P, voxel_m=float(params["align_voxel_m"]))
+    except ValueError as e:
+        raise ValueError(f"{masks_path}: frame {fid}: template.align: {e}") from e
+    record = {"transform": a.transform.tolist(), "fitness": a.fitness, "rmse_m": a.rmse, "frame": fid,
+              "rotation_deg": rotation_angle_deg(a.transform[:3, :3]),
+              "translation_m": float(np.linalg.norm(a.transform[:3, 3]))}
+    if a.fitness < float(params["align_min_fitness"]):
+        raise ValueError(f"{frames_path}: frame {fid}: template.align: only {100 * a.fitness:.0f} % of the frame's "
+                         f"object points lie within {1000 * a.inlier_m:.0f} mm of the aligned template (template."
+                         f"align_min_fitness {params['align_min_fitness']}): another object, a wrong mask, or a "
+                         f"template in other units?")
+    V = mesh.vertices @ a.transform[:3, :3].T + a.transform[:3, 3]
+    log.info("template: aligned to frame %d (turned %.1f degrees, moved %.3f m; %.0f %% of its points within "
+             "%.0f mm, rms %.1f mm)", fid, record["rotation_deg"], record["translation_m"], 100 * a.fitness,
+             1000 * a.inlier_m, 1000 * a.rmse)
+    return Mesh(V, mesh.faces, mesh.texcoords, mesh.texcoord_faces), record
+
+
+def write_template(scene_path, params: dict, out, frames_path=None, masks_path=None, scan_path=None,
+                   masks_params: dict | None = None) -> None:
     """Read the template mesh from the ``scene`` store, run the stage, write the ``template`` store.
 
     With ``params['from_depth']`` the mesh is instead :func:`template_from_frame` of the first
-    frame of ``frames_path`` (a ``frames`` store) inside its mask from ``masks_path``.
+    frame of ``frames_path`` (a ``frames`` store) inside its mask from ``masks_path``; with
+    ``params['from_scan']`` the fused mesh of the ``scan`` store at ``scan_path``. With
+    ``params['align']`` or ``from_scan`` the mesh is first aligned to that first frame
+    (:func:`align_template`; ``masks_params`` the masks section, for the object's depth range).
     """
     # defaults filled in, as the store records them; refuses uv: mesh with from_depth too
     params = section_params("template", params)
     scene = open_store(scene_path, "scene")
     has_template = scene.attrs.get("has_template", False) and "template/vertices" in scene
-    if params["from_depth"]:
+    if params["from_scan"] and params["from_depth"]:
+        raise ValueError("template.from_scan and template.from_depth both set: choose one source of the template")
+    if params["from_scan"]:
+        if scan_path is None:
+            raise ValueError("template.from_scan needs the scan store (rule scan)")
+        scan = open_store(scan_path, "scan")
+        if "given/vertices" in scene:
+            log.warning("template: the source's per-frame meshes refer to its own template, not to the scan's; "
+                        "tracking.mode given cannot use them")
+        mesh, origin = Mesh(np.asarray(scan["vertices"][...], np.float64), np.asarray(scan["faces"][...], np.int32)), "scan"
+        log.info("template: %d faces fused from the scan %s", len(mesh.faces), scan_path)
+    elif params["from_depth"]:
         if frames_path is None or masks_path is None:
             raise ValueError("template.from_depth needs the first frame block and its masks")
         frames, masks = open_store(frames_path, "frames"), open_store(masks_path, "masks")
@@ -82,6 +131,10 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
                          f"template.from_depth to build one from the first frame's depth (one view only)")
     calibration = scene.attrs.get("calibration")
+    alignment = None
+    if params["from_scan"] or params["align"]:
+        mesh, alignment = align_template(mesh, frames_path, masks_path, Calibration.from_dict(calibration), params,
+                                         masks_params)
     # the mesh is in depth-camera coordinates at frame 0: open parts are turned to face that camera
     camera = Calibration.from_dict(calibration).depth if calibration else None
     try:
@@ -90,6 +143,7 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         raise type(e)(f"{scene_path}: template ({origin}): {e}") from e
     attrs = result.pop("attrs")
     attrs["origin"] = origin
+    attrs["alignment"] = alignment
     with create_store(out, "template", attrs=attrs, params=params) as store:
         for name, arr in result.items():
             store.write(name, arr)

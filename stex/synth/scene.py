@@ -30,7 +30,8 @@ from stex.synth.procedural import ProceduralBody, ProceduralParams
 from stex.synth.skinned import SkinnedBody
 
 
-def _rot(axis: str, angle: float) -> np.ndarray:
+def rotation(axis: str, angle: float) -> np.ndarray:
+    """3x3 rotation by ``angle`` (radians) about the coordinate axis ``axis`` ("x", "y" or "z")."""
     c, s = np.cos(angle), np.sin(angle)
     if axis == "x":
         return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
@@ -75,9 +76,9 @@ class SyntheticScene:
         color = Intrinsics.from_focal(c["fx"], c["fx"], (c["width"] - 1) / 2, (c["height"] - 1) / 2, c["width"], c["height"])
         depth = Intrinsics.from_focal(d["fx"], d["fx"], (d["width"] - 1) / 2, (d["height"] - 1) / 2, d["width"], d["height"])
         T = np.eye(4)
-        T[:3, :3] = _rot("x", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][0])) @ \
-            _rot("y", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][1])) @ \
-            _rot("z", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][2]))
+        T[:3, :3] = rotation("x", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][0])) @ \
+            rotation("y", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][1])) @ \
+            rotation("z", np.deg2rad(cfg["depth_to_color"]["rotation_deg"][2]))
         T[:3, 3] = cfg["depth_to_color"]["translation_m"]
         self.calibration = Calibration(color, depth, T)
 
@@ -117,7 +118,7 @@ class SyntheticScene:
         cfg = self.cfg
         yaw = np.deg2rad(cfg["yaw_offset_deg"] + cfg["yaw_range_deg"] * np.sin(2 * np.pi * time_s / cfg["yaw_period_s"]))
         flip = np.diag([1.0, -1.0, -1.0])  # object +y up -> camera -y; object faces the camera
-        R = _rot("x", np.deg2rad(cfg["elevation_deg"])) @ flip @ _rot("y", yaw)
+        R = rotation("x", np.deg2rad(cfg["elevation_deg"])) @ flip @ rotation("y", yaw)
         sway = 0.03 * np.array([np.sin(2 * np.pi * time_s / 2.9), 0.5 * np.sin(2 * np.pi * time_s / 3.7), 0.0])
         T = np.eye(4)
         T[:3, :3] = R

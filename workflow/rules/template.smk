@@ -1,15 +1,40 @@
 # Template: clean + decimate the template mesh, UV atlas, face adjacency, texel map (one job).
+# template.from_scan: rule scan fuses the scan capture into a closed mesh first.
+
+_T = config["template"]
+
+
+rule scan:
+    input:
+        # the scan's files, so a replaced recording re-runs the fusion (the synthetic turntable reads none)
+        [_T["scan"]["path"]] if _T["from_scan"] and _T["scan"]["kind"] != "synthetic" else [],
+    output:
+        directory(f"{RESULTS}/scan.zarr"),
+    log:
+        f"{RESULTS}/logs/scan.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/scan.tsv"
+    priority: TEXTURE_PRIORITY
+    conda:
+        ENV
+    params:
+        template=_T,
+        source=SOURCE,
+        masks=config["masks"],
+    script:
+        "../scripts/scan.py"
 
 
 rule template:
     input:
         scene=f"{RESULTS}/scene.zarr",
-        # template.from_depth: the first frame's depth and mask
+        # template.from_depth, align, from_scan: the first frame's depth and mask
         first=(
             [f"{RESULTS}/frames/block_{BLOCK_IDS[0]}.zarr", f"{RESULTS}/masks/block_{BLOCK_IDS[0]}.zarr"]
-            if config["template"]["from_depth"]
+            if _T["from_depth"] or _T["align"] or _T["from_scan"]
             else []
         ),
+        scan=[f"{RESULTS}/scan.zarr"] if _T["from_scan"] else [],
     output:
         directory(f"{RESULTS}/template.zarr"),
     log:
@@ -20,7 +45,8 @@ rule template:
     conda:
         ENV
     params:
-        template=config["template"],
+        template=_T,
+        masks=config["masks"],
     script:
         "../scripts/template.py"
 
