@@ -132,7 +132,7 @@ class ScanFusion:
         o3d = self._o3d
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         pc.colors = o3d.utility.Vector3dVector(colours)
-        pc = pc.voxel_down_sample(1.5 * self.params.voxel_m)
+        pc = pc.voxel_down_sample(2.0 * self.params.voxel_m)
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=5 * self.params.voxel_m, max_nn=30))
         pc.orient_normals_towards_camera_location(np.zeros(3))
         return pc
@@ -150,7 +150,7 @@ class ScanFusion:
         o3d = self._o3d
         p = self.params
         reg = o3d.pipelines.registration
-        criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=p.icp_iterations)
+        criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-5, relative_rmse=1e-5, max_iteration=p.icp_iterations)
         result = init, 0.0, 0.0
         # coarse to fine: a wide search first recovers a turn larger than the guess's error; every
         # step keeps the colour term, which holds the turn where the shape is near-symmetric
@@ -199,7 +199,7 @@ class ScanFusion:
             # Open3D keeps voxels whose weight exceeds the threshold strictly: 0.5 keeps every fused one
             self._model = self._grid.extract_point_cloud(weight_threshold=0.5).to_legacy()
             # as dense as the frames' clouds: the colour term's gradients cost a search per model point
-            self._model = self._model.voxel_down_sample(1.5 * p.voxel_m)
+            self._model = self._model.voxel_down_sample(2.0 * p.voxel_m)
             if not self._model.has_normals() or not self._model.has_colors():
                 raise RuntimeError("the TSDF volume gave a model without normals or colours")
             self._since_model = 0
@@ -409,12 +409,14 @@ def fuse_scan(frames, calibration: Calibration, scan: dict, near_m: float, far_m
         fused.append(ok)
         log.debug("scan: frame %d fitness %.2f rmse %.4f m%s", fid, fusion.fitness[-1], fusion.rmse[-1],
                   "" if ok else " (not fused)")
-    n_fused = int(sum(fused))
-    if n_fused < int(scan["min_frames"]):
-        what = (f"{len(empty)} of the {len(ids)} frames have no object in their mask" if empty else
-                f"{len(ids) - n_fused} of the {len(ids)} frames did not match the model")
-        raise ValueError(f"the scan has {n_fused} fused frames, fewer than template.scan.min_frames = "
-                         f"{scan['min_frames']} ({what}; frames {ids[:1]}..{ids[-1:]})")
+    n_fused, n_object, need = int(sum(fused)), len(ids) - len(empty), int(scan["min_frames"])
+    if n_object < need:
+        raise ValueError(f"the scan has {n_object} frames with the object in their mask ({len(empty)} of its "
+                         f"{len(ids)} frames have none), fewer than template.scan.min_frames = {need}")
+    if n_fused < need:
+        raise ValueError(f"only {n_fused} of the scan's {n_object} frames with the object matched the model, "
+                         f"fewer than template.scan.min_frames = {need}: the object moves too far between frames "
+                         f"(fuse more of them: template.scan.step) or is not rigid")
     turned = fusion.turned_deg()
     if turned < float(scan["min_turn_deg"]):
         raise ValueError(f"the scan's fused frames turn the object by {turned:.0f} degrees in total, less than "

@@ -64,6 +64,7 @@ def write_scan(template_params: dict, source_cfg: dict, masks_params: dict, out)
     """
     params = section_params("template", template_params)
     scan, masks = params["scan"], section_params("masks", masks_params)
+    masks = dict(masks, max_pixels=min(masks["max_pixels"], scan["mask_max_pixels"]))
     cal, n, frames, description = scan_capture(scan, source_cfg)
     where = scan.get("path") or "the synthetic turntable"
     t0 = time.perf_counter()

@@ -1,0 +1,101 @@
+"""template.from_scan and template.align: a tiny synthetic turntable fused into a closed mesh near
+the true surface, a template in another frame aligned to frame 0, and clear errors on bad scans."""
+import numpy as np
+import pytest
+
+from stex.camera import mask_in_depth
+from stex.config import section_params
+from stex.io import open_store
+from stex.masks import compute_mask
+from stex.mesh import is_closed
+from stex.scan import align_to_view, frame_points, fuse_scan, rotation_angle_deg, surface_distance
+from stex.stages.scan import write_scan
+from stex.synth.scene import SyntheticScene, rotation
+from stex.synth.turntable import TurntableScene
+
+# a small colour camera and the synthetic default depth camera (320x288: at 160x120 the depth
+# pixels are 8 mm apart on the object and the frame-to-model ICP slides round the body's axis)
+SMALL = {"color": {"width": 200, "height": 150, "fx": 175.0}, "texture_size": 128}
+SOURCE = {"kind": "synthetic", "synthetic": SMALL}
+SCAN = {"kind": "synthetic", "n_frames": 36, "voxel_m": 0.004}
+
+
+def _template(**scan):
+    return {"from_scan": True, "scan": dict(SCAN, **scan)}
+
+
+def _turntable(n_frames: int) -> TurntableScene:
+    synth = dict(section_params("source", SOURCE)["synthetic"], n_frames=n_frames)
+    return TurntableScene(synth, section_params("template", {})["scan"]["elevation_deg"])
+
+
+@pytest.fixture(scope="module")
+def tiny_scan(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scan") / "scan.zarr"
+    write_scan(_template(), SOURCE, {}, out)
+    return open_store(out, "scan")
+
+
+def test_a_turntable_scan_fuses_into_a_closed_mesh_near_the_true_surface(tiny_scan):
+    V, F = tiny_scan["vertices"][...], tiny_scan["faces"][...]
+    assert is_closed(V, F)
+    scene = _turntable(SCAN["n_frames"])
+    d = surface_distance(V, F, scene.true_vertices(0), scene.faces)
+    assert d["mean"] < 0.006, d  # 36 frames 10 degrees apart, depth pixels 4 mm apart on the object
+    assert tiny_scan["fused"][...].all()
+    assert 330 < tiny_scan.attrs["turned_deg"] < 390
+    # the poses found are the turntable's: frame k seen from frame 0
+    T0 = scene.object_to_depth(0.0)
+    errors = []
+    for k, pose in enumerate(tiny_scan["poses"][...]):
+        true = T0 @ np.linalg.inv(scene.object_to_depth(scene.time_of(k)))
+        errors.append(rotation_angle_deg(true[:3, :3].T @ pose[:3, :3]))
+    assert np.median(errors) < 3.0, errors
+
+
+def test_a_template_in_another_frame_is_aligned_to_the_first_frame():
+    synth = dict(section_params("source", SOURCE)["synthetic"], n_frames=1)
+    scene = SyntheticScene(synth)
+    r = scene.render_frame(0)
+    mask, _ = compute_mask(r.color, r.depth_mm, scene.calibration, section_params("masks", {}))
+    points = frame_points(r.depth_mm, mask_in_depth(mask, r.depth_mm, scene.calibration), r.color,
+                          scene.calibration, 0.3, 1.6)[0]
+    V = scene.true_vertices(0)
+    G = np.eye(4)  # turned 90 degrees, moved 1 m
+    G[:3, :3] = rotation("y", np.pi / 2)
+    G[:3, 3] = [1.0, 0.0, 0.0]
+    a = align_to_view(V @ G[:3, :3].T + G[:3, 3], scene.faces, points)
+    E = a.transform @ G  # identity when the alignment undoes G
+    assert rotation_angle_deg(E[:3, :3]) < 2.0
+    moved = V @ E[:3, :3].T + E[:3, 3]
+    assert np.linalg.norm(moved - V, axis=1).max() < 0.005
+    assert a.fitness > 0.9
+
+
+def test_a_scan_without_object_in_its_masks_is_refused(tmp_path):
+    # the object's depth range excludes both the object (1 m) and the wall (2.2 m): every mask is empty
+    with pytest.raises(ValueError, match=r"the scan has 0 frames with the object in their mask \(12 of its 12"):
+        write_scan(_template(n_frames=12), SOURCE, {"depth_near_m": 1.5, "depth_far_m": 2.0}, tmp_path / "s.zarr")
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_a_scan_with_too_few_frames_is_refused(tmp_path):
+    with pytest.raises(ValueError, match=r"the scan has 3 frames with the object in their mask \(0 of its 3 frames have none\), fewer "
+                                         r"than template.scan.min_frames = 10"):
+        write_scan(_template(n_frames=3), SOURCE, {}, tmp_path / "s.zarr")
+
+
+def test_a_scan_that_does_not_turn_is_refused():
+    scene = _turntable(12)
+    r = scene.render_frame(0)
+    masks = section_params("masks", {})
+    md = mask_in_depth(compute_mask(r.color, r.depth_mm, scene.calibration, masks)[0], r.depth_mm, scene.calibration)
+    still = ((k, r.color, r.depth_mm, md) for k in range(12))  # the same view twelve times
+    scan = section_params("template", {"scan": SCAN})["scan"]
+    with pytest.raises(ValueError, match=r"turn the object by 0 degrees in total, less than template.scan.min_turn_deg"):
+        fuse_scan(still, scene.calibration, scan, 0.3, 1.6)
+
+
+def test_a_folder_or_mkv_scan_needs_a_path(tmp_path):
+    with pytest.raises(ValueError, match=r"template.scan.path must name the scan's .mkv file"):
+        write_scan({"from_scan": True, "scan": {"kind": "mkv"}}, SOURCE, {}, tmp_path / "s.zarr")
