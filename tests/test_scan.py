@@ -30,10 +30,15 @@ def _turntable(n_frames: int) -> TurntableScene:
 
 
 @pytest.fixture(scope="module")
-def tiny_scan(tmp_path_factory):
+def tiny_scan_path(tmp_path_factory):
     out = tmp_path_factory.mktemp("scan") / "scan.zarr"
     write_scan(_template(), SOURCE, {}, out)
-    return open_store(out, "scan")
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny_scan(tiny_scan_path):
+    return open_store(tiny_scan_path, "scan")
 
 
 def test_a_turntable_scan_fuses_into_a_closed_mesh_near_the_true_surface(tiny_scan):
@@ -99,3 +104,28 @@ def test_a_scan_that_does_not_turn_is_refused():
 def test_a_folder_or_mkv_scan_needs_a_path(tmp_path):
     with pytest.raises(ValueError, match=r"template.scan.path must name the scan's .mkv file"):
         write_scan({"from_scan": True, "scan": {"kind": "mkv"}}, SOURCE, {}, tmp_path / "s.zarr")
+
+
+def test_the_template_stage_takes_the_scan_aligned_to_the_first_frame(tmp_path, tiny_scan_path):
+    from stex.config import load_config
+    from stex.stages.ingest import write_frames_block, write_scene
+    from stex.stages.masks import write_masks_block
+    from stex.stages.template import write_template
+
+    cfg = load_config(overrides={"scene": "scan", "frame_block": 2,  # a small atlas and mesh: fast
+                                 "template": dict(_template(), atlas_size=256, target_faces=4000),
+                                 "source": {"kind": "synthetic", "synthetic": dict(SMALL, n_frames=2)}})
+    scene, frames, truth, masks = (tmp_path / f"{n}.zarr" for n in ("scene", "frames", "truth", "masks"))
+    write_scene(cfg["source"], cfg["frame_block"], scene)
+    write_frames_block(cfg["source"], 0, 2, frames, truth)
+    write_masks_block(scene, frames, cfg["masks"], masks)
+    out = tmp_path / "template.zarr"
+    write_template(scene, cfg["template"], out, frames, masks, tiny_scan_path, masks_params=cfg["masks"])
+    t = open_store(out, "template")
+    assert t.attrs["origin"] == "scan"
+    assert t.attrs["alignment"]["fitness"] > 0.6
+    # the scan is the rest shape, frame 0 is slightly deformed (twist, squash, bulge): close, not equal
+    truth0 = open_store(scene, "scene")["truth/vertices"][0]
+    d = surface_distance(t["vertices"][...], t["faces"][...], truth0, SyntheticScene(
+        dict(section_params("source", SOURCE)["synthetic"], n_frames=1)).faces)
+    assert d["mean"] < 0.012, d
