@@ -84,6 +84,11 @@ def frame_points(depth_mm: np.ndarray, mask_depth: np.ndarray, color: np.ndarray
     return P, cid[idx].astype(np.float64) / 255.0, cid.reshape(Hd, Wd, 3), d_out.reshape(Hd, Wd)
 
 
+#: The frame-to-model ICP's correspondence distances, in units of ``icp_distance_m``, coarse to fine:
+#: the last, finer than the depth noise at the object, removes most of the pose bias (docs/scan.md).
+ICP_SCALES = (2.0, 1.0, 0.5, 0.25)
+
+
 @dataclass
 class FusionParams:
     """Settings of :class:`ScanFusion` (the ``template.scan`` config section's fusion keys)."""
@@ -155,7 +160,7 @@ class ScanFusion:
         # coarse to fine: a wide search first recovers a turn larger than the guess's error; every
         # step keeps the colour term, which holds the turn where the shape is near-symmetric
         method = reg.TransformationEstimationForColoredICP(lambda_geometric=1.0 - p.color_weight)
-        for scale in (2.0, 1.0, 0.5):
+        for scale in ICP_SCALES:
             try:
                 r = reg.registration_colored_icp(source, self._model, p.icp_distance_m * scale, result[0], method,
                                                  criteria)

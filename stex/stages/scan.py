@@ -56,6 +56,35 @@ def scan_capture(scan: dict, source_cfg: dict | None = None):
     return src.calibration, len(src.frame_ids), frames, dict(src.description)
 
 
+def scan_masks(masks_params: dict | None, scan: dict) -> dict:
+    """The validated ``masks`` section the scan's masks use: the main one, GrabCut on images of at
+    most ``scan['mask_max_pixels']`` pixels."""
+    masks = section_params("masks", masks_params)
+    return dict(masks, max_pixels=min(masks["max_pixels"], scan["mask_max_pixels"]))
+
+
+def masked_frames(frames, calibration, masks: dict, step: int = 1, where: str = "the scan"):
+    """Every ``step``-th frame of ``frames`` (from :func:`scan_capture`) with its object mask in
+    the depth image, as :func:`stex.scan.fuse_scan` takes them: (position, colour, depth, mask
+    (Hd, Wd) bool or None when the frame shows no object). ``masks`` is the validated masks
+    section; with ``use_given`` the capture's own masks are used."""
+    t0 = time.perf_counter()
+    for pos, color, depth, given in frames:
+        if pos % step:
+            continue
+        if masks["use_given"] and given is None:
+            raise ValueError(f"{where}: masks.use_given is set but the scan supplies no masks")
+        try:
+            m = given if masks["use_given"] else compute_mask(color, depth, calibration, masks, seed=pos)[0]
+        except ValueError as e:  # no object depth: an empty frame, counted by fuse_scan
+            log.warning("scan: %s frame %d: no mask (%s)", where, pos, e)
+            m = None
+        md = None if m is None or not m.any() else mask_in_depth(m, depth, calibration)
+        if pos % 25 == 0:
+            log.info("scan: frame %d (%.1f s)", pos, time.perf_counter() - t0)
+        yield pos, color, depth, md
+
+
 def write_scan(template_params: dict, source_cfg: dict, masks_params: dict, out) -> None:
     """Fuse the scan capture of ``template_params['scan']`` and write the ``scan`` store to ``out``.
 
@@ -63,30 +92,14 @@ def write_scan(template_params: dict, source_cfg: dict, masks_params: dict, out)
     object); ``masks_params`` the ``masks`` section, whose settings the scan's masks use.
     """
     params = section_params("template", template_params)
-    scan, masks = params["scan"], section_params("masks", masks_params)
-    masks = dict(masks, max_pixels=min(masks["max_pixels"], scan["mask_max_pixels"]))
+    scan = params["scan"]
+    masks = scan_masks(masks_params, scan)
     cal, n, frames, description = scan_capture(scan, source_cfg)
     where = scan.get("path") or "the synthetic turntable"
     t0 = time.perf_counter()
-
-    def masked():
-        for pos, color, depth, given in frames(0, n):
-            if pos % scan["step"]:
-                continue
-            if masks["use_given"] and given is None:
-                raise ValueError(f"{where}: masks.use_given is set but the scan supplies no masks")
-            try:
-                m = given if masks["use_given"] else compute_mask(color, depth, cal, masks, seed=pos)[0]
-            except ValueError as e:  # no object depth: an empty frame, counted by fuse_scan
-                log.warning("scan: %s frame %d: no mask (%s)", where, pos, e)
-                m = None
-            md = None if m is None or not m.any() else mask_in_depth(m, depth, cal)
-            if pos % 25 == 0:
-                log.info("scan: frame %d of %d (%.1f s)", pos, n, time.perf_counter() - t0)
-            yield pos, color, depth, md
-
     try:
-        result = fuse_scan(masked(), cal, scan, masks["depth_near_m"], masks["depth_far_m"])
+        result = fuse_scan(masked_frames(frames(0, n), cal, masks, scan["step"], where), cal, scan,
+                           masks["depth_near_m"], masks["depth_far_m"])
     except ValueError as e:
         raise ValueError(f"{where}: template.from_scan: {e}") from e
     if result["n_empty"]:
