@@ -8,8 +8,9 @@ the masks with :func:`stex.masks.compute_mask` and writes the ``scan`` store):
 - :func:`frame_points` — the masked depth pixels of one frame as a coloured point cloud in its
   depth camera's coordinates.
 - :class:`ScanFusion` — frame-to-model rigid alignment (Open3D's coloured ICP: point-to-plane
-  plus a colour term, against the points of the model fused so far) and TSDF fusion (Open3D's
-  scalable TSDF volume) of every frame into the coordinates of the scan's first depth frame;
+  plus a colour term, against the voxel-averaged points of the frames aligned so far) and TSDF
+  fusion (Open3D's voxel block grid) of every frame into the coordinates of the scan's first
+  depth frame;
   :meth:`ScanFusion.mesh` runs marching cubes on the volume.
 - :func:`close_mesh` — cleaning and hole closing (pymeshlab): keep the largest part, drop
   non-manifold faces, close every hole, so the template stage gets a closed mesh.
@@ -98,7 +99,7 @@ class FusionParams:
     icp_distance_m: float = 0.02     # largest frame-to-model correspondence distance (m)
     icp_iterations: int = 30
     color_weight: float = 0.032      # weight of the colour term against geometry in coloured ICP
-    model_every: int = 5             # the model's points are re-extracted every this many frames
+    model_every: int = 5             # the aligned frames join the model every this many frames
     min_fitness: float = 0.25        # frames whose fraction of points matched is lower are not fused
     far_m: float = 1.6               # depth beyond this is not fused (m)
     min_weight: float = 3.0          # marching cubes keeps voxels fused from at least this many frames
@@ -131,6 +132,7 @@ class ScanFusion:
             voxel_size=p.voxel_m, block_resolution=8, block_count=p.block_count, device=o3d.core.Device("CPU:0"))
         self._K = o3d.core.Tensor(np.asarray(self.calibration.depth.K, np.float64))
         self._model = None
+        self._pending = None  # aligned frames' points not yet in the model
         self._since_model = 0
 
     def _cloud(self, points, colours):
@@ -159,11 +161,14 @@ class ScanFusion:
         result = init, 0.0, 0.0
         # coarse to fine: a wide search first recovers a turn larger than the guess's error; every
         # step keeps the colour term, which holds the turn where the shape is near-symmetric
-        method = reg.TransformationEstimationForColoredICP(lambda_geometric=1.0 - p.color_weight)
+        if p.color_weight > 0:
+            method = reg.TransformationEstimationForColoredICP(lambda_geometric=1.0 - p.color_weight)
+            icp = reg.registration_colored_icp
+        else:  # geometry only: Open3D's coloured ICP with no colour term fails to converge
+            method, icp = reg.TransformationEstimationPointToPlane(), reg.registration_icp
         for scale in ICP_SCALES:
             try:
-                r = reg.registration_colored_icp(source, self._model, p.icp_distance_m * scale, result[0], method,
-                                                 criteria)
+                r = icp(source, self._model, p.icp_distance_m * scale, result[0], method, criteria)
             except RuntimeError:  # Open3D raises when no point has a counterpart: the frame is lost
                 return init, 0.0, 0.0
             result = np.asarray(r.transformation), float(r.fitness), float(r.inlier_rmse)
@@ -199,15 +204,16 @@ class ScanFusion:
         blocks = self._grid.compute_unique_block_coordinates(depth, self._K, extrinsic, 1000.0, p.far_m,
                                                              p.truncation_voxels)
         self._grid.integrate(blocks, depth, color, self._K, extrinsic, 1000.0, p.far_m, p.truncation_voxels)
+        # The model frames are aligned to is the aligned frames' own points, voxel-averaged, not
+        # the TSDF's surface: the TSDF extends the surface along the rays at the edge of what a
+        # view saw, and those skirts pull the next frames (a drift along the turn's axis).
+        seen = o3d.geometry.PointCloud(source).transform(pose)
+        self._pending = seen if self._pending is None else self._pending + seen
         self._since_model += 1
         if self._model is None or self._since_model >= p.model_every:
-            # Open3D keeps voxels whose weight exceeds the threshold strictly: 0.5 keeps every fused one
-            self._model = self._grid.extract_point_cloud(weight_threshold=0.5).to_legacy()
-            # as dense as the frames' clouds: the colour term's gradients cost a search per model point
-            self._model = self._model.voxel_down_sample(2.0 * p.voxel_m)
-            if not self._model.has_normals() or not self._model.has_colors():
-                raise RuntimeError("the TSDF volume gave a model without normals or colours")
-            self._since_model = 0
+            merged = self._pending if self._model is None else self._model + self._pending
+            self._model = merged.voxel_down_sample(2.0 * p.voxel_m)
+            self._pending, self._since_model = None, 0
         return True
 
     def turned_deg(self) -> float:
