@@ -290,7 +290,9 @@ class Alignment:
 
 
 def _mesh_cloud(o3d, V, F, n_points: int, seed: int):
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F))
+    # copies: Open3D refuses read-only arrays (a glTF asset's buffers are)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array(V, np.float64)),
+                                     o3d.utility.Vector3iVector(np.array(F, np.int32)))
     mesh.compute_triangle_normals()
     o3d.utility.random.seed(seed)
     return mesh.sample_points_uniformly(number_of_points=n_points, use_triangle_normal=True)
