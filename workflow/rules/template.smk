@@ -46,7 +46,9 @@ rule template:
         ENV
     params:
         template=_T,
-        masks=config["masks"],
+        # the masks' settings only where the template is aligned: otherwise a changed mask
+        # setting would re-run the template, which does not read the masks
+        masks=config["masks"] if _T["align"] or _T["from_scan"] else {},
     script:
         "../scripts/template.py"
 
