@@ -56,7 +56,7 @@ def partial_path(path: str | os.PathLike) -> Path:
     for old in path.parent.glob(path.name + ".partial*") if path.parent.is_dir() else ():
         rest = old.name[len(path.name) + len(".partial"):].removesuffix(".old")
         h, _, pid = rest[1:].rpartition("-")
-        if rest == "" or (h == host and pid.isdigit() and not _alive(int(pid))):
+        if rest == "" or (h == host and pid.isdigit() and not pid_alive(int(pid))):
             _remove(old)
     tmp = path.with_name(f"{path.name}.partial-{host}-{os.getpid()}")
     if tmp.exists() or tmp.is_symlink():  # this process's own earlier attempt
@@ -71,7 +71,8 @@ def _remove(p: Path) -> None:
         p.unlink(missing_ok=True)
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists on this host (another user's counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

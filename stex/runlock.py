@@ -23,6 +23,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from stex.files import pid_alive
+
 LOCK_NAME = ".stex-run.lock"
 
 
@@ -71,16 +73,6 @@ def process_start(pid: int) -> int | None:
         return None
     # the command name (field 2) is in parentheses and may itself hold spaces and ')'
     return int(stat[stat.rindex(")") + 2:].split()[19])
-
-
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process: it exists
-        return True
-    return True
 
 
 def this_process(command: str | None = None) -> Holder:
