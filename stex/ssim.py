@@ -59,6 +59,18 @@ def ssim_weights() -> np.ndarray:
 SSIM_WEIGHTS = ssim_weights()
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _mirrored_rows(i, k, h):
+    """Rows i + k and i - k (k < 0) of an image of h rows, mirrored at its edges as scipy's
+    'reflect' mode (the edge row repeated)."""
+    ia, ib = i + k, i - k
+    if ia < 0:
+        ia = -ia - 1
+    if ib >= h:
+        ib = 2 * h - ib - 1
+    return ia, ib
+
+
 @njit(cache=True, nogil=True)
 def ssim_filter(x, w):
     """``scipy.ndimage.gaussian_filter(x, 1.5, mode='reflect', truncate=3.5)`` of a (h, w)
@@ -73,11 +85,7 @@ def ssim_filter(x, w):
         for j in range(wd):
             tmp[i, j] = x[i, j] * w[r]
         for k in range(-r, 0):
-            ia, ib = i + k, i - k
-            if ia < 0:
-                ia = -ia - 1
-            if ib >= h:
-                ib = 2 * h - ib - 1
+            ia, ib = _mirrored_rows(i, k, h)
             for j in range(wd):
                 tmp[i, j] += (x[ia, j] + x[ib, j]) * w[r + k]
     out = np.empty((h, wd))
@@ -140,11 +148,7 @@ def _ssim_channel(x, y, ux, vx, w, C1, C2, S, ch):
             lyy[r + j] = (q * q) * w0
             lxy[r + j] = (x[i, j] * q) * w0
         for k in range(-r, 0):
-            ia, ib = i + k, i - k
-            if ia < 0:
-                ia = -ia - 1
-            if ib >= h:
-                ib = 2 * h - ib - 1
+            ia, ib = _mirrored_rows(i, k, h)
             wk = w[r + k]
             for j in range(wd):
                 p, q = y[ia, j], y[ib, j]
