@@ -16,7 +16,6 @@ in, the machine, and the library versions the evaluation recorded.
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import json
 import os
@@ -25,7 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from stex.reporting import nan_for_none, sampling_rows, stage_timings, table_rows, timing_rows
+from stex.reporting import benchmark_rows, nan_for_none, sampling_rows, stage_timings, table_rows, timing_rows
 
 REPO = Path(__file__).resolve().parents[1]
 RUNS = REPO / "docs" / "runs"
@@ -45,23 +44,14 @@ def _blocks(run: Path) -> int | None:
 
 
 def stage_jobs(benchmark_dir: Path, n_blocks: int | None = None) -> dict:
-    """``{stage: {"jobs": count, "max_rss_mb": peak over its jobs}}`` from Snakemake benchmark
-    files ``<rule>[_<block>].tsv`` (column ``max_rss``, MB), block files as in
-    :func:`stex.reporting.stage_timings`."""
+    """``{stage: {"jobs": count, "max_rss_mb": peak over its jobs}}`` from the Snakemake benchmark
+    files (:func:`stex.reporting.benchmark_rows`, column ``max_rss``, MB)."""
     out: dict[str, dict] = {}
-    for path in sorted(Path(benchmark_dir).glob("*.tsv")):
-        head, _, tail = path.stem.rpartition("_")
-        block = tail.isdigit() and head
-        if block and n_blocks is not None and int(tail) >= n_blocks:
-            continue
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh, delimiter="\t"))
-        if not rows:
-            continue
-        stage = out.setdefault(head if block else path.stem, {"jobs": 0, "max_rss_mb": None})
+    for name, _, row in benchmark_rows(benchmark_dir, n_blocks):
+        stage = out.setdefault(name, {"jobs": 0, "max_rss_mb": None})
         stage["jobs"] += 1
         try:
-            rss = float(rows[-1]["max_rss"])
+            rss = float(row["max_rss"])
         except (KeyError, TypeError, ValueError):  # "-" where psutil could not measure
             continue
         stage["max_rss_mb"] = rss if stage["max_rss_mb"] is None else max(stage["max_rss_mb"], rss)

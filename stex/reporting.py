@@ -260,15 +260,14 @@ def nan_for_none(x):
     return math.nan if x is None else x
 
 
-def stage_timings(benchmark_dir, n_blocks: int | None = None) -> dict:
-    """Wall time per stage (s): the sum over a stage's jobs of Snakemake's ``benchmark:`` files
-    ``<dir>/<rule>[_<block>].tsv`` (column ``s``; block suffixes are summed into one stage).
-    With ``n_blocks``, files of blocks ``>= n_blocks`` are left out: they are left over from a
-    run of the scene with more frames. Missing directory: {}."""
-    out: dict[str, float] = {}
+def benchmark_rows(benchmark_dir, n_blocks: int | None = None):
+    """``(stage, path, last row)`` of every Snakemake ``benchmark:`` file
+    ``<dir>/<rule>[_<block>].tsv`` that has a row, block suffixes folded into the stage. With
+    ``n_blocks``, files of blocks ``>= n_blocks`` are left out: they are left over from a run of
+    the scene with more frames. Missing directory: nothing."""
     d = Path(benchmark_dir)
     if not d.is_dir():
-        return out
+        return
     for path in sorted(d.glob("*.tsv")):
         stem = path.stem
         head, _, tail = stem.rpartition("_")
@@ -278,10 +277,18 @@ def stage_timings(benchmark_dir, n_blocks: int | None = None) -> dict:
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh, delimiter="\t"))
         if rows:
-            try:
-                out[stage] = out.get(stage, 0.0) + float(rows[-1]["s"])
-            except (KeyError, TypeError, ValueError):
-                raise ValueError(f"{path}: not a Snakemake benchmark file (no seconds in column 's')") from None
+            yield stage, path, rows[-1]
+
+
+def stage_timings(benchmark_dir, n_blocks: int | None = None) -> dict:
+    """Wall time per stage (s): the sum over a stage's jobs of column ``s`` of their
+    :func:`benchmark_rows`. Missing directory: {}."""
+    out: dict[str, float] = {}
+    for stage, path, row in benchmark_rows(benchmark_dir, n_blocks):
+        try:
+            out[stage] = out.get(stage, 0.0) + float(row["s"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{path}: not a Snakemake benchmark file (no seconds in column 's')") from None
     return out
 
 
