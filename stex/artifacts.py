@@ -341,6 +341,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "gutter_px": "int: rings of gutter texels filled around every chart",
             "first_position": "int: sequence position of the first slice (labels are sequence positions)",
             "never_seen_texels": "int: texels of never-seen faces, filled from the nearest seen surface point",
+            "fill": "str: how never-seen texels were filled (volume.fill: nearest or harmonic; none when there are none)",
             "atlas_digest": "str: the template atlas the slices are in (stex.atlas.atlas_digest: 16 hex digits "
                             "of a hash of texcoords, texcoord_faces and atlas_size). Every reader of the store "
                             "(correction, evaluation, `stex evaluate --texture`, export) refuses it when the "

@@ -104,6 +104,7 @@ from numba import njit
 from stex.sampling import fill_gutter
 from stex.atlas import texel_map, uv_charts
 from stex.mesh import face_adjacency
+from stex.texel_graph import texel_graph
 
 log = logging.getLogger("stex.correction")
 
@@ -117,91 +118,27 @@ BOUNDARY_GRADIENTS = ("zero", "one_sided")
 # the texel graph of one atlas resolution
 # --------------------------------------------------------------------------------------------
 
-def _bilinear_stencil(px, chart_tex, chart_want, idx):
-    """Per point (N, 2) (x = column, y = row texel coords): 4 texel unknown ids and weights,
-    restricted to covered texels of ``chart_want`` (N,) and renormalised. Returns (ids (N, 4),
-    w (N, 4), ok (N,))."""
-    W = chart_tex.shape[0]
-    x, y = px[:, 0], px[:, 1]
-    c0 = np.floor(x).astype(np.int64)
-    r0 = np.floor(y).astype(np.int64)
-    a, b = x - c0, y - r0
-    ids = np.full((len(px), 4), -1, np.int64)
-    w = np.zeros((len(px), 4))
-    for j, (dr, dc, wt) in enumerate([(0, 0, (1 - a) * (1 - b)), (0, 1, a * (1 - b)),
-                                      (1, 0, (1 - a) * b), (1, 1, a * b)]):
-        r, c = r0 + dr, c0 + dc
-        inside = (r >= 0) & (r < W) & (c >= 0) & (c < W)
-        rr, cc = np.clip(r, 0, W - 1), np.clip(c, 0, W - 1)
-        good = inside & (chart_tex[rr, cc] == chart_want) & (idx[rr, cc] >= 0)
-        ids[:, j] = np.where(good, idx[rr, cc], -1)
-        w[:, j] = np.where(good, wt, 0.0)
-    s = w.sum(1)
-    ok = s > 1e-9
-    w[ok] /= s[ok, None]
-    return ids, w, ok
-
-
 class _Graph:
-    """Unknowns, pairs, seam rows, matrix and AMG hierarchy of one atlas rasterisation."""
+    """Unknowns, pairs, seam rows (:func:`stex.texel_graph.texel_graph`), matrix and AMG
+    hierarchy of one atlas rasterisation."""
 
     def __init__(self, texel_face, face_chart, texcoords, texcoord_faces, faces, pairs, edges,
                  lam, seam_weight, amg_kwargs):
         t0 = time.perf_counter()
-        tfc = np.asarray(texel_face)
-        W = tfc.shape[0]
-        self.W = W
-        self.covered = tfc >= 0
-        self.index = np.flatnonzero(self.covered.ravel())
-        n = len(self.index)
-        self.n = n
-        idx = np.full(W * W, -1, np.int64)
-        idx[self.index] = np.arange(n)
-        idx = idx.reshape(W, W)
-        self.idx = idx
-        chart_tex = np.where(self.covered, face_chart[np.maximum(tfc, 0)], -1).astype(np.int32)
-        self.chart_tex = chart_tex
-
-        # 4-neighbour pairs inside one chart
-        ps, qs = [], []
-        same_h = self.covered[:, :-1] & self.covered[:, 1:] & (chart_tex[:, :-1] == chart_tex[:, 1:])
-        ps.append(idx[:, :-1][same_h]); qs.append(idx[:, 1:][same_h])
-        same_v = self.covered[:-1, :] & self.covered[1:, :] & (chart_tex[:-1, :] == chart_tex[1:, :])
-        ps.append(idx[:-1, :][same_v]); qs.append(idx[1:, :][same_v])
-        self.p = np.concatenate(ps).astype(np.int32)
-        self.q = np.concatenate(qs).astype(np.int32)
-        # each pair's neighbours along its own axis: (p's predecessor, p) and (q, q's successor),
-        # -1 where there is none (chart edge); the one-sided gradients of a label boundary
-        nh = int(same_h.sum())
-        hid = np.full((W, W), -1, np.int32)
-        hid[:, :-1][same_h] = np.arange(nh)
-        vid = np.full((W, W), -1, np.int32)
-        vid[:-1, :][same_v] = nh + np.arange(int(same_v.sum()))
-        pad_h = np.pad(hid, ((0, 0), (1, 1)), constant_values=-1)
-        pad_v = np.pad(vid, ((1, 1), (0, 0)), constant_values=-1)
-        self.before = np.concatenate([pad_h[:, :-3][same_h], pad_v[:-3, :][same_v]])
-        self.after = np.concatenate([pad_h[:, 2:-1][same_h], pad_v[2:-1, :][same_v]])
-
-        # seam rows
-        self.S = self._seam_rows(texcoords, texcoord_faces, faces, pairs, edges, face_chart, chart_tex, idx)
+        tg = texel_graph(texel_face, face_chart, texcoords, texcoord_faces, faces, pairs, edges)
+        self.W, self.covered, self.index, self.idx, self.chart_tex = tg.W, tg.covered, tg.index, tg.idx, tg.chart_tex
+        self.n = tg.n
+        self.p, self.q, self.before, self.after = tg.p, tg.q, tg.before, tg.after
+        self.S, self.n_seam_edges, self.n_seam_dropped = tg.S, tg.n_seam_edges, tg.n_seam_dropped
         self.seam_weight = float(seam_weight)
         self.lam = float(lam)
-
-        m = len(self.p)
-        deg = np.bincount(self.p, minlength=n) + np.bincount(self.q, minlength=n)
-        L = sp.coo_matrix((np.concatenate([-np.ones(m), -np.ones(m), deg + self.lam]),
-                           (np.concatenate([self.p, self.q, np.arange(n)]),
-                            np.concatenate([self.q, self.p, np.arange(n)]))), shape=(n, n)).tocsr()
-        if self.S.shape[0]:
-            L = L + self.seam_weight * (self.S.T @ self.S).tocsr()
-        self.A = L.tocsr()
-        self.A.sum_duplicates()
+        self.A = tg.laplacian(self.seam_weight, self.lam)
         t1 = time.perf_counter()
         self.amg_kwargs = dict(amg_kwargs or {})
         self._ml = None
         self.timings = {"graph_s": t1 - t0}
         log.info("correction: %d^2 atlas, %d unknowns, %d pairs, %d seam rows; graph %.1f s",
-                 W, n, m, self.S.shape[0], t1 - t0)
+                 self.W, self.n, len(self.p), self.S.shape[0], t1 - t0)
 
     @property
     def ml(self):
@@ -217,51 +154,6 @@ class _Graph:
             log.info("correction: AMG setup of the whole system %.1f s (%d levels)",
                      self.timings["amg_setup_s"], len(self._ml.levels))
         return self._ml
-
-    def _seam_rows(self, texcoords, tfaces, faces, pairs, edges, face_chart, chart_tex, idx):
-        W = self.W
-        n = self.n
-        tc = np.asarray(texcoords, np.float64)
-        TF = np.asarray(tfaces, np.int64)
-        Fv = np.asarray(faces, np.int64)
-        pr = np.asarray(pairs, np.int64).reshape(-1, 2)
-        ed = np.asarray(edges, np.int64).reshape(-1, 2)
-        self.n_seam_edges = 0
-        self.n_seam_dropped = 0
-        if len(pr) == 0:
-            return sp.csr_matrix((0, n))
-
-        def corner_uv(f, v):
-            k = np.argmax(Fv[f] == v[:, None], axis=1)
-            return tc[TF[f, k]]
-
-        f1, f2 = pr[:, 0], pr[:, 1]
-        a, b = ed[:, 0], ed[:, 1]
-        u1a, u1b = corner_uv(f1, a), corner_uv(f1, b)
-        u2a, u2b = corner_uv(f2, a), corner_uv(f2, b)
-        seam = (np.abs(u1a - u2a).max(1) > 1e-7) | (np.abs(u1b - u2b).max(1) > 1e-7)
-        self.n_seam_edges = int(seam.sum())
-        if not seam.any():
-            return sp.csr_matrix((0, n))
-        f1, f2, u1a, u1b, u2a, u2b = f1[seam], f2[seam], u1a[seam], u1b[seam], u2a[seam], u2b[seam]
-        length = np.maximum(np.linalg.norm(u1b - u1a, axis=1), np.linalg.norm(u2b - u2a, axis=1)) * W
-        ns = np.maximum(1, np.ceil(length)).astype(np.int64)
-        e = np.repeat(np.arange(len(ns)), ns)
-        k = np.arange(len(e)) - np.repeat(np.cumsum(ns) - ns, ns)
-        t = ((k + 0.5) / ns[e])[:, None]
-        p1 = (u1a[e] + t * (u1b[e] - u1a[e])) * W - 0.5
-        p2 = (u2a[e] + t * (u2b[e] - u2a[e])) * W - 0.5
-        id1, w1, ok1 = _bilinear_stencil(p1, chart_tex, face_chart[f1[e]], idx)
-        id2, w2, ok2 = _bilinear_stencil(p2, chart_tex, face_chart[f2[e]], idx)
-        ok = ok1 & ok2
-        self.n_seam_dropped = int((~ok).sum())
-        id1, w1, id2, w2 = id1[ok], w1[ok], id2[ok], w2[ok]
-        R = len(id1)
-        rows = np.repeat(np.arange(R), 8)
-        cols = np.concatenate([id1, id2], 1).ravel()
-        vals = np.concatenate([w1, -w2], 1).ravel()
-        keep = cols >= 0
-        return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(R, n))
 
     def solve(self, f0, lab, prev=None, borrowed=None, mu=0.0, tol=1e-4, maxiter=50,
               boundary_gradient="one_sided", kept=None):

@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from stex.config import section_params
+from stex.fill import SeamFill
 from stex.io import FrameSequence, create_store, open_store, position_range
 from stex.sampling import TexelSampler, fill_gutter, nearest_seen_texels
 from stex.stages.observations import open_coordinates
@@ -29,7 +30,7 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
         frames_paths: ``frames`` block stores (colour images).
         positions: [start, stop) sequence positions of the slices to write.
         params: the ``volume`` config section (gutter_px, slices_per_pass, interpolation,
-            own_frame_coordinates).
+            own_frame_coordinates, fill, fill_screen_length).
         out: path of the store.
         projection_path: ``projection`` store (Φ); needed when ``own_frame_coordinates`` is
             ``projected`` and ``coords_path`` holds ξ: slice t then reads the texels labelled
@@ -63,6 +64,13 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     sampler = TexelSampler(tf, tb, faces, p["interpolation"])
     never = np.asarray(labels_store["never_seen"][...], bool)
     dst, src, weight = nearest_seen_texels(tf, tb, template["vertices"][...], faces, never)
+    seam_fill = None
+    if dst.size and p["fill"] == "harmonic":
+        # solved per slice from the nearest fill, with the seen texels around it held
+        seam_fill = SeamFill(tf, template["face_chart"][...], template["texcoords"][...],
+                             template["texcoord_faces"][...], faces, template["adjacency/pairs"][...],
+                             template["adjacency/edges"][...], never,
+                             screen_length=p["fill_screen_length"])
     gutter = int(p["gutter_px"])
 
     # with own_at_phi, label T + t stands for frame t read at Φ_t (the texels of slice t labelled
@@ -77,7 +85,8 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
     per_pass = int(p["slices_per_pass"])
     t0 = time.perf_counter()
     attrs = {"frame_ids": ids[start:stop], "first_position": start, "gutter_px": gutter,
-             "never_seen_texels": int(dst.size), "atlas_digest": template_atlas_digest(template)}
+             "never_seen_texels": int(dst.size), "fill": p["fill"] if dst.size else "none",
+             "atlas_digest": template_atlas_digest(template)}
     with create_store(out, "volume", attrs=attrs, params=p) as store:
         a_tex = store.create("texture", (stop - start, W, W, 3))
         a_lab = store.create("label_map", (stop - start, W, W))
@@ -94,6 +103,8 @@ def write_volume(template_path, labels_path, coords_path, frames_paths, position
                 if dst.size:
                     flat = tex.reshape(-1, 3)
                     flat[dst] = np.round(np.einsum("nk,nkc->nc", weight, flat[src].astype(np.float32)))
+                    if seam_fill is not None:
+                        seam_fill.fill(tex)
                 fill_gutter(tex, sampler.covered, sampler.covered, gutter)
                 a_tex[k] = tex
                 a_lab[k] = lm.astype(np.int16)
