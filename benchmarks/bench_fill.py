@@ -19,6 +19,10 @@ never-seen faces are filled and compared with the truth:
 - ``flicker``: mean |Δ| of the filled texels between frame t − 1 and t (``truth``: the truth's);
 - ``CPU ms``: CPU time of the fill per slice (this process; set-up once per job beside it).
 
+With ``--correct`` the filled slices are scored after the colour correction (default settings;
+the seen texels labelled with the slice's own frame, so kept): the correction itself smooths a
+region without labels, and what matters is what is left after it.
+
 **Rendered** (``--evaluate BLOCKS``, a finished run): those frame blocks' volume and correction
 stages are run again with each fill into a scratch folder and the evaluation scores the slices
 beside the run's own against the truth: ``gt_novel_psnr_never_seen`` (novel view, surface no
@@ -46,6 +50,8 @@ try:
 except ImportError:  # run from a source checkout without installing the package
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from stex.config import section_params
+from stex.correction import CorrectionSystem
 from stex.fill import SeamFill
 from stex.io import FrameSequence, open_store, run_block_paths
 from stex.resample import atlas_transfer
@@ -130,8 +136,19 @@ class _Seams:
         return float(np.abs(f[self.g.p[self.edge]] - f[self.g.q[self.edge]]).mean())
 
 
-def texture_space(R: Path, fills, stride: int, boundary: str) -> list[dict]:
-    """Per fill, the texture-space figures of the module docstring."""
+def _corrector(T, W):
+    """The correction stage's system with the default settings (stex.stages.correction)."""
+    p = section_params("correction")
+    return CorrectionSystem(T["texel/face_id"][...], T["texcoords"][...], T["texcoord_faces"][...], T["faces"][...],
+                            T["adjacency/pairs"][...], T["adjacency/edges"][...], T["face_chart"][...],
+                            factor=max(1, W // int(p["solve_size"])), screen_length=p["screen_length"],
+                            seam_weight=p["seam_weight"], temporal_length=None, tol=p["tol"],
+                            boundary_gradient=p["boundary_gradient"], keep_own_frame=True, gutter_px=0)
+
+
+def texture_space(R: Path, fills, stride: int, boundary: str, correct: bool = False) -> list[dict]:
+    """Per fill, the texture-space figures of the module docstring; with ``correct`` after the
+    colour correction (the seen texels labelled with the slice's own frame: kept)."""
     scene = open_store(R / "scene.zarr", "scene")
     T = open_store(R / "template.zarr", "template")
     never = never_seen_faces(R)
@@ -156,8 +173,11 @@ def texture_space(R: Path, fills, stride: int, boundary: str) -> list[dict]:
             c0 = time.process_time()
             systems[spec] = SeamFill(tf, T["face_chart"][...], T["texcoords"][...], T["texcoord_faces"][...],
                                      faces, T["adjacency/pairs"][...], T["adjacency/edges"][...], never,
-                                     screen_length=_fill_params(spec).get("fill_screen_length", 1 / 16))
+                                     screen_length=_fill_params(spec).get("fill_screen_length",
+                                                                         section_params("volume")["fill_screen_length"]))
             systems[spec].setup_cpu_s = time.process_time() - c0
+    corrector = _corrector(T, tf.shape[0]) if correct else None
+    own = np.where(cov & ~never[np.maximum(tf, 0)], 0, -1).astype(np.int32)
     acc = {spec: {"se": 0.0, "n": 0, "seam": [], "edge": [], "flicker": [], "cpu": []} for spec in fills}
     acc["truth"] = {"seam": [], "edge": [], "flicker": []}
     print(f"{R}: {int(never.sum())} never-seen faces, {int(hole.sum())} texels; frames {scored}", flush=True)
@@ -180,6 +200,8 @@ def texture_space(R: Path, fills, stride: int, boundary: str) -> list[dict]:
                 if spec in systems:
                     systems[spec].fill(tex)
                 cpu = time.process_time() - c0
+                if corrector is not None:
+                    tex = corrector.correct(tex, own, frame=0)
                 prev_out_f[spec] = tex
                 if k == 1:
                     a = acc[spec]
@@ -205,9 +227,10 @@ def texture_space(R: Path, fills, stride: int, boundary: str) -> list[dict]:
     return rows
 
 
-def print_texture_table(R, rows, boundary, stride):
+def print_texture_table(R, rows, boundary, stride, correct):
     t = rows[-1]
-    print(f"\n{R}: texture space, boundary {boundary}, every {stride}th frame; grey levels of 255")
+    print(f"\n{R}: texture space, boundary {boundary}, every {stride}th frame"
+          f"{', corrected' if correct else ''}; grey levels of 255")
     print("| fill | PSNR, dB | seam step (truth) | edge step (truth) | flicker (truth) | CPU ms per slice (set-up s) |")
     print("|---|---|---|---|---|---|")
     for r in rows[:-1]:
@@ -260,6 +283,8 @@ def main(argv=None) -> int:
     ap.add_argument("--stride", type=int, default=10, help="texture space: every k-th frame (default 10)")
     ap.add_argument("--boundary", choices=("truth", "volume"), default="truth",
                     help="texture space: the seen texels, the truth's or the run's volume slices")
+    ap.add_argument("--correct", action="store_true",
+                    help="texture space: score the slices after the colour correction (default settings)")
     ap.add_argument("--evaluate", default=None, metavar="BLOCKS",
                     help="instead: redo these frame blocks' volume and correction and score them rendered")
     ap.add_argument("--out", type=Path, default=None, help="--evaluate's scratch folder (default: a temporary one)")
@@ -272,8 +297,8 @@ def main(argv=None) -> int:
         out = a.out or Path(tempfile.mkdtemp(prefix="bench_fill_"))
         rows = rendered(a.results, fills, sorted({int(b) for b in a.evaluate.split(",")}), out)
     else:
-        rows = texture_space(a.results, fills, max(1, a.stride), a.boundary)
-        print_texture_table(a.results, rows, a.boundary, a.stride)
+        rows = texture_space(a.results, fills, max(1, a.stride), a.boundary, a.correct)
+        print_texture_table(a.results, rows, a.boundary, a.stride, a.correct)
     if a.json:
         a.json.write_text(json.dumps({"results": str(a.results), "rows": rows}, indent=1))
     return 0

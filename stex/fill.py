@@ -62,7 +62,7 @@ class SeamFill:
     """
 
     def __init__(self, texel_face, face_chart, texcoords, texcoord_faces, faces, adjacency_pairs,
-                 adjacency_edges, never_seen, *, screen_length: float = 1 / 16,
+                 adjacency_edges, never_seen, *, screen_length: float = 1 / 64,
                  seam_weight: float = 1.0, tol: float = 1e-6, maxiter: int = 100):
         t0 = time.perf_counter()
         tf = np.asarray(texel_face)

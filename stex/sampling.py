@@ -468,7 +468,8 @@ def nearest_seen_texels(texel_face, texel_bary, vertices, faces, never_seen, k: 
 
     Returns:
         (targets (n,) int64 flat texel indices, sources (n, k) int64 flat texel indices,
-        weights (n, k) float32 summing to 1). Empty when every face is seen or none is.
+        weights (n, k) float32 summing to 1). Empty when every face is seen or none is. The
+        ``harmonic`` fill (:class:`stex.fill.SeamFill`) starts from this one.
     """
     tf = np.ascontiguousarray(np.asarray(texel_face).ravel(), dtype=np.int32)
     ns = np.asarray(never_seen, bool)

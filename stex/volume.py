@@ -8,7 +8,8 @@ What it computes
   texels left without colour and ``gutter_px`` rings around the charts are filled
   (:func:`stex.sampling.fill_gutter`). The stage (:mod:`stex.stages.volume`) samples a pass of
   slices at once and colours never-seen faces from the nearest seen texels
-  (:func:`stex.sampling.nearest_seen_texels`).
+  (:func:`stex.sampling.nearest_seen_texels`), then, with ``volume.fill`` harmonic, by a
+  seam-aware screened harmonic fill over the atlas texel graph (:class:`stex.fill.SeamFill`).
 
 Label map
 ---------
