@@ -326,8 +326,8 @@ def test_harmonic_fill_changes_only_the_never_seen_texels(tiny_pipeline, tmp_pat
 
     def edge_step(t):     # mean |Δ| between a hole texel and its seen left / right neighbour
         # (covered texels side by side lie in one chart: the gutter separates charts)
-        d = [np.abs(t[:, 1:][:, hole[:, 1:] & inner[:, :-1]] - t[:, :-1][:, hole[:, 1:] & inner[:, :-1]]),
-             np.abs(t[:, :-1][:, hole[:, :-1] & inner[:, 1:]] - t[:, 1:][:, hole[:, :-1] & inner[:, 1:]])]
-        return np.concatenate(d, axis=1).mean()
+        a, b = hole[:, 1:] & inner[:, :-1], hole[:, :-1] & inner[:, 1:]
+        right, left = t[:, :, 1:], t[:, :, :-1]
+        return np.concatenate([np.abs(right[:, a] - left[:, a]), np.abs(left[:, b] - right[:, b])], axis=1).mean()
 
     assert edge_step(tex["harmonic"]) < 0.7 * edge_step(tex["nearest"])
