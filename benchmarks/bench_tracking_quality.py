@@ -200,6 +200,39 @@ def scores(tracks: list[dict], th: QualityThresholds) -> dict:
     return c
 
 
+GRID = {"frame_share": [0.05, 0.1, 0.15, 0.2, 0.25, 0.3], "frame_flow_m": [0.003, 0.004, 0.005, 0.006, 0.008, 1.0],
+        "frame_fail_share": [0.2, 0.25, 0.3, 0.4, 1.0], "frame_depth_m": [0.0025, 0.003, 0.0035, 0.004, 0.005, 1.0]}
+
+
+def choose_thresholds(tracks: list[dict], th: QualityThresholds) -> None:
+    """``--grid``: the frame thresholds of GRID (every combination; the vertex thresholds as
+    ``th``) on ``tracks`` (the dev set): those with false alarms on at most 5 % of the good frames
+    (the acceptance's bound), ranked by F1 of "lost", then by fewer false alarms; prints the best ten."""
+    import itertools
+    feats, truth = [], []
+    for tr in tracks:
+        for i in range(len(tr["frames"])):
+            _, _, s = judge(signals_of(tr, i), th)
+            feats.append((s["share"], s["flow_m"], s["fail_share"], s["depth_m"], s["no_data"]))
+            vis = tr["true_seen"][i]
+            truth.append(tr["err"][i][vis].mean() > LOST_M if vis.any() else True)
+    f, truth = np.nan_to_num(np.array(feats, np.float64), nan=0.0), np.array(truth)
+    rows = []
+    for v in itertools.product(*GRID.values()):
+        lost = (f[:, 0] > v[0]) | (f[:, 1] > v[1]) | (f[:, 2] > v[2]) | (f[:, 3] > v[3]) | (f[:, 4] > 0)
+        tp, fp, fn = (lost & truth).sum(), (lost & ~truth).sum(), (~lost & truth).sum()
+        p, r = _ratio(tp, tp + fp), _ratio(tp, tp + fn)
+        rows.append((min(p, r), 2 * tp / (2 * tp + fp + fn) if tp else 0.0, p, r, int(fp), v))
+    good = int((~truth).sum())
+    rows = sorted((r for r in rows if r[4] <= 0.05 * good), key=lambda x: (-x[1], x[4]))
+    print(f"dev set: {len(truth)} frames, {int(truth.sum())} lost")
+    print("| min(P, R) | F1 | precision | recall | false alarms | " + " | ".join(GRID) + " |")
+    print("|" + "---|" * (5 + len(GRID)))
+    for row in rows[:10]:
+        print(f"| {row[0]:.3f} | {row[1]:.3f} | {row[2]:.3f} | {row[3]:.3f} | {row[4]} | "
+              + " | ".join(f"{x:g}" for x in row[5]) + " |")
+
+
 def _ratio(a, b):
     return a / b if b else float("nan")
 
@@ -230,6 +263,7 @@ def main() -> int:
     ap.add_argument("--rejudge", action="store_true", help="read the cache only (no tracking)")
     ap.add_argument("--thresholds", default="{}", help="JSON overrides of stex.tracking_quality.THRESHOLDS")
     ap.add_argument("--samples", type=Path, default=data_samples())
+    ap.add_argument("--grid", action="store_true", help="search GRID for the thresholds on the dev set (from --cache)")
     args = ap.parse_args()
     th = QualityThresholds(**{**THRESHOLDS.__dict__, **json.loads(args.thresholds)})
     names = args.scenes or [s for s, (role, _, _) in SCENES.items() if args.only in ("all", role)]
@@ -253,6 +287,9 @@ def main() -> int:
             err = [e[v].mean() for e, v in zip(r["err"], r["true_seen"])]
             print(f"tracked {s}/{tr}: {len(r['frames'])} frames, {int((np.array(err) > LOST_M).sum())} lost, "
                   f"median {np.median(r['seconds']):.2f} s a frame", flush=True)
+    if args.grid:
+        choose_thresholds([v for (s, _), v in tracks.items() if SCENES[s][0] == "dev"], th)
+        return 0
     print(f"thresholds: {json.dumps(th.__dict__)}")
     print("| set | tracks | frames | lost (truth) | precision | recall | vertex precision | vertex recall |")
     print("|---|---|---|---|---|---|---|---|")

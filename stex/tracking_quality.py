@@ -23,7 +23,7 @@ of :data:`THRESHOLDS`, chosen on the demo scene and tracks made to fail on it
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -35,6 +35,7 @@ from stex.render import rasterize, vertex_visibility
 __all__ = ["QualityThresholds", "THRESHOLDS", "vertex_signals", "judge", "frame_quality"]
 
 DEPTH_CLIP_M = 0.1         # a depth difference counts at most this much (m): beyond, the pixel is another surface
+APPEARANCE_MAX_SIDE = 640  # the appearance flow runs on colour images downscaled to this longer side (px) at most
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,8 @@ class QualityThresholds:
     frame_flow_m: ... or where the median appearance flow of its measured vertices exceeds this (m).
     frame_fail_share: ... or where more than this share of the vertices the flow could measure
         fails its forward-backward check.
+    frame_depth_m: ... or where the mean depth difference of its seen vertices exceeds this (m): a
+        mesh that no longer follows the surface's deformation.
     """
 
     vertex_depth_m: float = 0.015
@@ -57,6 +60,7 @@ class QualityThresholds:
     frame_share: float = 0.25
     frame_flow_m: float = 0.006
     frame_fail_share: float = 0.5
+    frame_depth_m: float = 1.0
 
 
 THRESHOLDS = QualityThresholds()
@@ -80,6 +84,14 @@ def _outside_distance(mask: np.ndarray, uv: np.ndarray, margin_px: int = 8) -> n
     out = np.full(len(uv), np.inf, np.float32)       # off the image: as far out as it gets
     out[inside] = dist[px[inside, 1] - y0, px[inside, 0] - x0]
     return out
+
+
+def _resized(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """An image (H, W[, C]) uint8 or a mask (H, W) bool at ``size`` (W, H): area-averaged, masks nearest."""
+    if a.dtype == bool:
+        return cv2.resize(a.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    out = cv2.resize(np.ascontiguousarray(a), size, interpolation=cv2.INTER_AREA)
+    return out.reshape(size[1], size[0], *a.shape[2:])
 
 
 def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: AppearanceModel | None = None,
@@ -134,10 +146,17 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
     if mask is not None:
         out["outside_px"][ids] = _outside_distance(np.asarray(mask, bool), project_points(Vc[ids], c.K)[0])
     if model is not None and image is not None:
+        # Why downscaled: at a paper-scale colour camera the flow costs as much as half a frame's
+        # tracking; a vertex off by a centimetre is still pixels off at the smaller size.
+        factor = min(1.0, APPEARANCE_MAX_SIDE / max(c.width, c.height))
+        if factor < 1.0:
+            calibration = replace(calibration, color=c.scaled(factor))
+            c = calibration.color
+            image, prev_image, mask = (None if a is None else _resized(a, c.size) for a in (image, prev_image, mask))
         fid, u1 = flow_constraints(V, F, model, image, mask, calibration, consistency_px, min_cos, erode_px=erode_px,
                                    prev_image=prev_image)
         if len(fid):
-            d = np.linalg.norm(u1 - project_points(Vc[fid], c.K)[0], axis=1)
+            d = np.linalg.norm(u1 - project_points(Vc[fid], c.K)[0], axis=1) / factor   # full-size px
             best = np.full(n, np.inf)
             np.minimum.at(best, fid, d)
             got = np.isfinite(best)
@@ -157,10 +176,12 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS) -> tuple[np.ndarray
     ``th.vertex_flow_m`` (px times its metres per pixel). The frame is lost where the depth
     camera sees none of the mesh (no data), or more than ``th.frame_share`` of its seen vertices
     are lost, or the median appearance flow exceeds ``th.frame_flow_m``, or more than
-    ``th.frame_fail_share`` of the measurable vertices fail the flow's forward-backward check.
+    ``th.frame_fail_share`` of the measurable vertices fail the flow's forward-backward check, or
+    the mean depth difference exceeds ``th.frame_depth_m``.
 
     Returns (vertex lost (V,) bool, frame lost, summary: ``share`` of seen vertices lost,
-    ``flow_m`` median appearance flow (m, NaN without), ``fail_share``, ``no_data`` bool, ``why``
+    ``flow_m`` median appearance flow (m, NaN without), ``fail_share``, ``depth_m`` mean depth
+    difference (m), ``no_data`` bool, ``why``
     str naming what decided, "" where ok).
     """
     seen = signals["seen"]
@@ -184,8 +205,11 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS) -> tuple[np.ndarray
         why.append(f"the appearance model sits {1000 * flow_med:.1f} mm (median) from the image")
     if fail_share > th.frame_fail_share:
         why.append(f"{100 * fail_share:.0f} % of the appearance flow inconsistent")
-    summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "no_data": no_data,
-               "why": "; ".join(why)}
+    depth_mean = float(np.nanmean(depth)) if not no_data else float("nan")
+    if depth_mean > th.frame_depth_m:
+        why.append(f"the mesh is {1000 * depth_mean:.1f} mm off the depth (mean)")
+    summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "depth_m": depth_mean,
+               "no_data": no_data, "why": "; ".join(why)}
     return lost, bool(why), summary
 
 
