@@ -88,7 +88,7 @@ def test_lost_frames_and_faces_are_no_source():
 def test_write_data_term_takes_no_source_from_lost_frames(tmp_path):
     """The data-term stage: with frame 11 judged lost and vertex 0 lost at frame 12, frame 11 is
     nobody's candidate, face 0 (which holds vertex 0) has no candidate from 12, face 1 keeps it;
-    with data_term.exclude_lost false they are candidates again."""
+    with data_term.exclude_lost false they are candidates again. `stex inspect` counts the lost frame."""
     from test_data_term import _stores
     from stex.io import create_store, open_store
     from stex.stages.data_term import write_data_term
@@ -106,6 +106,9 @@ def test_write_data_term_takes_no_source_from_lost_frames(tmp_path):
         s.write("lost", np.array([False, True, False, False]))
         s.write("no_data", np.zeros(T, bool))
         s.write("vertex_lost", vertex_lost)
+    from stex.cli import inspect_store
+    assert "lost frames (tracking quality; no texture taken from them): 1 of 4: frames 11 (1)" in inspect_store(
+        str(paths[2]))
     cands = {}
     for exclude in (True, False):
         out = tmp_path / f"dt_{exclude}.zarr"
