@@ -183,9 +183,14 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "seconds": ArraySpec(("T",), "float32", "s", "solve time per frame"),
             "silhouette_iou": ArraySpec(("T",), "float32", "1", "intersection over union of the mesh's silhouette in the colour camera and the frame's mask; both modes"),
             "depth_fit_m": ArraySpec(("T",), "float32", "m", "mean |rendered - observed| depth over the union of the mesh's and the foreground's depth pixels, each clipped at 5 cm (a pixel only one covers counts 5 cm); both modes"),
+            "lost": ArraySpec(("T",), "bool", "1", "the frame is judged lost by the tracking-quality signal (stex.tracking_quality: depth, silhouette, appearance, flow consistency); the labeling takes no texture from it", required=False),
+            "vertex_lost": ArraySpec(("T", "V"), "bool", "1", "the vertex is judged lost at the frame (seen by the depth camera and off the depth, the mask or the appearance); the labeling takes no texture for a face with such a vertex from that frame", (1, "V"), required=False),
+            "lost_share": ArraySpec(("T",), "float32", "1", "share of the vertices the depth camera sees judged lost (1 where it sees none)", required=False),
+            "no_data": ArraySpec(("T",), "bool", "1", "no depth correspondence at the frame (no object depth under the mesh): the tracker kept the rigid solution; also judged lost", required=False),
         },
         attrs={"frame_ids": "list[int]", "mode": "'track' or 'given'",
-               "poorly_fitted_frames": "list[int]: frames whose silhouette_iou is below tracking.min_silhouette_iou (a warning names them)"},
+               "poorly_fitted_frames": "list[int]: frames whose silhouette_iou is below tracking.min_silhouette_iou (a warning names them)",
+               "lost_frames": "list[int]: frames judged lost (array lost; a warning names them)"},
     ),
     "poses": ArtifactSpec(
         description="Rigid poses between every pair of frames (stex.poses): K_{t->t'} maps frame "

@@ -69,6 +69,7 @@ def inspect_store(path: str) -> str:
     ids = group.attrs.get("frame_ids")
     if ids:
         lines.append(f"  frames: {len(ids)} ({ids[0]}..{ids[-1]})")
+    lines += _lost_note(group.attrs)
     units = group.attrs.get("units", {})
     for name, arr in _arrays(group):
         lines.append(f"  {name:28s} {str(arr.shape):24s} {str(arr.dtype):8s} {units.get(name, '')}")
@@ -138,7 +139,17 @@ def _store_line(path: Path, root: Path) -> list[str]:
     shown = arrays[:4] + ([f"and {len(arrays) - 4} more"] if len(arrays) > 4 else [])
     ids = (group or raw).attrs.get("frame_ids")
     return [f"  {name:34s} {kind:15s} {state:9s} {_disk_size(path):>9s}  {_frames_covered(ids)}",
-            f"  {'':34s} {', '.join(shown) or 'no arrays'}"]
+            f"  {'':34s} {', '.join(shown) or 'no arrays'}"] + [f"  {'':32s}{note}" for note in _lost_note((group or raw).attrs)]
+
+
+def _lost_note(attrs) -> list[str]:
+    """``lost frames: 3 of 120 (40..42)`` for a tracking store that judged frames (attr
+    ``lost_frames``), else nothing."""
+    lost, ids = attrs.get("lost_frames"), attrs.get("frame_ids") or []
+    if lost is None:
+        return []
+    where = f": {_frames_covered(lost)}" if lost else ""
+    return [f"  lost frames (tracking quality; no texture taken from them): {len(lost)} of {len(ids)}{where}"]
 
 
 def inspect_run(results_dir) -> str:

@@ -41,7 +41,7 @@ import numpy as np
 from stex.similarity import local_similarity_triples, strain_similarity, vertex_rings
 
 __all__ = ["prefilter_candidates", "select_candidates", "finish_candidates", "block_candidates",
-           "unary_terms", "source_mask"]
+           "unary_terms", "source_mask", "lost_sources"]
 
 SIMILARITY_MODES = ("both", "global", "local")
 
@@ -211,6 +211,17 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
     return [finish_candidates(pres[k][0], pres[k][1], glo[k], face_visible, e_qual, locs[k],
                               omega_g, similarity, n_candidates, str_row(k), omega_str)
             for k in range(len(targets))]
+
+
+def lost_sources(frame_lost, vertex_lost, faces) -> np.ndarray:
+    """(T, F) bool: the (frame, face) pairs that may not be a source because the tracking lost
+    them, the whole frame (``frame_lost`` (T,) bool) or a vertex of the face there
+    (``vertex_lost`` (T, V) bool; ``faces`` (F, 3) int), from the ``tracking`` store.
+    Why: a mesh that has lost the object projects the face onto something else, so its texture
+    would land in the wrong place."""
+    lost_v = np.asarray(vertex_lost, bool)
+    F = np.asarray(faces, np.int64)
+    return lost_v[:, F].any(axis=2) | np.asarray(frame_lost, bool)[:, None]
 
 
 def source_mask(n_frames: int, stride: int) -> np.ndarray:

@@ -60,6 +60,7 @@ from stex.deformation import (
 from stex.flow import AppearanceModel, flow_constraints, flow_image
 from stex.frame_fit import depth_residual
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
+from stex.tracking_quality import frame_quality
 
 log = logging.getLogger("stex.tracking")
 
@@ -814,6 +815,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                              f"({stats.get('n_corr', 0)} depth correspondences in the last solve)")
         # Frame-level guard: the frame keeps the best of the prediction, the rigid fit and the full solve.
         cur, fallback = _frame_guard(cur, rigid0, pred0, F, obs.target, pos, stats)
+        if stats["n_corr"] == 0:   # no depth pair held the graph: its nodes keep the rigid solution (flagged below)
+            cur = rigid0
         if params.unseen_from_rest and not params.rigid_only:
             cur, rest_warp = _pose_unseen_from_rest(V0, F, graph, rest_warp, prev, cur, obs.target, params, stats)
         stats["seconds"] = time.perf_counter() - tf
@@ -827,6 +830,10 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                      "%d steps re-solved with damping, %d rounds stopped)", pos, stats["n_corr"],
                      1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0),
                      guard["lm_rejected"], guard["lm_failed"])
+        # judged against the appearance of earlier frames only: before this frame's capture
+        stats["quality"] = frame_quality(cur, F, obs.target, obs.mask, obs.calibration, model if use_flow else None,
+                                         image, prev_image, consistency_px=params.flow_consistency_px,
+                                         min_cos=params.flow_min_cos, erode_px=params.flow_erode_px)
         before, prev = prev, cur
         if use_flow:
             if model is None:

@@ -470,7 +470,8 @@ def test_silhouette_iou_of_a_mesh_and_its_own_mask(tiny_config):
 
 def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     """Given meshes that fit (the tiny scene's truth) pass; the same meshes moved 5 cm aside at
-    two frames are named in a warning and in poorly_fitted_frames, without any ground truth; at
+    two frames are named in a warning and in poorly_fitted_frames, and judged lost (lost_frames),
+    without any ground truth; at
     every frame, or with the colour camera's focal length off by 15 %, the stage refuses them."""
     import shutil
 
@@ -485,6 +486,7 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     good = open_store(P["tracking"], "tracking")
     assert good.attrs["poorly_fitted_frames"] == []
     assert (good["silhouette_iou"][...] > 0.9).all()
+    assert good.attrs["lost_frames"] == [] and not good["lost"][...].any()   # the quality signal agrees
     ids = open_store(P["scene"], "scene").attrs["frame_ids"]
     params = dict(cfg["tracking"], mode="given")
 
@@ -510,6 +512,8 @@ def test_tracking_stage_names_frames_the_mesh_does_not_cover(tmp_path, caplog):
     assert (iou[[2, 3]] < 0.85).all() and (iou[[0, 1, 4, 5]] == good["silhouette_iou"][...][[0, 1, 4, 5]]).all()
     assert (fit[[2, 3]] > good["depth_fit_m"][...][[2, 3]]).all()
     assert f"frames: {ids[2]}-{ids[3]}" in caplog.text and "lost part of the object" in caplog.text
+    assert bad.attrs["lost_frames"] == [ids[2], ids[3]] and bad["vertex_lost"][2].any()
+    assert not bad["vertex_lost"][0].any() and f"lost 2 of {len(ids)} frames" in caplog.text
     caplog.clear()
     with caplog.at_level("WARNING", logger="stex.tracking"):  # poor from the first frame: not a loss
         write_tracking(with_scene("first", move([0, 1])), P["template"], P["frames"], P["masks"], params,

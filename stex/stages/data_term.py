@@ -10,8 +10,8 @@ import numpy as np
 
 from stex.camera import Calibration
 from stex.config import section_params
-from stex.data_term import block_candidates, source_mask
-from stex.io import create_store, open_store, position_range
+from stex.data_term import block_candidates, lost_sources, source_mask
+from stex.io import create_store, open_store, position_range, short_ids
 from stex.similarity import global_similarity
 
 log = logging.getLogger("stex.data_term")
@@ -41,7 +41,8 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     ids = list(obs.attrs["frame_ids"])
     start, stop = position_range(positions, len(ids), "target")
     faces = np.asarray(template["faces"][...], np.int64)
-    vertices = np.asarray(open_store(tracking_path, "tracking")["vertices"][...], np.float32)
+    tracking = open_store(tracking_path, "tracking")
+    vertices = np.asarray(tracking["vertices"][...], np.float32)
     poses_store = open_store(poses_path, "poses")
     if list(poses_store.attrs["frame_ids"]) != ids:
         raise ValueError(f"{poses_path} and {observations_path} hold different frames")
@@ -51,6 +52,15 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
     sources = source_mask(len(ids), p["source_stride"])
     face_visible = face_visible & sources[:, None]
+    if p["exclude_lost"] and "vertex_lost" in tracking:
+        lost = lost_sources(tracking["lost"][...], tracking["vertex_lost"][...], faces)
+        if not (face_visible & ~lost).any() and face_visible.any():
+            raise ValueError(f"{tracking_path}: the tracking lost the object wherever a frame sees it (frames "
+                             f"{short_ids(tracking.attrs.get('lost_frames', []))} lost): no frame may texture "
+                             f"anything. Look at the tracking's log and previews/tracking_fit.png; or take "
+                             f"texture from them anyway with data_term.exclude_lost: false")
+        face_visible = face_visible & ~lost
+        sources = sources & ~np.asarray(tracking["lost"][...], bool)
     if "blur_cost" not in obs:
         raise ValueError(f"{observations_path}: no blur_cost table (written by the observations "
                          f"stage since it offers blur_rule; re-run the observations stage)")

@@ -15,6 +15,7 @@ from stex.mesh import is_closed, transfer_vertices
 from stex.preview import pyplot
 from stex.frame_fit import depth_residual, depth_scale_ratio, silhouette_iou, template_fit_problem
 from stex.tracking import FRAME_GUARD_CLIP_M, DepthTarget, Observation, TrackParams, depth_target, track_sequence
+from stex.tracking_quality import frame_quality
 
 log = logging.getLogger("stex.tracking")
 
@@ -41,7 +42,10 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
     modes each frame's mesh is also scored against the frame itself (:func:`silhouette_iou`,
     :func:`depth_residual`), and frames below ``min_silhouette_iou`` are named in a warning and
     in the store's ``poorly_fitted_frames``; given meshes below it at every frame raise
-    ``ValueError`` (they and the calibration disagree) and no store is written.
+    ``ValueError`` (they and the calibration disagree) and no store is written. Each frame is
+    also judged lost or ok, per frame and per vertex (:func:`stex.tracking_quality.frame_quality`;
+    tracked frames against the tracker's appearance model, given meshes on depth and mask only):
+    ``lost``, ``vertex_lost``, ``lost_share``, ``no_data`` and the ``lost_frames`` named in a warning.
     """
     scene = open_store(scene_path, "scene")
     template = open_store(template_path, "template")
@@ -69,6 +73,7 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
         seconds = np.zeros(T)
         iou = np.zeros(T)
         fit = np.zeros(T)
+        judged = _Judgement(store, frames.frame_ids, len(V0))
         if mode == "given":
             if "given/vertices" not in scene:
                 raise ValueError(f"{scene_path}: tracking.mode is 'given' but the source supplied no per-frame meshes")
@@ -92,6 +97,9 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
                                    template_path if mode == "track" else scene_path)
             if not last[0].target.valid.any() or (st is not None and st["n_corr"] == 0):
                 no_depth.append(int(frames.frame_ids[k]))
+            # the tracker judges each frame against its appearance model; given meshes have none
+            judged.record(k, st["quality"] if st is not None else frame_quality(V, F, last[0].target, last[0].mask, cal),
+                          st is not None and st["n_corr"] == 0)
             verts[k] = V
             # how well the mesh explains the frame, measured alike in both modes (no truth needed;
             # the tracker's frame guard has already measured the depth fit of the mesh it keeps)
@@ -129,12 +137,47 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
             log.warning("tracking: no depth of the object to fit at %d of %d frames (%s): no valid depth inside "
                         "the mask, or none near the mesh; the mesh there is carried by the colour terms and the "
                         "prior only (check those frames' depth images)", len(no_depth), T, _runs(no_depth))
+        judged.write()
         store.attrs["poorly_fitted_frames"] = poor
         store.write("silhouette_iou", iou)
         store.write("depth_fit_m", fit)
         store.write("residual_m", np.nan_to_num(residual, nan=-1.0))
         store.write("n_correspondences", n_corr)
         store.write("seconds", seconds)
+
+
+class _Judgement:
+    """The tracking-quality judgement of each frame (:func:`stex.tracking_quality.frame_quality`)
+    as the ``tracking`` store keeps it: ``vertex_lost`` written frame by frame, ``lost``,
+    ``lost_share``, ``no_data`` and the attr ``lost_frames`` at the end, with one warning naming
+    the lost frames."""
+
+    def __init__(self, store, frame_ids, n_vertices: int):
+        self.store, self.ids = store, list(frame_ids)
+        T = len(self.ids)
+        self.vertex_lost = store.create("vertex_lost", (T, n_vertices))
+        self.lost, self.no_data, self.share = np.zeros(T, bool), np.zeros(T, bool), np.zeros(T)
+        self.why = {}    # frame id -> what judged it lost
+
+    def record(self, k: int, quality: dict, no_correspondences: bool) -> None:
+        self.vertex_lost[k] = quality["vertex_lost"]
+        self.lost[k], self.share[k] = quality["lost"], quality["share"]
+        self.no_data[k] = quality["no_data"] or no_correspondences
+        if quality["lost"]:
+            self.why[int(self.ids[k])] = quality["why"]
+
+    def write(self) -> None:
+        ids = sorted(self.why)
+        if ids:
+            log.warning("tracking: lost %d of %d frames (%s): the mesh does not explain the frame there (first, "
+                        "frame %d: %s); tracking.zarr marks them (lost, vertex_lost) and the labeling takes no "
+                        "texture from them", len(ids), len(self.ids), _runs(ids), ids[0], self.why[ids[0]])
+        else:
+            log.info("tracking: no frame of %d judged lost (stex.tracking_quality)", len(self.ids))
+        self.store.attrs["lost_frames"] = ids
+        self.store.write("lost", self.lost)
+        self.store.write("lost_share", self.share)
+        self.store.write("no_data", self.no_data)
 
 
 def _check_depth_scale(vertices, faces, target: DepthTarget, frame_id: int, where) -> None:
@@ -196,7 +239,8 @@ def _runs(ids) -> str:
 def plot_tracking_fit(tracking_path, out) -> None:
     """Write a PNG of how well the tracked (or given) mesh explains each frame: the silhouette
     IoU against the mask, with ``min_silhouette_iou`` and the poorly fitted frames marked, and
-    the clipped depth difference (``silhouette_iou`` and ``depth_fit_m`` of the store)."""
+    the clipped depth difference (``silhouette_iou`` and ``depth_fit_m`` of the store), and the
+    frames the quality signal judged lost (``lost_frames``) shaded."""
     plt = pyplot()
     store = open_store(tracking_path, "tracking")
     ids = np.asarray(store.attrs["frame_ids"])
@@ -211,6 +255,12 @@ def plot_tracking_fit(tracking_path, out) -> None:
         a1.axhline(threshold, color="tab:red", ls="--", lw=1, label=f"min_silhouette_iou {threshold:g}")
     if poor.any():
         a1.plot(ids[poor], iou[poor], "x", color="tab:red", label=f"poorly fitted ({int(poor.sum())} frames)")
+    lost = np.isin(ids, store.attrs.get("lost_frames", []))
+    for ax in (a1, a2):
+        for f in ids[lost]:   # what the quality signal judged lost: no texture is taken from there
+            ax.axvspan(f - 0.5, f + 0.5, color="tab:orange", alpha=0.25, lw=0)
+    if lost.any():
+        a1.plot([], [], "s", color="tab:orange", alpha=0.4, label=f"judged lost ({int(lost.sum())} frames)")
     a1.set_ylabel("IoU")
     a1.set_title(f"tracking ({store.attrs['mode']}): how well the mesh explains each frame", fontsize=9)
     a2.plot(ids, fit_mm, marker=".", color="tab:green", label="mean |rendered - observed| depth, clipped at 5 cm")
