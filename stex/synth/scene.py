@@ -133,6 +133,15 @@ class SyntheticScene:
         t = self.time_of(frame) + offset_s
         return transform_points(self.object_to_depth(t), self.body.vertices(t)).astype(np.float64)
 
+    def skeleton(self, frame: int = 0):
+        """The object's skin at ``frame`` in depth-camera coordinates, as
+        :func:`stex.skeleton.skeleton_from_skin` takes it (parents, joint frames (J, 4, 4), vertex
+        joints, weights, names), or None for an object without one."""
+        if not hasattr(self.body, "skeleton"):
+            return None
+        parents, frames, joints, weights, names = self.body.skeleton(self.time_of(frame))
+        return parents, self.object_to_depth(self.time_of(frame)) @ frames, joints, weights, names
+
     def given_vertices(self, frame: int) -> np.ndarray:
         """Vertices handed to 'given' tracking mode: the truth plus the optional tracking drift."""
         V = self.true_vertices(frame)
