@@ -66,7 +66,8 @@ from stex.camera import mask_in_depth  # noqa: E402
 from stex.articulated import ArticulatedParams, ArticulatedTracker  # noqa: E402
 from stex.skeleton import carry_skeleton, skeleton_from_skin  # noqa: E402
 
-SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "paper": ["config/scenes/paper.yaml"]}
+SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "biped": ["config/scenes/biped.yaml"],
+          "paper": ["config/scenes/paper.yaml"]}
 
 
 def main() -> int:

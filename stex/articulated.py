@@ -35,7 +35,9 @@ from stex.skeleton import (
     rotation_vectors, skin)
 from stex.tracking import FRAME_GUARD_CLIP_M, DepthTarget, TrackParams, colour_px_scale, data_rows, lm_step, step_terms
 
+LIMB_DEPTH = 2           # joints of each limb's chain the per-limb search turns
 SEARCH_AXES = np.eye(3)  # the per-limb search turns about the camera's axes
+DATA_TO_MODEL_STRIDE = 2  # every k-th depth pixel along rows and columns feeds the depth-to-mesh pairs
 SEARCH_NEAR_PX = 2       # mesh pixels this close to usable depth are not counted as off the object
 
 
@@ -46,12 +48,9 @@ class ArticulatedParams:
     iterations: int = 8
     w_prior: float = 1e-3
     w_rest: float = 1e-5
-    w_translation: float = 0.0
     w_data_to_model: float = 1.0
     velocity: float = 1.0
-    pixel_stride: int = 2
     search_deg: tuple = (10.0, 20.0, 35.0)
-    search_rounds: int = 1
 
     @classmethod
     def from_dict(cls, d: dict) -> "ArticulatedParams":
@@ -113,7 +112,7 @@ class ArticulatedTracker:
         self.skeleton, self.rest, self.faces = skeleton, np.asarray(rest, np.float64), np.asarray(faces, np.int64)
         self.ap = ap or ArticulatedParams()
         self.anc = skeleton.ancestors()
-        self.limbs = limb_joints(skeleton, min_vertices=10)
+        self.limbs = limb_joints(skeleton, min_vertices=10, depth=LIMB_DEPTH)
         self.pose = identity_pose(len(skeleton.parents))
         self.last = None        # the pose of the frame before, for the joints' velocity
         self.coarse = TrackParams(**{**params.__dict__, "association": "closest",
@@ -133,11 +132,8 @@ class ArticulatedTracker:
         steps = [0]
         pose = self._lm(start, start, target, flow, silhouette, self.coarse, half, stats, steps)
         kept = 0
-        for _ in range(self.ap.search_rounds if self.ap.search_deg else 0):
-            pose, n = self._limb_search(pose, target)
-            kept += n
-            if n == 0:
-                break
+        if self.ap.search_deg:
+            pose, kept = self._limb_search(pose, target)
         pose = self._lm(pose, start, target, flow, silhouette, self.fine, self.ap.iterations - half, stats, steps)
         stats["skeleton_steps"], stats["skeleton_search_kept"] = steps[0], kept
         self.last, self.pose = self.pose, pose
@@ -165,22 +161,20 @@ class ArticulatedTracker:
     # -- the pose's solve ------------------------------------------------------------------------
 
     def _prior(self, pose, prior_pose):
-        """Prior residuals (r (6 J + 3,), their Jacobian (6 J + 3, 3 J + 3)) of the pose: each
-        joint's turn from ``prior_pose`` and from the template's pose, the root's translation."""
+        """Prior residuals (r (6 J,), their Jacobian (6 J, 3 J + 3)) of the pose: each joint's turn
+        from ``prior_pose`` and from the template's pose."""
         sk, ap = self.skeleton, self.ap
         J = len(sk.parents)
         R, _ = joint_transforms(sk, pose)
         r = np.concatenate([np.sqrt(ap.w_prior) * rotation_vectors(
             np.einsum("jab,jcb->jac", pose.rotations, prior_pose.rotations)).ravel(),
-            np.sqrt(ap.w_rest) * rotation_vectors(pose.rotations).ravel(),
-            np.sqrt(ap.w_translation) * (pose.translation - prior_pose.translation)])
-        Jp = np.zeros((6 * J + 3, 3 * J + 3))
+            np.sqrt(ap.w_rest) * rotation_vectors(pose.rotations).ravel()])
+        Jp = np.zeros((6 * J, 3 * J + 3))
         for j in range(J):
             p = sk.parents[j]
             d = np.eye(3) if p < 0 else R[p].T     # d local / d delta (first order)
             Jp[3 * j:3 * j + 3, 3 * j:3 * j + 3] = np.sqrt(ap.w_prior) * d
             Jp[3 * J + 3 * j:3 * J + 3 * j + 3, 3 * j:3 * j + 3] = np.sqrt(ap.w_rest) * d
-        Jp[6 * J:, 3 * J:] = np.sqrt(ap.w_translation) * np.eye(3)
         return r, Jp
 
     def _lm(self, pose, prior_pose, target, flow, silhouette, p: TrackParams, iterations, stats, steps):
@@ -222,12 +216,12 @@ class ArticulatedTracker:
 
     def _data_to_model(self, X, target: DepthTarget, p: TrackParams):
         """Depth-to-mesh pairs (vertex ids (n,), points (n, 3), normals (n, 3), weights (n,)): every
-        ``pixel_stride``-th foreground depth pixel the rendered mesh does not explain (no surface
+        DATA_TO_MODEL_STRIDE-th foreground depth pixel the rendered mesh does not explain (no surface
         there, or one more than ``huber_m`` * 3 off in depth), with the nearest vertex facing the
         camera the same way within twice ``max_distance_m``, seen or hidden: so that the depth
         reaches a limb the mesh has left or hides behind another part."""
         H, W = target.valid.shape
-        k = max(1, self.ap.pixel_stride)
+        k = DATA_TO_MODEL_STRIDE
         d = rasterize(X, self.faces, target.K, W, H).depth
         obs = target.points[..., 2]
         sel = target.valid & ((d <= 0) | (np.abs(d - obs) > 3 * p.huber_m))

@@ -124,6 +124,23 @@ def skeleton_from_skin(parents, joint_frames, joints, weights, names=None) -> Sk
                     new_index[np.asarray(joints, np.int64)], w / s, [names[j] for j in order])
 
 
+def skeleton_arrays(skeleton: Skeleton, prefix: str = "skeleton/") -> dict:
+    """The store arrays of a skeleton (``prefix`` + parents, bind, inverse_bind, vertex_joints,
+    vertex_weights; :data:`stex.artifacts.ARTIFACTS`); the joint names go in an attr."""
+    return {f"{prefix}parents": skeleton.parents.astype(np.int32), f"{prefix}bind": skeleton.bind,
+            f"{prefix}inverse_bind": skeleton.inverse_bind, f"{prefix}vertex_joints": skeleton.joints.astype(np.int32),
+            f"{prefix}vertex_weights": skeleton.weights.astype(np.float32)}
+
+
+def skeleton_from_arrays(arrays, names=None, prefix: str = "skeleton/") -> Skeleton | None:
+    """The :class:`Skeleton` of :func:`skeleton_arrays`' arrays (any mapping with ``[...]``
+    access and ``in``, e.g. an open store), or None where they are absent."""
+    if f"{prefix}parents" not in arrays:
+        return None
+    return Skeleton(*(np.asarray(arrays[prefix + k][...]) for k in ("parents", "bind", "vertex_joints",
+                                                                   "vertex_weights")), list(names or []))
+
+
 def carry_skeleton(skeleton: Skeleton, faces, emb_face, emb_bary) -> Skeleton:
     """The skeleton of a template whose vertices lie on the source mesh (``faces`` (F0, 3), the
     source's, which ``skeleton``'s vertex weights refer to) at faces ``emb_face`` (V,) with
@@ -273,10 +290,10 @@ def rotation_vectors(rotations: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(rotations).as_rotvec()
 
 
-def limb_joints(skeleton: Skeleton, min_vertices: int = 1) -> list[list[int]]:
+def limb_joints(skeleton: Skeleton, min_vertices: int = 1, depth: int = 2) -> list[list[int]]:
     """Limbs for the per-limb search: for every joint that starts a branch (its parent has two or
-    more children) and skins at least ``min_vertices`` vertices in its subtree, [the joint, its
-    first child] (the joint alone where it has none)."""
+    more children) and skins at least ``min_vertices`` vertices in its subtree, the joint and its
+    first descendants down the chain, ``depth`` joints at most."""
     J = len(skeleton.parents)
     children = [np.flatnonzero(skeleton.parents == j) for j in range(J)]
     anc = skeleton.ancestors()
@@ -288,5 +305,8 @@ def limb_joints(skeleton: Skeleton, min_vertices: int = 1) -> list[list[int]]:
             continue
         if anc[j, main].sum() < min_vertices:
             continue
-        limbs.append([j] + ([int(children[j][0])] if len(children[j]) else []))
+        chain = [j]
+        while len(chain) < depth and len(children[chain[-1]]):
+            chain.append(int(children[chain[-1]][0]))
+        limbs.append(chain)
     return limbs
