@@ -127,14 +127,17 @@ class ArticulatedTracker:
         """This frame's pose, from the last one moved by the rigid motion x -> R x + t; returns the
         skinned vertices (V, 3) and records "skeleton_steps" and "skeleton_search_kept" in ``stats``."""
         stats = {} if stats is None else stats
+        # start from the joints' predicted turn; the prior holds each joint to where it was
+        # (moved with the root), so a joint no data reaches stops instead of turning on
+        last = compose_root(self.skeleton, self.pose, R, t)
         start = compose_root(self.skeleton, self._predicted(), R, t)
         half = max(1, self.ap.iterations // 2)
         steps = [0]
-        pose = self._lm(start, start, target, flow, silhouette, self.coarse, half, stats, steps)
+        pose = self._lm(start, last, target, flow, silhouette, self.coarse, half, stats, steps)
         kept = 0
         if self.ap.search_deg:
             pose, kept = self._limb_search(pose, target)
-        pose = self._lm(pose, start, target, flow, silhouette, self.fine, self.ap.iterations - half, stats, steps)
+        pose = self._lm(pose, last, target, flow, silhouette, self.fine, self.ap.iterations - half, stats, steps)
         stats["skeleton_steps"], stats["skeleton_search_kept"] = steps[0], kept
         self.last, self.pose = self.pose, pose
         return self.vertices()
