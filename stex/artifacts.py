@@ -178,7 +178,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
                          "at the first frame), fitness (fraction of that frame's object points within 5 mm), rmse_m, "
                          "frame, rotation_deg, translation_m; null when the template was not aligned",
             "timings_s": "dict: wall time (s) of clean, decimate, embed, atlas, adjacency_texels",
-            "skeleton_joint_names": "list[str]: names of the J joints of skeleton/* (absent without a skeleton)",
+            "skeleton_joint_names": "list[str] or null: names of the J joints of skeleton/* (null without a skeleton)",
         },
     ),
     "tracking": ArtifactSpec(

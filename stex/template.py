@@ -185,13 +185,14 @@ def prepare_template(mesh, params: dict, camera=None, skeleton=None) -> dict:
         "gutter_conflicts": conflicts,
         "border_gap_px": to_border,
         "embedding_max_distance_m": float(dist.max()) if len(dist) else 0.0,
+        "skeleton_joint_names": None if skeleton is None else list(skeleton.names),
         "timings_s": {"clean": t1 - t0, "decimate": t2 - t1, "embed": t3 - t2, "atlas": t4 - t3,
                       "adjacency_texels": t5 - t4},
     }
-    out = {} if skeleton is None else skeleton_arrays(carry_skeleton(skeleton, mesh.faces, emb_face, emb_bary))
+    carried = {} if skeleton is None else skeleton_arrays(carry_skeleton(skeleton, mesh.faces, emb_face, emb_bary))
     if skeleton is not None:
         attrs["skeleton_joint_names"] = list(skeleton.names)
-    return out | {
+    return carried | {
         "vertices": V.astype(np.float32), "faces": F.astype(np.int32),
         "texcoords": tc, "texcoord_faces": tf, "face_chart": chart,
         "adjacency/pairs": pairs, "adjacency/edges": edges,
