@@ -154,9 +154,10 @@ def carry_skeleton(skeleton: Skeleton, faces, emb_face, emb_bary) -> Skeleton:
         for k in range(skeleton.joints.shape[1]):
             np.add.at(dense, (rows, skeleton.joints[corners[:, c], k]),
                       emb_bary[:, c] * skeleton.weights[corners[:, c], k])
-    dense = np.maximum(dense, 0.0)
-    top = np.argsort(-dense, axis=1)[:, :MAX_INFLUENCES]
+    dense = np.pad(np.maximum(dense, 0.0), ((0, 0), (0, max(0, MAX_INFLUENCES - J))))  # 4 slots even for J < 4
+    top = np.argsort(-dense, axis=1, kind="stable")[:, :MAX_INFLUENCES]
     w = np.take_along_axis(dense, top, 1)
+    top = np.where(top < J, top, 0)            # padding slots: joint 0 at weight 0
     s = w.sum(1, keepdims=True)
     if (s <= 0).any():
         raise ValueError("skeleton: a template vertex got no skin weight from its source face")

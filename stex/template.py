@@ -190,8 +190,6 @@ def prepare_template(mesh, params: dict, camera=None, skeleton=None) -> dict:
                       "adjacency_texels": t5 - t4},
     }
     carried = {} if skeleton is None else skeleton_arrays(carry_skeleton(skeleton, mesh.faces, emb_face, emb_bary))
-    if skeleton is not None:
-        attrs["skeleton_joint_names"] = list(skeleton.names)
     return carried | {
         "vertices": V.astype(np.float32), "faces": F.astype(np.int32),
         "texcoords": tc, "texcoord_faces": tf, "face_chart": chart,
