@@ -22,7 +22,7 @@ CONVENTIONS = (
 class ArraySpec:
     """One array of an artifact.
 
-    ``shape`` uses symbols (T frames in the store, V vertices, F faces, Vt texcoords,
+    ``shape`` uses symbols (T frames in the store, V vertices, F faces, Vt texcoords, J joints,
     Hc/Wc colour image, Hd/Wd depth image, W texture side); ``chunks`` likewise, where a
     number is a literal chunk length and a symbol means the whole axis.
     """
@@ -54,6 +54,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "template/faces": ArraySpec(("F", 3), "int32", "index", "template triangles into template/vertices", required=False),
             "template/texcoords": ArraySpec(("Vt", 2), "float32", "1", "template texture coordinates, if the template file has them", required=False),
             "template/texcoord_faces": ArraySpec(("F", 3), "int32", "index", "per-corner index into template/texcoords", required=False),
+            "template/skeleton/parents": ArraySpec(("J",), "int32", "index", "skinned sources (synthetic glTF asset, biped): each joint's parent, -1 for the root; parents before children (stex.skeleton)", required=False),
+            "template/skeleton/bind": ArraySpec(("J", 4, 4), "float64", "m", "each joint's frame at the template's pose, depth-camera coordinates (its translation is the joint's pivot)", required=False),
+            "template/skeleton/inverse_bind": ArraySpec(("J", 4, 4), "float64", "m", "inverse of template/skeleton/bind", required=False),
+            "template/skeleton/vertex_joints": ArraySpec(("V", 4), "int32", "index", "up to 4 joints skinning each template vertex", required=False),
+            "template/skeleton/vertex_weights": ArraySpec(("V", 4), "float32", "1", "their linear-blend-skinning weights (rows sum to 1)", required=False),
             "given/vertices": ArraySpec(("T", "V", 3), "float32", "m", "per-frame meshes supplied by the source (same faces as the template)", (1, "V", 3), required=False),
             "truth/vertices": ArraySpec(("T", "V", 3), "float32", "m", "synthetic scenes: true per-frame vertices (same faces as the template)", (1, "V", 3), required=False),
         },
@@ -63,6 +68,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "frame_blocks": "list[[start, stop)]: frame index ranges of the frame-block stores",
             "source": "dict: what was read (kind, path, settings)",
             "has_template": "bool: whether template/* was written",
+            "skeleton_joint_names": "list[str]: names of the J joints of template/skeleton/* (absent without a skeleton)",
         },
     ),
     "frames": ArtifactSpec(
@@ -143,6 +149,11 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "texel/bary": ArraySpec(("W", "W", 3), "float32", "1", "barycentrics of the texel centre on texel/face_id (corners 0, 1, 2); 0 where empty", (1024, 1024, 3)),
             "embedding/face": ArraySpec(("V",), "int32", "index", "face of the ORIGINAL template (scene template/faces) on which each vertex lies"),
             "embedding/bary": ArraySpec(("V", 3), "float32", "1", "barycentrics of each vertex on embedding/face (stex.mesh.transfer_vertices)"),
+            "skeleton/parents": ArraySpec(("J",), "int32", "index", "templates with a skeleton (a skinned source or template.rig): each joint's parent, -1 for the root; parents before children (stex.skeleton, docs/tracking.md)", required=False),
+            "skeleton/bind": ArraySpec(("J", 4, 4), "float64", "m", "each joint's frame at the template's pose, template coordinates (its translation is the joint's pivot)", required=False),
+            "skeleton/inverse_bind": ArraySpec(("J", 4, 4), "float64", "m", "inverse bind matrices (template coordinates -> joint frame)", required=False),
+            "skeleton/vertex_joints": ArraySpec(("V", 4), "int32", "index", "up to 4 joints skinning each vertex: the source's weights blended over the vertex's embedding face, the 4 largest kept", required=False),
+            "skeleton/vertex_weights": ArraySpec(("V", 4), "float32", "1", "their linear-blend-skinning weights (rows sum to 1; the template's vertices are the skinned mesh at the identity pose)", required=False),
         },
         attrs={
             "atlas_size": "int: atlas side W (texels)",
@@ -167,6 +178,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
                          "at the first frame), fitness (fraction of that frame's object points within 5 mm), rmse_m, "
                          "frame, rotation_deg, translation_m; null when the template was not aligned",
             "timings_s": "dict: wall time (s) of clean, decimate, embed, atlas, adjacency_texels",
+            "skeleton_joint_names": "list[str] or null: names of the J joints of skeleton/* (null without a skeleton)",
         },
     ),
     "tracking": ArtifactSpec(

@@ -44,6 +44,7 @@ from stex.atlas import (
     uv_signed_area)
 from stex.camera import backproject_depth, depth_pixels_in_color, mask_in_depth
 from stex.config import section_params
+from stex.skeleton import carry_skeleton, skeleton_arrays
 from stex.mesh import clean_mesh, decimate, drop_small_parts, embed_vertices, face_adjacency, subdivide_midpoint
 
 log = logging.getLogger("stex.template")
@@ -77,7 +78,7 @@ def _warn_faces_without_texel(face_id, uv_area, size: int, gutter: int, keep_uv:
     return int(len(missing))
 
 
-def prepare_template(mesh, params: dict, camera=None) -> dict:
+def prepare_template(mesh, params: dict, camera=None, skeleton=None) -> dict:
     """Run the template stage on a mesh.
 
     Args:
@@ -92,6 +93,9 @@ def prepare_template(mesh, params: dict, camera=None) -> dict:
             what it sees of them (:func:`clean_mesh`). Its centre is the origin of the mesh's
             coordinates, looking along +z. None (default): a pinhole at the origin looking along
             +z that frames the open parts.
+        skeleton: the mesh's :class:`stex.skeleton.Skeleton` (weights for ``mesh``'s vertices) or
+            None; carried to the template's vertices through the embedding
+            (:func:`stex.skeleton.carry_skeleton`) as the ``skeleton/*`` arrays.
 
     Returns:
         dict with the ``template`` store's arrays (keys as in :data:`stex.artifacts.ARTIFACTS`) and
@@ -181,10 +185,12 @@ def prepare_template(mesh, params: dict, camera=None) -> dict:
         "gutter_conflicts": conflicts,
         "border_gap_px": to_border,
         "embedding_max_distance_m": float(dist.max()) if len(dist) else 0.0,
+        "skeleton_joint_names": None if skeleton is None else list(skeleton.names),
         "timings_s": {"clean": t1 - t0, "decimate": t2 - t1, "embed": t3 - t2, "atlas": t4 - t3,
                       "adjacency_texels": t5 - t4},
     }
-    return {
+    carried = {} if skeleton is None else skeleton_arrays(carry_skeleton(skeleton, mesh.faces, emb_face, emb_bary))
+    return carried | {
         "vertices": V.astype(np.float32), "faces": F.astype(np.int32),
         "texcoords": tc, "texcoord_faces": tf, "face_chart": chart,
         "adjacency/pairs": pairs, "adjacency/edges": edges,

@@ -269,7 +269,7 @@ def _huber_cost(r, delta):
     return np.where(a <= delta, r * r, 2.0 * delta * a - delta * delta)
 
 
-def _data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=True, px_scale=None):
+def data_rows(Vd, p: TrackParams, depth=None, flow=None, silhouette=None, rows=True, px_scale=None):
     """The data-like residuals of one Gauss-Newton step at vertices ``Vd`` (V, 3), for fixed
     correspondences: ``depth`` = (vertex ids (n,), target points (n, 3), target normals (n, 3)),
     ``flow`` = (ids, target colour px (n, 2), colour K, depth_to_color, weights (n,)),
@@ -346,17 +346,17 @@ LM_MAX_TRIES = 6     # damped re-solves of one Gauss-Newton step before the roun
 LM_MU_MIN = 1e-4     # first damping (relative to J^T J's diagonal) after a rejected step
 
 
-def _px_scale(V0, flow, silhouette):
-    """Metres per colour pixel at each vertex of ``V0`` (V,), fixed for a solve (see :func:`_data_rows`);
+def colour_px_scale(V0, flow, silhouette):
+    """Metres per colour pixel at each vertex of ``V0`` (V,), fixed for a solve (see :func:`data_rows`);
     None without colour terms. Flow and silhouette both carry (colour K, depth_to_color) at 2, 3."""
     colour = flow if flow is not None else silhouette
     return _colour_projection(V0, colour[2], colour[3])[1] if colour is not None else None
 
 
-def _step_terms(Vd, faces, target, p: TrackParams, visibility, flow, silhouette, px_scale, stats):
+def step_terms(Vd, faces, target, p: TrackParams, visibility, flow, silhouette, px_scale, stats):
     """The data-like terms of one Gauss-Newton step at vertices ``Vd`` (V, 3): associates depth
     (within ``p.max_distance_m``; ``visibility`` as :func:`_correspondences`) and the silhouette's
-    rim, records the counts in ``stats``. Returns (depth, silhouette terms as :func:`_data_rows`
+    rim, records the counts in ``stats``. Returns (depth, silhouette terms as :func:`data_rows`
     takes them, (vis, cos), robust cost, vertex ids (n,) int64, weighted rows (n, 3), weighted
     residuals (n,))."""
     ids, q, nq, vis, cos = _correspondences(Vd, faces, target, p, p.max_distance_m, visibility)
@@ -371,7 +371,7 @@ def _step_terms(Vd, faces, target, p: TrackParams, visibility, flow, silhouette,
         sid = _silhouette_rim(Vd, vis, cos, silhouette, p)
         sil = (sid, *silhouette)
         stats["n_silhouette"] = len(sid)
-    cost, vids, Dws, rws = _data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
+    cost, vids, Dws, rws = data_rows(Vd, p, depth, flow, sil, px_scale=px_scale)
     vids.append(np.zeros(0, np.int64))   # so that the concatenations below never see []
     Dws.append(np.zeros((0, 3)))
     rws.append(np.zeros(0))
@@ -379,7 +379,7 @@ def _step_terms(Vd, faces, target, p: TrackParams, visibility, flow, silhouette,
             np.concatenate(rws))
 
 
-def _lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats):
+def lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats):
     """Levenberg-Marquardt acceptance of one Gauss-Newton step (see :func:`_solve_frame`).
 
     ``solve(mu)`` gives the step for damping mu (relative to J^T J's diagonal), ``energy_after(step)``
@@ -450,7 +450,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     ``silhouette`` = (signed distance (Hc, Wc), its gradient (Hc, Wc, 2), colour K, depth_to_color)
     of :func:`silhouette_field` adds the silhouette term (weight ``p.w_silhouette``).
 
-    Step acceptance (Levenberg-Marquardt, :func:`_lm_step`): a Gauss-Newton step is taken only if it lowers the
+    Step acceptance (Levenberg-Marquardt, :func:`lm_step`): a Gauss-Newton step is taken only if it lowers the
     frame's energy (robust data costs with this step's correspondences, rotation, smoothness);
     otherwise it is solved again with the damping mu * diag(J^T J) raised (x2, x4, ...) up to
     LM_MAX_TRIES times, and the round stops if none lowers it. The damping is 0 until a step is
@@ -478,7 +478,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
     stats = {"n_corr": 0, "data_rms_m": np.nan, "lm_rejected": 0, "lm_failed": 0}
     sr = np.sqrt(p.w_rot)
     mu, nu = 0.0, 2.0
-    px_scale = _px_scale(V0, flow, silhouette)
+    px_scale = colour_px_scale(V0, flow, silhouette)
 
     def smooth_res(x):
         return _link_residuals(x, node_pos, j_, k_, d_jk)
@@ -492,7 +492,7 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
             Vd = deform(V0, node_pos, graph, x)
             # Visibility changes little between Gauss-Newton steps: the mesh is rasterised on
             # every VISIBILITY_EVERY-th step only (the association itself is redone every step).
-            depth, sil, vis_cos, cost, vid, Dw, rw = _step_terms(
+            depth, sil, vis_cos, cost, vid, Dw, rw = step_terms(
                 Vd, faces, target, p, None if it % VISIBILITY_EVERY == 0 else vis_cos, flow, silhouette,
                 px_scale, stats)
             rr, Jr = rotation_terms(x)
@@ -513,10 +513,10 @@ def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flo
 
             def energy_after(delta):
                 x_new = x + delta.reshape(N, 12)
-                return _data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False,
+                return data_rows(deform(V0, node_pos, graph, x_new), p, depth, flow, sil, rows=False,
                                   px_scale=px_scale)[0] + prior_cost(x_new)
 
-            delta, mu, nu = _lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats)
+            delta, mu, nu = lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats)
             if delta is None:
                 break
             x = x + delta.reshape(N, 12)
@@ -545,7 +545,7 @@ def _rigid_steps(P0, c0, R, t, faces, target, p: TrackParams, flow, silhouette, 
     last_m, coverage, it = np.inf, 0.0, 0
     for it in range(max_steps):
         Q = P0 @ R.T
-        depth, sil, vis_cos, cost, vid, Dw, rw = _step_terms(
+        depth, sil, vis_cos, cost, vid, Dw, rw = step_terms(
             Q + c0 + t, faces, target, p, None if it % VISIBILITY_EVERY == 0 else vis_cos, flow, silhouette,
             px_scale, stats)
         coverage = len(depth[0]) / max(int(vis_cos[0].sum()), 1)
@@ -558,9 +558,9 @@ def _rigid_steps(P0, c0, R, t, faces, target, p: TrackParams, flow, silhouette, 
         def moved(delta):
             return P0 @ (Rotation.from_rotvec(delta[:3]).as_matrix() @ R).T + c0 + t + delta[3:]
 
-        delta, mu, nu = _lm_step(
+        delta, mu, nu = lm_step(
             cost, g, JtJ, lambda mu: np.linalg.solve(JtJ + np.diag(mu * diag), -g),
-            lambda delta: _data_rows(moved(delta), p, depth, flow, sil, rows=False, px_scale=px_scale)[0],
+            lambda delta: data_rows(moved(delta), p, depth, flow, sil, rows=False, px_scale=px_scale)[0],
             mu, nu, stats)
         if delta is None:       # no damping descends: at the minimum of these pairs
             last_m = 0.0
@@ -595,7 +595,7 @@ def _solve_rigid(V0, faces, target, p: TrackParams, flow=None, silhouette=None):
     c0 = V0.mean(0)
     P0 = V0 - c0
     stats = {"n_corr": 0, "data_rms_m": np.nan, "lm_rejected": 0, "lm_failed": 0, "rigid_coarse_to_fine": 0}
-    px_scale = _px_scale(V0, flow, silhouette)
+    px_scale = colour_px_scale(V0, flow, silhouette)
     R, t, steps, last_m, coverage = _rigid_steps(P0, c0, np.eye(3), np.zeros(3), faces, target, p, flow,
                                                  silhouette, px_scale, p.gn_iterations, 0.0, stats)
     if last_m > RIGID_STEP_TOL_M or coverage < RIGID_MIN_COVERAGE:
@@ -733,14 +733,16 @@ class Observation:
 
 
 def track_sequence(template_vertices, faces, observations, params: TrackParams, progress=True,
-                   texcoords=None, texcoord_faces=None):
+                   texcoords=None, texcoord_faces=None, articulated=None):
     """Track the template through a sequence of :class:`Observation`; yields
     (frame position, vertices (V, 3) float64 depth-camera metres, stats dict).
 
     The template must be roughly aligned with the first frame (as the synthetic scenes' and
     the authors' templates are); frame 0 is solved like any other, starting from the template.
     The flow term's appearance model lives in the template's atlas (``texcoords`` (Vt, 2),
-    ``texcoord_faces`` (F, 3)); without one, an atlas is built with xatlas.
+    ``texcoord_faces`` (F, 3)); without one, an atlas is built with xatlas. ``articulated``
+    (:class:`stex.articulated.ArticulatedTracker`, for a template with a skeleton) poses the
+    skeleton after the rigid stage, and the graph solves on top of the skinned mesh.
     """
     V0 = np.asarray(template_vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -794,6 +796,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             if npass == 0:
                 R, tr, rstats = _solve_rigid(pred, F, obs.target, rigid_params, flow, silhouette)
                 rigid = rigid0 = pred @ R.T + tr
+                if articulated is not None:   # the bones' motion first, the graph on what it leaves
+                    rigid = rigid0 = articulated.solve(R, tr, obs.target, flow, silhouette, rstats)
                 for key in guard:
                     guard[key] += rstats[key]
             else:
@@ -817,7 +821,9 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
         cur, fallback = _frame_guard(cur, rigid0, pred0, F, obs.target, pos, stats)
         if stats["n_corr"] == 0:   # no depth pair held the graph: its nodes keep the rigid solution (flagged below)
             cur = rigid0
-        if params.unseen_from_rest and not params.rigid_only:
+        if articulated is not None:
+            cur = articulated.pose_unseen(cur, F, obs.target)
+        elif params.unseen_from_rest and not params.rigid_only:
             cur, rest_warp = _pose_unseen_from_rest(V0, F, graph, rest_warp, prev, cur, obs.target, params, stats)
         stats["seconds"] = time.perf_counter() - tf
         stats.update(guard, frame_fallback=int(fallback), rigid_steps=rstats["rigid_steps"],

@@ -692,11 +692,11 @@ def test_data_rows_huber_and_the_fixed_pixel_scale_by_hand():
     2 delta |r| - delta^2 and its row is scaled by sqrt(delta / |r|) = 0.5, the inlier costs r^2.
     The silhouette residual is the signed distance in pixels times the metres per pixel given
     for the solve (px_scale), not the vertex's current z / fx."""
-    from stex.tracking import _data_rows
+    from stex.tracking import data_rows
     Vd = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [0.05, 0.0, 1.5]])
     n = np.array([[0.0, 0.0, -1.0]] * 2)
     q = np.array([[0.0, 0.0, 1.02], [0.01, 0.0, 0.997]])
-    cost, vids, Dws, rws = _data_rows(Vd, TrackParams(), depth=(np.array([0, 1]), q, n))
+    cost, vids, Dws, rws = data_rows(Vd, TrackParams(), depth=(np.array([0, 1]), q, n))
     assert cost == pytest.approx((2 * 0.005 * 0.02 - 0.005**2) + 0.003**2, rel=1e-12)
     np.testing.assert_allclose(rws[0], [0.02 * 0.5, -0.003], rtol=1e-12)
     np.testing.assert_allclose(Dws[0], [[0, 0, -0.5], [0, 0, -1.0]], rtol=1e-12)
@@ -704,7 +704,7 @@ def test_data_rows_huber_and_the_fixed_pixel_scale_by_hand():
     sdf = np.arange(240, dtype=np.float32)[None].repeat(180, 0) - 120
     grad = np.stack([np.ones_like(sdf), np.zeros_like(sdf)], -1)
     r = (200 * 0.05 / 1.5 + 119.5 - 120) * 0.005       # px_scale 5 mm/px (z = 1), not 7.5 (z = 1.5)
-    cost, *_ = _data_rows(Vd, TrackParams(w_silhouette=2.0), silhouette=(np.array([2]), sdf, grad, K, np.eye(4)),
+    cost, *_ = data_rows(Vd, TrackParams(w_silhouette=2.0), silhouette=(np.array([2]), sdf, grad, K, np.eye(4)),
                           px_scale=np.full(3, 0.005))
     assert cost == pytest.approx(2.0 * (2 * 0.005 * r - 0.005**2), rel=1e-6)
 
@@ -713,7 +713,7 @@ def test_data_rows_gradient_matches_finite_differences():
     """For every data-like term (point-to-plane, point-to-point, flow, silhouette) the rows and
     weighted residuals give the cost's gradient: 2 sum rw Dw = d cost / d x', by central
     differences (a linear signed-distance field, so that its sampled gradient is exact)."""
-    from stex.tracking import _data_rows
+    from stex.tracking import data_rows
     rng = np.random.default_rng(0)
     V = np.array([0, 0, 1.0]) + rng.normal(0, 0.05, (6, 3))
     ids = np.arange(6)
@@ -729,7 +729,7 @@ def test_data_rows_gradient_matches_finite_differences():
     args = dict(depth=(ids, V + rng.normal(0, 0.01, (6, 3)), nq),
                 flow=(ids, rng.normal([120, 90], 8, (6, 2)), K, Tdc, np.linspace(0.5, 1.5, 6)),
                 silhouette=(ids, sdf, grad, K, Tdc), px_scale=np.full(6, 0.004))
-    _, vids, Dws, rws = _data_rows(V, p, **args)
+    _, vids, Dws, rws = data_rows(V, p, **args)
     G = np.zeros((6, 3))
     for i, D, r in zip(vids, Dws, rws):
         np.add.at(G, i, 2 * r[:, None] * D)
@@ -740,7 +740,7 @@ def test_data_rows_gradient_matches_finite_differences():
             Vp, Vm = V.copy(), V.copy()
             Vp[v, a] += eps
             Vm[v, a] -= eps
-            FD[v, a] = (_data_rows(Vp, p, rows=False, **args)[0] - _data_rows(Vm, p, rows=False, **args)[0]) / (2 * eps)
+            FD[v, a] = (data_rows(Vp, p, rows=False, **args)[0] - data_rows(Vm, p, rows=False, **args)[0]) / (2 * eps)
     assert np.abs(G - FD).max() < 1e-4 * np.abs(FD).max()
 
 

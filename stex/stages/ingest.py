@@ -16,6 +16,7 @@ import numpy as np
 from stex.ingest import FolderSource, SyntheticSource, frame_blocks, open_source
 from stex.io import create_store
 from stex.readers.images import check_mask
+from stex.skeleton import skeleton_arrays, skeleton_from_skin
 
 log = logging.getLogger("stex.ingest")
 
@@ -39,6 +40,12 @@ def write_scene(source_cfg: dict, block: int, out: str | Path) -> None:
                 store.write("template/texcoords", tmpl.texcoords)
                 store.write("template/texcoord_faces", tmpl.texcoord_faces)
         store.attrs["has_template"] = tmpl is not None
+        skin = src.scene.skeleton(0) if isinstance(src, SyntheticSource) and tmpl is not None else None
+        if skin is not None:   # a skinned object: its skeleton at the template's pose (frame 0)
+            skeleton = skeleton_from_skin(*skin)
+            for name, arr in skeleton_arrays(skeleton, prefix="template/skeleton/").items():
+                store.write(name, arr)
+            store.attrs["skeleton_joint_names"] = skeleton.names
         first = src.given_vertices(0)
         if first is None and isinstance(src, FolderSource):
             # meshes for later frames but not the first would be dropped without a word

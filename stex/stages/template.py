@@ -17,6 +17,7 @@ from stex.io import create_store, open_store
 from stex.preview import label_image, write_png
 from stex.readers.meshes import Mesh
 from stex.scan import align_to_view, frame_points, rotation_angle_deg
+from stex.skeleton import read_rig, skeleton_from_arrays
 from stex.template import atlas_preview, prepare_template, template_from_frame
 
 log = logging.getLogger("stex.template")
@@ -130,15 +131,18 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         kind = (scene.attrs.get("source") or {}).get("kind", "<kind>")
         raise ValueError(f"{scene_path}: the source has no template mesh; set source.{kind}.template, or "
                          f"template.from_depth to build one from the first frame's depth (one view only)")
+    skeleton = _source_skeleton(scene, scene_path, params, mesh, origin)
     calibration = scene.attrs.get("calibration")
     alignment = None
     if params["from_scan"] or params["align"]:
         mesh, alignment = align_template(mesh, frames_path, masks_path, Calibration.from_dict(calibration), params,
                                          masks_params)
+        if skeleton is not None:   # the joints move with the mesh
+            skeleton.bind = np.asarray(alignment["transform"]) @ skeleton.bind
     # the mesh is in depth-camera coordinates at frame 0: open parts are turned to face that camera
     camera = Calibration.from_dict(calibration).depth if calibration else None
     try:
-        result = prepare_template(mesh, params, camera=camera)
+        result = prepare_template(mesh, params, camera=camera, skeleton=skeleton)
     except (ValueError, RuntimeError) as e:  # name the mesh: the stage's errors speak of faces only
         raise type(e)(f"{scene_path}: template ({origin}): {e}") from e
     attrs = result.pop("attrs")
@@ -148,6 +152,29 @@ def write_template(scene_path, params: dict, out, frames_path=None, masks_path=N
         for name, arr in result.items():
             store.write(name, arr)
     log.info("template: wrote %s (%d faces, atlas %d^2)", out, attrs["counts"]["faces"], attrs["atlas_size"])
+
+
+def _source_skeleton(scene, scene_path, params: dict, mesh: Mesh, origin: str):
+    """The skeleton of the source's template: the rig file ``template.rig``, else the one the
+    source gave (``template/skeleton/*`` of the scene store), else None. A template not from the
+    source (from depth, from a scan) has none: a rig file there is an error, the source's is
+    dropped with a note."""
+    rig = params.get("rig")
+    if origin != "source":
+        if rig:
+            raise ValueError(f"template.rig {rig}: the rig refers to the source's template mesh, but the template "
+                             f"is built from the {origin} (template.from_depth / from_scan); drop one of them")
+        if "template/skeleton/parents" in scene:
+            log.info("template: the source's skeleton refers to its own template mesh, not used for one from the %s",
+                     origin)
+        return None
+    if rig:
+        return read_rig(rig, len(mesh.vertices))
+    skeleton = skeleton_from_arrays(scene, scene.attrs.get("skeleton_joint_names"), prefix="template/skeleton/")
+    if skeleton is not None and len(skeleton.joints) != len(mesh.vertices):
+        raise ValueError(f"{scene_path}: the source's skeleton weights {len(skeleton.joints)} vertices, its template "
+                         f"has {len(mesh.vertices)}")
+    return skeleton
 
 
 def preview_template(template_path, out_png, size: int = 1024) -> None:

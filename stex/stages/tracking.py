@@ -9,11 +9,13 @@ import logging
 
 import numpy as np
 
+from stex.articulated import ArticulatedParams, ArticulatedTracker
 from stex.camera import Calibration, mask_in_depth
 from stex.io import FrameSequence, create_store, open_store
 from stex.mesh import is_closed, transfer_vertices
 from stex.preview import pyplot
 from stex.frame_fit import depth_residual, depth_scale_ratio, silhouette_iou, template_fit_problem
+from stex.skeleton import skeleton_from_arrays
 from stex.tracking import FRAME_GUARD_CLIP_M, DepthTarget, Observation, TrackParams, depth_target, track_sequence
 from stex.tracking_quality import frame_quality
 
@@ -86,8 +88,14 @@ def write_tracking(scene_path, template_path, frames_paths, masks_paths, params:
             ef, eb = template["embedding/face"][...], template["embedding/bary"][...]
             solved = ((k, transfer_vertices(given[k], orig_faces, ef, eb), None) for k, _ in enumerate(observed()))
         elif mode == "track":
-            solved = track_sequence(V0, F, observed(), TrackParams.from_dict(params),
-                                    texcoords=template["texcoords"][...], texcoord_faces=template["texcoord_faces"][...])
+            tp = TrackParams.from_dict(params)
+            skeleton = skeleton_from_arrays(template, template.attrs.get("skeleton_joint_names"))
+            articulated = None
+            if skeleton is not None and params.get("skeleton", True):
+                log.info("tracking: the template's skeleton (%d joints) is solved first", len(skeleton.parents))
+                articulated = ArticulatedTracker(skeleton, V0, F, tp, ArticulatedParams.from_dict(params))
+            solved = track_sequence(V0, F, observed(), tp, texcoords=template["texcoords"][...],
+                                    texcoord_faces=template["texcoord_faces"][...], articulated=articulated)
         else:
             raise ValueError(f"unknown tracking.mode {mode!r} (track | given)")
         no_depth = []  # frames without foreground depth: the mesh there is carried by colour and prior only

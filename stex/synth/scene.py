@@ -26,6 +26,7 @@ from scipy import ndimage
 
 from stex.camera import Calibration, Intrinsics, transform_points
 from stex.render import rasterize, render_textured, sample_bilinear, vertex_normals
+from stex.synth.biped import BipedBody
 from stex.synth.procedural import ProceduralBody, ProceduralParams
 from stex.synth.skinned import SkinnedBody
 
@@ -99,8 +100,13 @@ class SyntheticScene:
             self.body = SkinnedBody(g["path"], animation=g["animation"], size_m=g["size_m"],
                                     texture_size=self.texture_size, seed=self.seed)
             self._base = None
+        elif kind == "biped":
+            b = cfg["biped"]
+            self.body = BipedBody(size_m=b["size_m"], walk_period_s=b["walk_period_s"], stride_deg=b["stride_deg"],
+                                  texture_size=self.texture_size, seed=self.seed)
+            self._base = None
         else:
-            raise ValueError(f"unknown synthetic object {kind!r} (procedural | gltf)")
+            raise ValueError(f"unknown synthetic object {kind!r} (procedural | gltf | biped)")
         self.faces = self.body.faces
         self.texcoords = self.body.texcoords
         self.texcoord_faces = self.body.texcoord_faces
@@ -132,6 +138,15 @@ class SyntheticScene:
         """(V, 3) float64 true vertices of ``frame`` in depth-camera coordinates, metres."""
         t = self.time_of(frame) + offset_s
         return transform_points(self.object_to_depth(t), self.body.vertices(t)).astype(np.float64)
+
+    def skeleton(self, frame: int = 0):
+        """The object's skin at ``frame`` in depth-camera coordinates, as
+        :func:`stex.skeleton.skeleton_from_skin` takes it (parents, joint frames (J, 4, 4), vertex
+        joints, weights, names), or None for an object without one."""
+        if not hasattr(self.body, "skeleton"):
+            return None
+        parents, frames, joints, weights, names = self.body.skeleton(self.time_of(frame))
+        return parents, self.object_to_depth(self.time_of(frame)) @ frames, joints, weights, names
 
     def given_vertices(self, frame: int) -> np.ndarray:
         """Vertices handed to 'given' tracking mode: the truth plus the optional tracking drift."""

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from stex.atlas import texel_map
-from stex.synth.gltf import load_skinned_gltf, pose_vertices
+from stex.synth.gltf import load_skinned_gltf, node_global_transforms, pose_vertices
 from stex.synth.procedural import ProceduralBody, ProceduralParams
 
 
@@ -56,6 +56,24 @@ class SkinnedBody:
             return self.rest_vertices.copy()
         v = pose_vertices(self.mesh, self.animation, float(time_s), loop=True)
         return (v - self.centre) * self.scale
+
+    def skeleton(self, time_s: float | None):
+        """The skin at ``time_s`` (None: bind pose) in the object frame: (parents (J,) int, -1 for
+        roots; joint frames (J, 4, 4) float64, m, scaled with the asset; vertex joints (V, 4) int;
+        weights (V, 4) float; joint names)."""
+        m = self.mesh
+        glob = node_global_transforms(m, None if time_s is None else self.animation,
+                                      0.0 if time_s is None else float(time_s), loop=True)
+        to_object = np.diag([self.scale, self.scale, self.scale, 1.0])
+        to_object[:3, 3] = -self.centre * self.scale
+        index = {int(n): j for j, n in enumerate(m.joint_nodes)}
+        parents = np.full(len(m.joint_nodes), -1, np.int64)
+        for j, n in enumerate(m.joint_nodes):
+            p = int(m.node_parents[n])
+            while p >= 0 and p not in index:   # a joint's nearest ancestor that is a joint
+                p = int(m.node_parents[p])
+            parents[j] = index.get(p, -1)
+        return parents, to_object @ glob[m.joint_nodes], m.joints, m.weights, list(m.joint_names)
 
     def pose_parameter(self, time_s: float | None) -> float:
         return 0.0 if time_s is None else float(np.sin(2 * np.pi * time_s / self.duration))
