@@ -41,7 +41,8 @@ a screened Poisson solve over the covered texels, per colour channel:
   Per slice only the right-hand side changes: the solve is for the correction c = f − f0,
   ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour differences of boundary pairs minus
   their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a relative residual
-  ``tol``.
+  ``tol``, the three channels together (:func:`stex.multigrid.cg_solve`: pyamg's solutions bit
+  for bit, each sparse product reading the matrix once for the three).
 - Texels without a label (covered, but their face had no source frame) keep no gradients: they
   are screened towards their (filled) value and otherwise interpolated smoothly from their
   surroundings.
