@@ -41,7 +41,8 @@ a screened Poisson solve over the covered texels, per colour channel:
   Per slice only the right-hand side changes: the solve is for the correction c = f − f0,
   ``A c = −Gᵀ d_cross − w_s SᵀS f0`` (d_cross the colour differences of boundary pairs minus
   their guidance g_pq), warm-started at 0, CG-accelerated V-cycles to a relative residual
-  ``tol``.
+  ``tol``, the three channels together (:func:`stex.multigrid.cg_solve`: pyamg's solutions bit
+  for bit, each sparse product reading the matrix once for the three).
 - Texels without a label (covered, but their face had no source frame) keep no gradients: they
   are screened towards their (filled) value and otherwise interpolated smoothly from their
   surroundings.
@@ -104,6 +105,7 @@ from numba import njit
 from stex.sampling import fill_gutter
 from stex.atlas import texel_map, uv_charts
 from stex.mesh import face_adjacency
+from stex.multigrid import cg_solve, supported
 from stex.texel_graph import texel_graph
 
 log = logging.getLogger("stex.correction")
@@ -215,10 +217,18 @@ class _Graph:
             return c, iters
         else:
             idx, ml = slice(None), self.ml
+        bs = {}
         for ch in range(3):
             b = rhs[idx, ch] if D is None else rhs[idx, ch] + D[idx] * (prev[idx, ch] - f0[idx, ch])
-            if not b.any():
-                continue
+            if b.any():
+                bs[ch] = b
+        if bs and supported(ml):
+            # the channels in one block: the same solution as one ml.solve per channel, bit for bit
+            x, its = cg_solve(ml, np.stack(list(bs.values())), tol, maxiter)
+            for k, ch in enumerate(bs):
+                c[idx, ch] = x[k]
+            return c, [int(i) for i in its]
+        for ch, b in bs.items():
             res = []
             c[idx, ch] = ml.solve(b, x0=np.zeros(len(b)), tol=tol, accel="cg", maxiter=maxiter,
                                   residuals=res)

@@ -658,13 +658,7 @@ def view_texture(view: MeshView, texture, quantize=True) -> np.ndarray:
     grey levels, rounded and clipped to 0..255 unless ``quantize`` is False, 0 where empty."""
     if quantize:
         _check_scale(texture, "texture", 255.0, fix="give the texture times 255")
-    image = sample_texture(view.mask, view.uv, texture)
-    # the image is 0 where empty: round and clip only the mask's bounding box
-    if quantize and view.uv.shape[0]:
-        r0, r1, c0, c1 = _bbox(view.mask)
-        sub = image[r0:r1, c0:c1]
-        np.clip(np.rint(sub, out=sub), 0.0, 255.0, out=sub)
-    return image
+    return sample_texture(view.mask, view.uv, texture, quantize=quantize)
 
 
 def view_seen(view: MeshView, face_flag) -> np.ndarray:

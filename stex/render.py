@@ -755,23 +755,63 @@ def textured_raster(vertices, faces, texcoords, texcoord_faces, K, width, height
     return raster, mask, uv
 
 
-def sample_texture(mask, uv, texture) -> np.ndarray:
+@njit(cache=True, nogil=True)
+def _sample_texture_kernel(tex, uv, pixels, out, quantize):
+    """out[pixels[i]] = the bilinear value of ``tex`` ((Ht, Wt, C)) at texcoords uv[i], as
+    :func:`texcoords_to_pixels` then :func:`sample_bilinear` compute it (float32), and with
+    ``quantize`` rounded half to even and clipped to 0..255 as numpy's rint and clip do."""
+    Ht, Wt, C = tex.shape
+    for i in range(uv.shape[0]):
+        u = uv[i, 0] * Wt - 0.5
+        v = uv[i, 1] * Ht - 0.5
+        p = pixels[i]
+        if not (u == u and v == v):
+            for k in range(C):
+                out[p, k] = np.nan
+            continue
+        r0, c0, r1, c1, w00, w01, w10, w11 = bilinear_taps(u, v, Wt, Ht)
+        for k in range(C):
+            x = np.float32(w00 * tex[r0, c0, k] + w01 * tex[r0, c1, k]
+                           + w10 * tex[r1, c0, k] + w11 * tex[r1, c1, k])
+            if quantize:
+                x = min(max(np.rint(x), np.float32(0.0)), np.float32(255.0))
+            out[p, k] = x
+
+
+def sample_texture(mask, uv, texture, quantize: bool = False) -> np.ndarray:
     """An image of ``texture`` sampled bilinearly (clamp-to-edge) at the covered pixels.
 
     Args:
         mask, uv: from :func:`textured_raster`.
         texture: (Ht, Wt, C) (or (Ht, Wt)) image, any numeric dtype.
+        quantize: round the samples (half to even) and clip them to 0..255.
 
     Returns:
-        (H, W, C) (or (H, W)) float32 in the texture's value units, 0 where ``mask`` is False.
+        (H, W, C) (or (H, W)) float32 in the texture's value units, 0 where ``mask`` is False:
+        the values of :func:`sample_bilinear` at :func:`texcoords_to_pixels` of ``uv``, in one
+        pass that writes them into the image.
     """
     tex = np.asarray(texture)
     if tex.ndim not in (2, 3):
         raise ValueError(f"texture must be (Ht, Wt, C) or (Ht, Wt), got shape {tex.shape}")
-    Ht, Wt = tex.shape[:2]
     image = np.zeros(mask.shape + tex.shape[2:], dtype=np.float32)
-    if uv.shape[0]:
-        image[mask] = sample_bilinear(tex, texcoords_to_pixels(uv, Wt, Ht))
+    uv = np.asarray(uv, dtype=np.float64)
+    if not uv.shape[0]:
+        return image
+    if tex.shape[0] == 0 or tex.shape[1] == 0:
+        raise ValueError(f"texture must not be empty, got shape {tex.shape}")
+    if tex.dtype == np.bool_:
+        tex = tex.astype(np.uint8)
+    elif not np.issubdtype(tex.dtype, np.number) or np.issubdtype(tex.dtype, np.complexfloating):
+        raise ValueError(f"texture must be numeric, got dtype {tex.dtype}")
+    elif tex.dtype == np.float16 or not tex.dtype.isnative:
+        tex = tex.astype(np.float32 if tex.dtype.kind == "f" else tex.dtype.newbyteorder("="))
+    tex3 = np.ascontiguousarray(tex[:, :, None] if tex.ndim == 2 else tex)
+    pixels = np.flatnonzero(mask)
+    if len(pixels) != uv.shape[0]:
+        raise ValueError(f"uv holds {uv.shape[0]} points for the mask's {len(pixels)} pixels")
+    _sample_texture_kernel(tex3, np.ascontiguousarray(uv), pixels,
+                           image.reshape(len(mask.ravel()), tex3.shape[2]), bool(quantize))
     return image
 
 

@@ -378,6 +378,30 @@ def test_ssim_map_equals_the_whole_image_ssim_on_the_valid_texels():
     assert S[0] == pytest.approx(ref[valid].mean(), abs=1e-6)
 
 
+def test_ssim_map_is_scikit_images_bit_for_bit():
+    """The map of the default window comes from stex.ssim's kernels: on the bounding box face_ssim
+    scores it must be scikit-image's SSIM of the same crop exactly (float32 as stored), uint8
+    RGB textures and the default data range."""
+    from skimage.metrics import structural_similarity
+
+    from stex.image import grey
+
+    W = 64
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (W, W, 3)).astype(np.uint8)
+    b = np.clip(a.astype(int) + rng.integers(-30, 30, a.shape), 0, 255).astype(np.uint8)
+    tf = rng.integers(0, 4, (W, W)).astype(np.int32)
+    cov = np.zeros((W, W), bool)
+    cov[10:50, 12:60] = True
+    _, smap, valid = face_ssim(a, cov, b, cov, tf, 4, data_range=255.0, return_map=True)
+    r0, r1, c0, c1 = 8, 52, 10, 62    # the valid box [15, 45) x [17, 55) plus the margin of 7
+    assert valid[15:45, 17:55].all() and valid.sum() == 30 * 38
+    _, ref = structural_similarity(grey(a[r0:r1, c0:c1]), grey(b[r0:r1, c0:c1]), data_range=255.0,
+                                   gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                   full=True)
+    np.testing.assert_array_equal(smap[valid], ref.astype(np.float32)[valid[r0:r1, c0:c1]])
+
+
 def test_label_set_min_skips_nan_entries():
     """S_m(f) is the minimum over the face's labels with NaN entries skipped (docstring): a
     label never compared does not hide another label's dynamism."""
