@@ -772,10 +772,7 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
             pred = prev
         use_flow = params.w_flow > 0 and obs.image is not None
         image = flow_image(obs.image, params.flow_channels) if use_flow else None
-        silhouette = None
-        if params.w_silhouette > 0 and obs.mask is not None and obs.mask.any():
-            cal = obs.calibration
-            silhouette = (*silhouette_crop(obs.mask, cal.color.K), cal.depth_to_color)
+        silhouette = _silhouette_term(obs, params)
         # Each pass re-measures the flow from the model rendered at the latest estimate: DIS
         # under-estimates motion by a few per cent, and new model texels would inherit that lag.
         guard = {"lm_rejected": 0, "lm_failed": 0}
@@ -853,6 +850,14 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                 cur, image, obs.calibration, params.model_min_cos, pos, params.model_refresh_cos)
             prev_image = image
         yield pos, cur, stats
+
+
+def _silhouette_term(obs: Observation, params: TrackParams):
+    """The silhouette term's data for a frame (mask crop, colour K, depth-to-colour), or None."""
+    if params.w_silhouette <= 0 or obs.mask is None or not obs.mask.any():
+        return None
+    cal = obs.calibration
+    return (*silhouette_crop(obs.mask, cal.color.K), cal.depth_to_color)
 
 
 def _frame_guard(cur, rigid0, pred0, faces, target: DepthTarget, pos: int, stats: dict):
