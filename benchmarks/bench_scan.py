@@ -11,7 +11,7 @@ the symmetric mean distance to the true rest mesh, closedness, the pose errors. 
 template of the main synthetic scene's frame 0, turned and moved, is aligned to that frame.
 
     python benchmarks/bench_scan.py [--frames 300] [--depth 640x576] [--fx 504] [--voxel 0.003]
-                                    [--object procedural|gltf] [--gltf PATH]
+                                    [--object procedural|gltf] [--gltf PATH] [--cache FRAMES.npz] [--no-align]
 """
 
 from __future__ import annotations
@@ -50,7 +50,16 @@ def bench_scan(args) -> None:
     scan = section_params("template", {"scan": {"n_frames": args.frames, "voxel_m": args.voxel}})["scan"]
     scene = TurntableScene(synthetic(args, args.frames), scan["elevation_deg"])
     t = time.perf_counter()
-    frames = [(k, r.color, r.depth_mm, None) for k, r in ((k, scene.render_frame(k)) for k in range(args.frames))]
+    if args.cache and Path(args.cache).is_file():  # the same turntable rendered before: read, not rendered
+        z = np.load(args.cache)
+        if z["depth"].shape[0] != args.frames or z["depth"].shape[1:] != (scene.calibration.depth.height,
+                                                                           scene.calibration.depth.width):
+            raise SystemExit(f"{args.cache}: holds {z['depth'].shape} depth frames, not this turntable's")
+        frames = [(k, c, d, None) for k, (c, d) in enumerate(zip(z["color"], z["depth"]))]
+    else:
+        frames = [(k, r.color, r.depth_mm, None) for k, r in ((k, scene.render_frame(k)) for k in range(args.frames))]
+        if args.cache:
+            np.savez(args.cache, color=np.stack([f[1] for f in frames]), depth=np.stack([f[2] for f in frames]))
     print(f"render: {args.frames} frames in {time.perf_counter() - t:.1f} s (not part of the stage's cost)")
     masks = scan_masks({}, scan)
     load = os.getloadavg()[0]
@@ -98,8 +107,12 @@ def main() -> None:
     ap.add_argument("--voxel", type=float, default=0.003)
     ap.add_argument("--object", choices=["procedural", "gltf"], default="procedural")
     ap.add_argument("--gltf", default="/work/shared/data_samples/gltf_fox/glTF-Binary/Fox.glb")
+    ap.add_argument("--cache", default=None, help="an .npz of the rendered turntable: written when missing, "
+                                                   "read when present (the same options must be given)")
+    ap.add_argument("--no-align", action="store_true", help="only the scan")
     args = ap.parse_args()
-    bench_align(args)
+    if not args.no_align:
+        bench_align(args)
     bench_scan(args)
 
 

@@ -249,6 +249,18 @@ def backproject_depth(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
+def backproject_pixels(depth_m: np.ndarray, K: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 camera-space points of the (H, W) depth map's pixels at flat indices ``idx``
+    (N,) int: the rows of ``backproject_depth(depth_m, K).reshape(-1, 3)[idx]``, without the
+    whole image's points (a depth image holds ten times more pixels than the object)."""
+    d = np.asarray(depth_m)
+    v, u = np.divmod(np.asarray(idx, np.int64), d.shape[1])
+    z = d.reshape(-1)[idx].astype(np.float64)
+    x = (u.astype(np.float64) - K[0, 2]) / K[0, 0] * z
+    y = (v.astype(np.float64) - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=-1)
+
+
 def depth_pixels_in_color(depth_m: np.ndarray, calibration: "Calibration", select=None):
     """Where the depth pixels land in the colour image (through depth_to_color and the colour K).
 
@@ -273,7 +285,7 @@ def depth_pixels_in_color(depth_m: np.ndarray, calibration: "Calibration", selec
             raise ValueError(f"select must have the depth map's shape {d.shape}, got {sel.shape}")
         valid &= sel.astype(bool, copy=False)
     idx = np.flatnonzero(valid)
-    P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[idx]
+    P = backproject_pixels(d, calibration.depth.K, idx)
     uv, z = project_points(transform_points(calibration.depth_to_color, P), calibration.color.K)
     c = calibration.color
     ok = (z > 0) & np.isfinite(uv).all(1)

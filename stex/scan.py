@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from stex.camera import Calibration, backproject_depth, depth_pixels_in_color
+from stex.camera import Calibration, backproject_pixels, depth_pixels_in_color
 from stex.mesh import nonmanifold_edges
 
 log = logging.getLogger("stex.scan")
@@ -81,7 +81,7 @@ def frame_points(depth_mm: np.ndarray, mask_depth: np.ndarray, color: np.ndarray
     # depth pixels that land outside the colour image carry no colour: left out
     d_out = np.zeros(Hd * Wd, np.float32)
     d_out[idx] = d.ravel()[idx]
-    P = backproject_depth(d, calibration.depth.K).reshape(-1, 3)[idx]
+    P = backproject_pixels(d, calibration.depth.K, idx)
     return P, cid[idx].astype(np.float64) / 255.0, cid.reshape(Hd, Wd, 3), d_out.reshape(Hd, Wd)
 
 
@@ -97,7 +97,7 @@ class FusionParams:
     voxel_m: float = 0.003           # TSDF voxel side (m)
     truncation_voxels: float = 4.0   # TSDF truncation distance, in voxels
     icp_distance_m: float = 0.02     # largest frame-to-model correspondence distance (m)
-    icp_iterations: int = 30
+    icp_iterations: int = 10
     color_weight: float = 0.032      # weight of the colour term against geometry in coloured ICP
     model_every: int = 5             # the aligned frames join the model every this many frames
     min_fitness: float = 0.25        # frames whose fraction of points matched is lower are not fused

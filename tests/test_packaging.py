@@ -11,9 +11,16 @@ def _name(req: str) -> str:
     return re.split(r"[<>=!~ \[;]", req.strip(), maxsplit=1)[0].lower().replace("_", "-")
 
 
+# the system libraries Open3D's wheel links (libEGL, libGL), which a conda environment must bring
+OPEN3D_SYSTEM_LIBS = {"libegl", "libgl"}
+
+
 def test_conda_env_matches_pyproject():
+    """The workflow's conda environment holds the package's dependencies and the [scan] extra:
+    rules scan and template import Open3D (template.from_scan, template.align)."""
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
     pip_names = {_name(r) for r in pyproject["project"]["dependencies"]}
+    pip_names |= {_name(r) for r in pyproject["project"]["optional-dependencies"]["scan"]} | OPEN3D_SYSTEM_LIBS
     env = yaml.safe_load((REPO / "envs" / "stex.yaml").read_text())
     conda_names = set()
     for dep in env["dependencies"]:

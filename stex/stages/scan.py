@@ -79,7 +79,11 @@ def masked_frames(frames, calibration, masks: dict, step: int = 1, where: str = 
         except ValueError as e:  # no object depth: an empty frame, counted by fuse_scan
             log.warning("scan: %s frame %d: no mask (%s)", where, pos, e)
             m = None
-        md = None if m is None or not m.any() else mask_in_depth(m, depth, calibration)
+        # only the depth range's pixels can join the model: the rest (the wall, most of the image)
+        # is left out before it is carried into the colour image
+        d = depth.astype(np.float64) / 1000.0
+        in_range = np.where((d >= masks["depth_near_m"]) & (d <= masks["depth_far_m"]), depth, 0)
+        md = None if m is None or not m.any() else mask_in_depth(m, in_range, calibration)
         if pos % 25 == 0:
             log.info("scan: frame %d (%.1f s)", pos, time.perf_counter() - t0)
         yield pos, color, depth, md
