@@ -140,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", type=Path, default=REPO / "config" / "datasets" / "test_set.yaml")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--no-run", action="store_true", help="only read the finished runs' evaluations")
+    ap.add_argument("--prioritize", action="append", default=[], metavar="SCENE",
+                    help="make this scene's evaluation first (snakemake --prioritize; repeatable), so that "
+                         "on a loaded machine some scenes finish early rather than all late")
     ap.add_argument("--record", action="store_true",
                     help="record each finished run in docs/runs/ and regenerate docs/results.md")
     ap.add_argument("--json", type=Path, help="also write the summaries and verdicts to this file")
@@ -152,6 +155,8 @@ def main(argv=None) -> int:
         cmd = ["nice", "-n", "5", sys.executable, "-m", "snakemake", "--snakefile", "workflow/dataset.smk",
                "--configfile", str(args.dataset), "--cores", str(args.cores), "--keep-going",
                *[str(f / "evaluation") for f in folders.values()]]
+        if args.prioritize:
+            cmd += ["--prioritize", *[str(folders[n] / "evaluation") for n in args.prioritize]]
         print(" ".join(cmd), flush=True)
         t0 = time.perf_counter()
         rc = subprocess.run(cmd).returncode
