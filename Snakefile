@@ -42,6 +42,7 @@ include: "workflow/rules/data_term.smk"
 include: "workflow/rules/labeling.smk"
 include: "workflow/rules/volume.smk"
 include: "workflow/rules/correction.smk"
+include: "workflow/rules/references.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/view.smk"
 

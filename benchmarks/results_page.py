@@ -24,7 +24,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from stex.reporting import benchmark_rows, nan_for_none, sampling_rows, stage_timings, table_rows, timing_rows
+from stex.reporting import (benchmark_rows, method_name, nan_for_none, sampling_rows, stage_timings, table_rows,
+                            timing_rows)
 
 REPO = Path(__file__).resolve().parents[1]
 RUNS = REPO / "docs" / "runs"
@@ -134,6 +135,83 @@ def load_records(runs_dir: Path = RUNS) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted(Path(runs_dir).glob("*.json"))]
 
 
+TEST_SET = REPO / "config" / "datasets" / "test_set.yaml"
+#: the headline's rows: (label, metric) of the evaluation's summary, every frame
+HEADLINE_ROWS = (("novel view, borrowed (unseen at t, seen by another frame), dB", "gt_novel_psnr_borrowed"),
+                 ("novel view, never seen, dB", "gt_novel_psnr_never_seen"),
+                 ("input view, unseen at t, dB", "gt_input_psnr_unseen"),
+                 ("blur (inputs: the input images)", "blur"),
+                 ("face coverage, %", "coverage_faces"),
+                 ("flicker in borrowed regions, grey levels", "flicker"),
+                 ("change in borrowed regions, grey levels (truth: its own)", "flicker_change"))
+HEADLINE_METHODS = ("global", "ours", "oracle", "no_temporal")
+
+
+def test_scenes(dataset: Path = TEST_SET) -> list[str]:
+    """The scene names of the test set's scene files (their ``scene:``), in its order."""
+    import yaml
+
+    try:
+        files = yaml.safe_load(dataset.read_text()).get("scene_files") or []
+    except (OSError, AttributeError):
+        return []
+    names = []
+    for entry in files:
+        name = None
+        for f in [entry] if isinstance(entry, str) else entry:
+            try:
+                name = (yaml.safe_load((REPO / f).read_text()) or {}).get("scene", name)
+            except OSError:
+                pass
+        if name:
+            names.append(name)
+    return names
+
+
+def _headline_value(summary: dict, method: str, metric: str):
+    if method == "input":
+        method, metric = "ours", "blur_input"
+    if method == "truth":
+        method, metric = "ours", "flicker_true_change"
+    try:
+        v = summary["all"][method][metric]["mean"]
+    except (KeyError, TypeError):
+        return None
+    return None if v is None else float(v)
+
+
+def headline(records: list[dict], names: list[str]) -> list[str]:
+    """The test set's table (the headline): per region, global / ours / oracle / no temporal term
+    for every recorded test scene, and their mean over the scenes."""
+    recs = [r for n in names for r in records if r["scene"] == n]
+    if not recs:
+        return []
+    rows = [["Quantity", "Method"] + [r["scene"] for r in recs] + ["mean"]]
+    for label, metric in HEADLINE_ROWS:
+        methods = list(HEADLINE_METHODS) + (["input"] if metric == "blur" else []) + (
+            ["truth"] if metric == "flicker_change" else [])
+        first = True
+        for m in methods:
+            vals = [_headline_value(r["summary"], m, metric) for r in recs]
+            if all(v is None for v in vals):
+                continue
+            scale, digits = (100.0, 1) if metric == "coverage_faces" else ((1.0, 4) if metric == "blur" else (1.0, 2))
+            fin = [v for v in vals if v is not None]
+            cells = ["–" if v is None else f"{v * scale:.{digits}f}" for v in vals]
+            mean = f"{sum(fin) / len(fin) * scale:.{digits}f}" if len(fin) == len(vals) else "–"
+            name = {"input": "Input images", "truth": "the truth's own change"}.get(m, method_name(m))
+            rows.append([label if first else "", name] + cells + [mean])
+            first = False
+    return ["## The test set (headline)", "",
+            "Scenes never used to choose a default (config/datasets/test_set.yaml; docs/datasets.md, \"Dev and",
+            "test scenes\"), every frame, against the truth. The oracle is the bound of the labeling and no",
+            "temporal term the flicker ablation (docs/metrics.md, \"Reference methods\"). Run:",
+            "`python benchmarks/bench_test_set.py --record`. The other runs below are dev scenes (the demo,",
+            "dev_body). " + (f"Recorded: {len(recs)} of the set's {len(names)} scenes; the mean is over the"
+                             " recorded ones." if len(recs) < len(names) else "The mean is over the scenes."), "",
+            *markdown_table(rows), ""]
+
+
 def page(records: list[dict]) -> str:
     """The whole of docs/results.md for ``records`` (one column per run)."""
     lines = ["# Results", "",
@@ -144,6 +222,7 @@ def page(records: list[dict]) -> str:
              "older measurements, kept as history: [paper_scale.md](paper_scale.md), [tracking.md](tracking.md).", ""]
     if not records:
         return "\n".join(lines + ["No run has been recorded yet.", ""])
+    lines += headline(records, test_scenes())
     names = [r["scene"] for r in records]
     lines += ["## The runs", "", *markdown_table(
         [["run", "evaluated", "commit", "machine", "frames scored (held out)"]]

@@ -515,7 +515,7 @@ SUMMARY_METRICS = ("psnr", "psnr_unshifted", "psnr_plain", "ssim", "blur", "blur
                    "gt_truegeom_ssim_unseen",
                    "gt_truegeom_input_psnr_all", "gt_truegeom_input_psnr_seen",
                    "gt_truegeom_input_psnr_unseen", "gt_truegeom_input_ssim_all",
-                   "flicker", "flicker_excess")
+                   "flicker", "flicker_excess", "flicker_change", "flicker_true_change")
 
 
 def summarise_frames(frames: list[dict], methods=METHODS) -> dict:

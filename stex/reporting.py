@@ -22,7 +22,10 @@ METHODS = ("ours", "ours_uncorrected", "global", "projection")
 
 #: Their names in tables and plots.
 METHOD_NAMES = {"input": "Input images", "ours": "Ours", "ours_uncorrected": "Ours, uncorrected",
-                "global": "Kim et al. 2019 (global)", "projection": "Per-frame projection"}
+                "global": "Kim et al. 2019 (global)", "projection": "Per-frame projection",
+                # evaluation.references (built by the workflow, scored as other methods)
+                "oracle": "Oracle labels (bound)", "oracle_candidates": "Oracle among our candidates",
+                "no_temporal": "Ours, no temporal term"}
 
 
 def method_name(method: str) -> str:

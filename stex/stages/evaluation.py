@@ -523,6 +523,8 @@ def _score_run(inp: _Inputs, frame_ids, progress) -> list[dict]:
                 sel = tv["novel"][1] & tp_mask & r_mask & p_mask & ~seen & ~p_seen
                 fl = ev.temporal_flicker(p_img, r_img, tp_img, tv["novel"][0], sel)
                 rec["methods"][m].update(flicker=fl["flicker"], flicker_excess=fl["excess"],
+                                         flicker_change=fl["recon_change"],
+                                         flicker_true_change=fl["true_change"],
                                          flicker_pixels=fl["n_pixels"])
         prev_novel = {t: novel_now} if tv is not None else {}
         out.append(rec)

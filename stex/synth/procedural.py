@@ -43,6 +43,11 @@ class ProceduralParams:
     squash_period: float = 5.0
     bulge: float = 0.15        # breathing bulge amplitude, relative to radius
     bulge_period: float = 4.0
+    wrinkle_depth: float = 0.6       # darkening of the stripes where the compression is full
+    wrinkle_stripes: float = 28.0    # stripes from bottom to top
+    patch_strength: float = 0.85     # opacity of the pose patch at full bend
+    patch_size: float = 1.0          # scale of the pose patch's extent
+    stretch_tint: float = 0.0        # opacity of a green tint where the surface is stretched
     seed: int = 0
 
 
@@ -189,13 +194,15 @@ class ProceduralBody:
             cv2.circle(img, (int(x), int(y)), max(1, int(r)), tuple(float(v) * 255 for v in c), -1, cv2.LINE_AA)
         return img.astype(np.float32) / 255.0
 
-    def compression(self, s: np.ndarray, h: np.ndarray, time_s: float | None) -> np.ndarray:
-        """Relative vertical compression (0 = none, 0.2 = 20 % shorter) of the surface at (s, h)."""
+    def compression(self, s: np.ndarray, h: np.ndarray, time_s: float | None, signed: bool = False) -> np.ndarray:
+        """Relative vertical compression (0 = none, 0.2 = 20 % shorter) of the surface at (s, h);
+        ``signed``: not clipped at 0, so a stretched surface is negative (-0.1 = 10 % longer)."""
         dh = 1e-3
         def dlen(t):
             return np.linalg.norm(self.surface(s, h + dh, t) - self.surface(s, h - dh, t), axis=-1)
         rest = dlen(None)
-        return np.clip(1.0 - dlen(time_s) / np.maximum(rest, 1e-12), 0.0, 1.0)
+        c = 1.0 - dlen(time_s) / np.maximum(rest, 1e-12)
+        return np.clip(c, -1.0, 1.0) if signed else np.clip(c, 0.0, 1.0)
 
     def appearance(self, time_s: float | None, size: int, base: np.ndarray | None = None) -> np.ndarray:
         """(size, size, 3) uint8 true texture at ``time_s`` in this body's texcoords."""
@@ -209,14 +216,22 @@ class ProceduralBody:
         n = min(size, 512)
         cc = (np.arange(n) + 0.5) / n
         cs, cv_ = np.meshgrid(cc, cc)
-        comp = self.compression(cs, 1.0 - cv_, time_s).astype(np.float32)
+        p = self.p
+        signed = self.compression(cs, 1.0 - cv_, time_s, signed=True).astype(np.float32)
+        comp, stretch = np.clip(signed, 0, 1), np.clip(-signed, 0, 1)
         if n != size:
             comp = cv2.resize(comp, (size, size), interpolation=cv2.INTER_LINEAR)
-        wrinkle = np.clip(comp / 0.15, 0, 1) * (0.5 + 0.5 * np.cos(2 * np.pi * 28 * h))
-        tex = base * (1 - 0.6 * wrinkle)[..., None]
+            stretch = cv2.resize(stretch, (size, size), interpolation=cv2.INTER_LINEAR)
+        wrinkle = np.clip(comp / 0.15, 0, 1) * (0.5 + 0.5 * np.cos(2 * np.pi * p.wrinkle_stripes * h))
+        tex = base * (1 - p.wrinkle_depth * wrinkle)[..., None]
+        if p.stretch_tint > 0:
+            # the convex side of a bend: a tint that grows with the stretch
+            k = (p.stretch_tint * np.clip(stretch / 0.15, 0, 1))[..., None]
+            tex = tex * (1 - k) + np.array([0.2, 0.85, 0.3], np.float32) * k
         pose = self.pose_parameter(time_s)
-        patch = np.exp(-(_wrap(s - 0.02) ** 2 / 0.06**2 + (h - 0.33) ** 2 / 0.07**2))
+        ps = p.patch_size
+        patch = np.exp(-(_wrap(s - 0.02) ** 2 / (0.06 * ps) ** 2 + (h - 0.33) ** 2 / (0.07 * ps) ** 2))
         tint = np.array([0.92, 0.18, 0.15] if pose >= 0 else [0.15, 0.3, 0.92], np.float32)
-        k = (0.85 * abs(pose) * patch)[..., None]
+        k = (p.patch_strength * abs(pose) * patch)[..., None]
         tex = tex * (1 - k) + tint * k
         return (tex * 255 + 0.5).clip(0, 255).astype(np.uint8)

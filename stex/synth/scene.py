@@ -91,7 +91,9 @@ class SyntheticScene:
                 n_rings=p["n_rings"], bend=p["bend_rad"], bend_period=p["bend_period_s"],
                 twist=p["twist_rad"], twist_period=p["twist_period_s"], squash=p["squash"],
                 squash_period=p["squash_period_s"], bulge=p["bulge"], bulge_period=p["bulge_period_s"],
-                seed=self.seed))
+                wrinkle_depth=p["wrinkle_depth"], wrinkle_stripes=p["wrinkle_stripes"],
+                patch_strength=p["patch_strength"], patch_size=p["patch_size"],
+                stretch_tint=p["stretch_tint"], seed=self.seed))
             self._base = self.body.base_texture(self.texture_size)
         elif kind == "gltf":
             g = cfg["gltf"]

@@ -38,6 +38,22 @@ SAMPLING = [f"{RESULTS}/texcoords_sampling.json"] if OPTIMISED and config["sampl
 OTHER_METHODS = [
     p for pair in other_method_paths(config["evaluation"].get("other_methods")).values() for p in pair if p
 ]
+# reference methods the workflow builds (evaluation.references, workflow/rules/references.smk),
+# scored as other methods of their names
+REFERENCES = list(config["evaluation"].get("references") or [])
+if not SYNTHETIC and {"oracle", "oracle_candidates"} & set(REFERENCES):
+    raise ValueError(f"scene {config['scene']!r}: evaluation.references oracle needs the truth of a synthetic scene")
+_clash = sorted(set(REFERENCES) & set(config["evaluation"].get("other_methods") or {}))
+if _clash:
+    raise ValueError(f"config error at evaluation/other_methods: {_clash} are names of evaluation.references")
+EVALUATION = dict(
+    config["evaluation"],
+    other_methods={
+        **(config["evaluation"].get("other_methods") or {}),
+        **{r: f"{RESULTS}/references/{r}/corrected" for r in REFERENCES},
+    },
+)
+REFERENCE_BLOCKS = [f"{RESULTS}/references/{r}/corrected/block_{b:04d}.zarr" for r in REFERENCES for b in range(len(BLOCKS))]
 
 
 wildcard_constraints:

@@ -18,7 +18,7 @@ rule evaluate_frames:
         volume=evaluation_blocks("volume"),
         corrected=evaluation_blocks("corrected"),
         global_texture=f"{RESULTS}/global_texture.zarr",
-        others=OTHER_METHODS,
+        others=OTHER_METHODS + REFERENCE_BLOCKS,
     output:
         f"{RESULTS}/evaluation_frames/block_{{block}}.json",
     log:
@@ -29,7 +29,7 @@ rule evaluate_frames:
         ENV
     params:
         # figure_frame and dynamism_regions are the merge's: changing them re-draws, not re-scores
-        evaluation=scoring_settings(config["evaluation"]),
+        evaluation=scoring_settings(EVALUATION),
         positions=block_range,
     script:
         "../scripts/evaluate_frames.py"
@@ -53,6 +53,7 @@ rule evaluate:
         global_texture=f"{RESULTS}/global_texture.zarr",
         records=expand(f"{RESULTS}/evaluation_frames/block_{{block}}.json", block=BLOCK_IDS),
         sampling=SAMPLING,
+        references=REFERENCE_BLOCKS,
     output:
         report(
             directory(f"{RESULTS}/evaluation"),
@@ -73,7 +74,7 @@ rule evaluate:
     conda:
         ENV
     params:
-        evaluation=config["evaluation"],
+        evaluation=EVALUATION,
         benchmarks=lambda wildcards: f"{RESULTS}/benchmarks",
     script:
         "../scripts/evaluate.py"
