@@ -1,0 +1,142 @@
+"""What candidate pruning (``poses.nearest_frames``) loses against the full tables.
+
+Two measurements:
+
+1. **Labels, for several k** (``--k``): on a finished run made with the full tables
+   (``poses: {nearest_frames: 0}``), re-run the poses, data-term and labeling writers with each
+   k into a scratch folder (the run's own settings otherwise) and compare the labels with the
+   run's on every (frame, face): the fraction that agree, the pairs posed, the sources per target
+   and the three stages' time. Cheap (no volume, correction or evaluation): the sweep to choose k.
+2. **Scores** (``--pruned RUN``): a second finished run of the same scene made with pruning;
+   the labels' agreement and every PSNR score of the evaluation (dB) of ours and ours
+   uncorrected, side by side, with the largest difference.
+
+    python benchmarks/bench_pruning.py RESULTS_FULL --k 5,10,20,40 [--scratch DIR] [--pruned RESULTS_K]
+
+The issue's acceptance (paper scene family, T = 265): labels agree on >= 99 % of (t, face) and
+the evaluation's scores move by <= 0.05 dB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _stored_params(path, kind) -> dict:
+    from stex.io import open_store
+    return dict(open_store(path, kind).attrs.get("params", {}))
+
+
+def run_k(results: Path, scratch: Path, k: int) -> dict:
+    """Poses, data term and labels of ``results`` with nearest_frames = k, into ``scratch``."""
+    from stex.io import open_store
+    from stex.stages.data_term import write_data_term
+    from stex.stages.labeling import write_labels
+    from stex.stages.poses import write_pose_table
+
+    R = results
+    d = scratch / f"k{k}"
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    blocks = sorted((R / "data_term").glob("block_*.zarr"))
+    dt = _stored_params(blocks[0], "data_term")
+    pp = dict(_stored_params(R / "poses.zarr", "poses"), nearest_frames=k)
+    row = {"k": k}
+    t0 = time.perf_counter()
+    write_pose_table(R / "tracking.zarr", d / "poses.zarr", pp, faces=R / "template.zarr",
+                     visibility=R / "projection.zarr", source_stride=dt["source_stride"], threads=2)
+    row["poses_s"] = round(time.perf_counter() - t0, 1)
+    t0 = time.perf_counter()
+    out = []
+    for b in blocks:
+        ids = open_store(b, "data_term").attrs["frame_ids"]
+        seq = open_store(b, "data_term").attrs["sequence_frame_ids"]
+        start = seq.index(ids[0])
+        out.append(d / b.name)
+        write_data_term(R / "scene.zarr", R / "template.zarr", R / "tracking.zarr", d / "poses.zarr",
+                        R / "observations.zarr", [start, start + len(ids)], dt, out[-1])
+    row["data_term_s"] = round(time.perf_counter() - t0, 1)
+    t0 = time.perf_counter()
+    write_labels(R / "observations.zarr", out, R / "template.zarr",
+                 _stored_params(R / "labels.zarr", "labels"), d / "labels.zarr", threads=2,
+                 projection_path=R / "projection.zarr")
+    row["labeling_s"] = round(time.perf_counter() - t0, 1)
+    g = open_store(d / "poses.zarr", "poses")
+    T = g["neighbours"].shape[0]
+    nb = g["neighbours"][...]
+    row["pairs"] = int(g["pairs"].shape[0])
+    row["pairs_of_all_%"] = round(100 * row["pairs"] / max(1, T * (T - 1) // 2), 1)
+    row["sources_per_target"] = round(float((nb >= 0).sum(axis=1).mean()), 1)
+    row.update(agreement(R / "labels.zarr", d / "labels.zarr"))
+    return row
+
+
+def agreement(full_labels, other_labels) -> dict:
+    from stex.io import open_store
+    a = open_store(full_labels, "labels")["labels"][...]
+    b = open_store(other_labels, "labels")["labels"][...]
+    if a.shape != b.shape:
+        raise ValueError(f"{full_labels} and {other_labels} label different (T, F): {a.shape}, {b.shape}")
+    return {"labels_agree_%": round(100 * float((a == b).mean()), 3),
+            "labelled_full_%": round(100 * float((a >= 0).mean()), 3),
+            "labelled_pruned_%": round(100 * float((b >= 0).mean()), 3)}
+
+
+def psnr_scores(results: Path) -> dict:
+    """{(region, method, metric): mean} of every PSNR score (dB) of ours and ours uncorrected."""
+    ev = json.loads((results / "evaluation" / "evaluation.json").read_text())
+    out = {}
+    for region, methods in ev["summary"].items():
+        for method in ("ours", "ours_uncorrected"):
+            for metric, v in methods.get(method, {}).items():
+                if "psnr" in metric and isinstance(v, dict) and v.get("mean") is not None:
+                    out[(region, method, metric)] = float(v["mean"])
+    return out
+
+
+def compare_runs(full: Path, pruned: Path) -> None:
+    a, b = psnr_scores(full), psnr_scores(pruned)
+    keys = sorted(set(a) & set(b))
+    print(f"{'region':<10} {'method':<17} {'metric':<34} {'full dB':>8} {'pruned dB':>9} {'diff':>7}")
+    for key in keys:
+        print(f"{key[0]:<10} {key[1]:<17} {key[2]:<34} {a[key]:8.3f} {b[key]:9.3f} {b[key] - a[key]:+7.3f}")
+    worst = max(keys, key=lambda k: abs(b[k] - a[k]))
+    print(f"largest |difference|: {abs(b[worst] - a[worst]):.3f} dB ({' / '.join(worst)}), over {len(keys)} scores")
+    print("labels:", json.dumps(agreement(full / "labels.zarr", pruned / "labels.zarr")))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("results", type=Path, help="a finished run made with poses.nearest_frames: 0")
+    ap.add_argument("--k", default="", help="comma-separated nearest_frames values to sweep")
+    ap.add_argument("--scratch", type=Path, default=Path("/tmp/stex_bench_pruning"))
+    ap.add_argument("--pruned", type=Path, help="a finished run of the same scene with pruning")
+    args = ap.parse_args(argv)
+    sys.path.insert(0, str(REPO))
+    from stex.logs import setup_logging
+    setup_logging(None)
+    R = args.results.resolve()
+    k0 = _stored_params(R / "poses.zarr", "poses").get("nearest_frames", 0)
+    if k0:
+        raise SystemExit(f"{R}: its poses were pruned (nearest_frames {k0}); the reference needs 0")
+    if args.k:
+        rows = [run_k(R, args.scratch, int(k)) for k in args.k.split(",")]
+        cols = list(rows[0])
+        print(" | ".join(cols))
+        for r in rows:
+            print(" | ".join(str(r[c]) for c in cols))
+    if args.pruned:
+        compare_runs(R, args.pruned.resolve())
+
+
+if __name__ == "__main__":
+    main()
