@@ -11,7 +11,7 @@ issue's acceptance: cost per frame at the longest T within 1.3x of that at T = 2
 peak RSS <= 4 GB.
 
     python benchmarks/bench_scaling.py --frames 120,265,530,1060 --root /tmp/stex_scaling --run
-        [--preset small] [--cores 2] [--out docs/img/scaling.png]
+        [--preset small|tiny|half|paper] [--tracking track|given] [--cores 2] [--out docs/img/scaling.png]
 
 Without ``--run`` it only reads the runs already in ROOT (those that finished are reported).
 """
@@ -40,10 +40,13 @@ PRESETS = {
     "small": {"color": {"width": 512, "height": 384, "fx": 375.0},
               "depth": {"width": 320, "height": 288, "fx": 252.0},
               "procedural": {"n_around": 72, "n_rings": 35}, "texture_size": 512, "atlas": 1024},
+    "tiny": {"color": {"width": 320, "height": 240, "fx": 234.0},
+             "depth": {"width": 160, "height": 144, "fx": 126.0},
+             "procedural": {"n_around": 48, "n_rings": 24}, "texture_size": 256, "atlas": 512},
 }
 
 
-def scene_config(T: int, preset: str, root: Path, block: int, extra: dict | None = None) -> dict:
+def scene_config(T: int, preset: str, root: Path, block: int, tracking: str = "track") -> dict:
     p = PRESETS[preset]
     cfg = {"scene": f"scale_{T}", "results": str(root), "frame_block": block,
            "source": {"kind": "synthetic", "synthetic": {
@@ -52,14 +55,12 @@ def scene_config(T: int, preset: str, root: Path, block: int, extra: dict | None
                "color": p["color"], "depth": p["depth"],
                "degradations": {"motion_blur": {"enabled": False},
                                 "sensor_noise": {"enabled": True, "sigma": 2.0}}}},
-           "template": {"atlas_size": p["atlas"]}}
-    for k, v in (extra or {}).items():
-        cfg[k] = v
+           "template": {"atlas_size": p["atlas"]}, "tracking": {"mode": tracking}}
     return cfg
 
 
 def run(T: int, args) -> float:
-    cfg = scene_config(T, args.preset, args.root, args.block)
+    cfg = scene_config(T, args.preset, args.root, args.block, args.tracking)
     path = args.root / f"scale_{T}.yaml"
     args.root.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
@@ -151,6 +152,8 @@ def main(argv=None):
     ap.add_argument("--preset", choices=sorted(PRESETS), default="small")
     ap.add_argument("--block", type=int, default=32, help="frame_block of every run (one for all T)")
     ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--tracking", choices=["track", "given"], default="track",
+                    help="given: the synthetic source's true meshes instead of the tracker")
     ap.add_argument("--run", action="store_true", help="run the workflow for each T (else only report)")
     ap.add_argument("--out", type=Path, help="PNG plot (and a .md table beside it)")
     args = ap.parse_args(argv)

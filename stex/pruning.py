@@ -27,6 +27,7 @@ Conventions: frames are sequence positions 0..T-1; vertices in metres.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from stex.poses import invert_rigid, kabsch
 
@@ -35,8 +36,6 @@ __all__ = ["shape_descriptors", "nearest_sources", "pose_pairs", "pair_index", "
 #: principal components kept in the descriptor: the procedural and captured motions we measured
 #: put nearly all of the aligned shapes' variance in a handful of components, so more only costs
 DESCRIPTOR_DIMS = 32
-#: sources walked at once, nearest first, while faces still lack their k nearest frames
-_CHUNK = 32
 
 
 def shape_descriptors(vertices, n_vertices: int = 512, dims: int = DESCRIPTOR_DIMS,
@@ -102,30 +101,53 @@ def nearest_sources(descriptors, visible, k: int, is_source=None) -> np.ndarray:
     src = np.ones(T, bool) if is_source is None else np.asarray(is_source, bool)
     vis = vis & src[:, None]
     srcs = np.flatnonzero(vis.any(axis=1))          # sources that see anything
-    need = np.minimum(k, vis.sum(axis=0))           # (F,) frames each face is owed
+    need = np.minimum(k, vis.sum(axis=0)).astype(np.int64)   # (F,) frames each face is owed
+    fr, fa = np.nonzero(vis)
+    vptr = np.searchsorted(fr, np.arange(T + 1)).astype(np.int64)
+    vidx = fa.astype(np.int64)
+    count = np.zeros(vis.shape[1], np.int64)
+    taken = np.empty(T, np.int64)
     rows = []
     for t in range(T):
         dist = np.linalg.norm(D[srcs] - D[t], axis=1)
         dist[srcs == t] = -1.0                       # t first (ties at distance 0)
-        order = srcs[np.argsort(dist, kind="stable")]
-        count = np.zeros(vis.shape[1], np.int64)
-        taken = []
-        for c0 in range(0, order.size, _CHUNK):
-            ids = order[c0:c0 + _CHUNK]
-            V = vis[ids]
-            # frames earlier in the walk that see the face; a frame not taken only sees faces
-            # already owed nothing, so counting it changes no later decision
-            before = count + np.cumsum(V, axis=0) - V
-            taken.append(ids[(V & (before < need)).any(axis=1)])
-            count += V.sum(axis=0)
-            if (count >= need).all():
-                break
-        rows.append(np.sort(np.concatenate(taken)))
+        order = srcs[np.argsort(dist, kind="stable")].astype(np.int64)
+        n = _walk(order, vptr, vidx, need, count, taken)
+        rows.append(np.sort(taken[:n]))
     N = max((r.size for r in rows), default=0)
     out = np.full((T, max(N, 1)), -1, np.int32)
     for t, r in enumerate(rows):
         out[t, :r.size] = r
     return out
+
+
+@njit(cache=True, nogil=True)
+def _walk(order, vptr, vidx, need, count, taken):
+    """Walk the sources nearest first; take a frame while some face it sees is still owed
+    frames. A frame not taken sees only faces owed nothing, so it need not be counted.
+    Writes taken[:n], returns n; count is scratch (F,)."""
+    count[:] = 0
+    unsat = 0
+    for f in range(need.shape[0]):
+        if need[f] > 0:
+            unsat += 1
+    n = 0
+    for i in range(order.shape[0]):
+        if unsat == 0:
+            break
+        l = order[i]
+        take = False
+        for q in range(vptr[l], vptr[l + 1]):
+            f = vidx[q]
+            if count[f] < need[f]:
+                take = True
+                count[f] += 1
+                if count[f] == need[f]:
+                    unsat -= 1
+        if take:
+            taken[n] = l
+            n += 1
+    return n
 
 
 def pose_pairs(neighbours) -> np.ndarray:
