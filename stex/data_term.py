@@ -29,6 +29,10 @@ for the face. The stage records the fraction of (target, face) pairs where this 
 ``prefilter_exact``), and ``tests/test_data_term.py`` checks that wherever it holds the pruned
 candidates equal those of the full ranking (``test_pruned_candidates_equal_full_ranking_where_exact``).
 
+Candidate pruning (:mod:`stex.pruning`, ``poses.nearest_frames``) comes first: a target's
+candidates are drawn only from its source frames in the ``poses`` store (each face's k nearest
+in shape that see it), so E_glo, the prefilter and E_loc cost the same per target whatever T is.
+
 ``similarity: global | local`` keeps only one geometric term (the paper's ablation): U = E_qual
 + E_glo, or U = E_qual + (1 + E_loc) (shifted to [0, 1] so its scale matches E_glo's). E_str is a
 local term: 'local' keeps it, 'global' drops it.

@@ -23,9 +23,10 @@ Choices, deliberately:
   by the number of pixels where the two depths *differ* (``mask = d > 0``), which drops pixels
   where both meshes agree exactly and so inflates the mean; stex follows the paper.
 - An empty union (both meshes outside the image) gives 0, as in the authors' code.
-- ``scale`` renders at a fraction of the depth resolution (``Intrinsics.scaled``): T² renders
-  dominate the stage (265² = 70k at paper scale). Renders of M_l in its own camera are made
-  once per call and shared by all target rows.
+- ``scale`` renders at a fraction of the depth resolution (``Intrinsics.scaled``): the renders
+  dominate the stage, one per (target, source) pair, T² without candidate pruning
+  (``sources``, :mod:`stex.pruning`). Renders of M_l in its own camera are made once per call,
+  only for the sources some row names, and shared by all target rows.
 
 E_loc — local similarity (:func:`stex.shot.geodesic_neighbourhoods`, :func:`stex.shot.shot_descriptors`,
 :func:`local_similarity_faces`, :func:`local_similarity_triples`)

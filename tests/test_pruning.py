@@ -123,3 +123,47 @@ def _solve_args(P, blocks, cfg):
     args.pop("frame_ids")
     args.pop("never_seen")
     return dict(args, threads=1)
+
+
+def test_sparse_e_glo_and_candidates_equal_the_dense_ones():
+    """global_similarity and block_candidates over an explicit source list give the dense
+    tables' values at those sources; a source list of every frame gives the dense tables."""
+    import dataclasses
+
+    from stex.data_term import block_candidates
+    from stex.similarity import global_similarity
+    from stex.synth.procedural import ProceduralBody
+
+    b = ProceduralBody(dataclasses.replace(ProceduralBody().p, n_around=16, n_rings=8))
+    T = 7
+    X = np.stack([b.vertices(0.2 * t) + [0, 0, 1.2] for t in range(T)])
+    F = b.faces
+    Pd, _ = poses_mod.pose_table(X, F)
+    K = np.array([[80.0, 0, 40], [0, 80.0, 30], [0, 0, 1]])
+    dense = global_similarity(X, F, Pd, K, 80, 60, targets=[1, 4])
+    cols = np.array([[0, 1, 5, -1], [2, 3, 4, 6]])
+    tt = np.array([[1], [4]]).repeat(4, axis=1)
+    Ps = Pd[tt, np.where(cols >= 0, cols, tt)]
+    sparse = global_similarity(X, F, Ps, K, 80, 60, targets=[1, 4], sources=cols)
+    ok = cols >= 0
+    np.testing.assert_array_equal(sparse[ok], dense[np.nonzero(ok)[0], cols[ok]])
+    assert sparse[0, 3] == 1.0
+    rng = np.random.default_rng(3)
+    vis = rng.random((T, len(F))) < 0.6
+    e_qual = rng.random((T, len(F))).astype(np.float32)
+    desc = rng.random((T, len(X[0]), 8)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=2, keepdims=True)
+    strain = rng.normal(scale=0.05, size=(T, len(F), 3)).astype(np.float32)
+    args = (vis, e_qual, desc, F, 0.9, "both", 3, 4)
+    kw = dict(strain=strain, omega_str=1.0)
+    a = block_candidates([1, 4], dense, *args, **kw)
+    every = np.broadcast_to(np.arange(T), (2, T))
+    c = block_candidates([1, 4], dense, *args, sources=every, **kw)
+    for x, y in zip(a, c):
+        for name in ("candidates", "e_glo", "e_loc", "e_qual", "e_str"):
+            np.testing.assert_array_equal(x[name], y[name], err_msg=name)
+    # pruned: every candidate is one of the target's sources
+    p = block_candidates([1, 4], sparse, *args, sources=cols, **kw)
+    for k in range(2):
+        got = p[k]["candidates"]
+        assert np.isin(got[got >= 0], cols[k][cols[k] >= 0]).all()
