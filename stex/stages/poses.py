@@ -122,6 +122,9 @@ def read_pose_table(path) -> dict:
     """The ``poses`` store as arrays: ``pairs`` (P, 2) int64, ``poses`` (P, 4, 4) float64,
     ``inlier_ratio`` (P,) float32, ``neighbours`` (T, N) int64, ``frame_ids``."""
     g = open_store(path, "poses")
+    if "pairs" not in g:
+        raise ValueError(f"{path}: a pose table of every frame pair in the layout before candidate "
+                         f"pruning (no 'pairs' array); re-run the poses stage")
     return {"pairs": np.asarray(g["pairs"][...], np.int64),
             "poses": np.asarray(g["poses"][...], np.float64),
             "inlier_ratio": np.asarray(g["inlier_ratio"][...], np.float32),
