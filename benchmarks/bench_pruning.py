@@ -12,7 +12,7 @@ Two measurements:
    the labels' agreement and every PSNR score of the evaluation (dB) of ours and ours
    uncorrected, side by side, with the largest difference.
 
-    python benchmarks/bench_pruning.py RESULTS_FULL --k 5,10,20,40 [--scratch DIR] [--pruned RESULTS_K]
+    python benchmarks/bench_pruning.py RESULTS --k 10:3,20:3,20:5 [--scratch DIR] [--pruned RESULTS_K]
 
 The issue's acceptance (paper scene family, T = 265): labels agree on >= 99 % of (t, face) and
 the evaluation's scores move by <= 0.05 dB.
@@ -37,21 +37,25 @@ def _stored_params(path, kind) -> dict:
     return dict(open_store(path, kind).attrs.get("params", {}))
 
 
-def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None) -> dict:
-    """Poses, data term and labels of ``results`` with nearest_frames = k, into ``scratch``."""
+def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
+          coverage: int | None = None) -> dict:
+    """Poses, data term and labels of ``results`` with nearest_frames = k (and coverage_frames
+    = coverage, default the schema's), into ``scratch``."""
     from stex.io import open_store
     from stex.stages.data_term import write_data_term
     from stex.stages.labeling import write_labels
     from stex.stages.poses import write_pose_table
 
     R = results
-    d = scratch / f"k{k}"
+    d = scratch / (f"k{k}" if coverage is None else f"k{k}_c{coverage}")
     shutil.rmtree(d, ignore_errors=True)
     d.mkdir(parents=True)
     blocks = sorted((R / "data_term").glob("block_*.zarr"))
     dt = _stored_params(blocks[0], "data_term")
     pp = dict(_stored_params(R / "poses.zarr", "poses"), nearest_frames=k)
-    row = {"k": k}
+    if coverage is not None:
+        pp["coverage_frames"] = coverage
+    row = {"k": k, "coverage": pp.get("coverage_frames")}
     t0 = time.perf_counter()
     write_pose_table(R / "tracking.zarr", d / "poses.zarr", pp, faces=R / "template.zarr",
                      visibility=R / "projection.zarr", source_stride=dt["source_stride"], threads=2)
@@ -118,7 +122,7 @@ def compare_runs(full: Path, pruned: Path) -> None:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("results", type=Path, help="a finished run (with the full tables or pruned)")
-    ap.add_argument("--k", default="", help="comma-separated nearest_frames values to sweep")
+    ap.add_argument("--k", default="", help="comma-separated nearest_frames[:coverage_frames] values to sweep")
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/stex_bench_pruning"))
     ap.add_argument("--pruned", type=Path, help="a finished run of the same scene with pruning "
                     "(RESULTS then must be the full tables' run)")
@@ -134,7 +138,11 @@ def main(argv=None):
             ref_row = run_k(R, args.scratch, 0, reference=R / "labels.zarr")
             print("full tables (k = 0), against the run's own labels (k = %d): %s" % (k0, ref_row))
             ref = args.scratch / "k0" / "labels.zarr"
-        rows = [run_k(R, args.scratch, int(k), ref) for k in args.k.split(",") if int(k) or not k0]
+        rows = []
+        for spec in args.k.split(","):
+            k, _, c = spec.partition(":")
+            if int(k) or not k0:
+                rows.append(run_k(R, args.scratch, int(k), ref, int(c) if c else None))
         cols = list(rows[0])
         print(" | ".join(cols))
         for r in rows:

@@ -12,12 +12,12 @@ descriptor:
    the object's motion in the camera does not count, then projected onto the leading principal
    components of the aligned shapes. Euclidean distance between descriptors approximates the RMS
    vertex distance of the aligned shapes.
-2. **Neighbours** (:func:`nearest_sources`): for target t, every face f keeps the ``k`` source
-   frames nearest to t in shape among those that see f (all of them when fewer see it); t's
-   source set is the union over its faces. It holds t's k nearest sources overall (those seeing
-   any face), and a face that t's nearest frames never see (the far side of a turning object)
-   still gets its k nearest frames that do see it, so no face loses its candidates.
-   ``k = 0`` means every frame (the full tables).
+2. **Neighbours** (:func:`nearest_sources`): target t keeps its ``k`` source frames nearest in
+   shape (that see anything), and then, walking on nearest first, every frame that a face
+   still needs: each face is owed its ``coverage`` nearest frames that see it (all of them
+   when fewer see it). A face that t's nearest frames never see (the far side of a turning
+   object) still gets frames that do see it, so no face loses its candidates, while the set
+   stays bounded whatever T is. ``k = 0`` means every frame (the full tables).
 3. **Pairs** (:func:`pose_pairs`): the unordered frame pairs {t, l}, l in t's source set, each
    given one rigid pose (K_{l→t} is the inverse of K_{t→l}).
 
@@ -74,15 +74,19 @@ def shape_descriptors(vertices, n_vertices: int = 512, dims: int = DESCRIPTOR_DI
     return (U[:, :d] * S[:d]).astype(np.float32)
 
 
-def nearest_sources(descriptors, visible, k: int, is_source=None) -> np.ndarray:
+def nearest_sources(descriptors, visible, k: int, is_source=None, coverage: int | None = None) -> np.ndarray:
     """The source frames each target is compared with (module docstring, step 2).
 
     Args:
         descriptors: (T, D) float :func:`shape_descriptors`.
         visible: (T, F) bool, face f seen at frame t (``projection`` face_visible); None = every
             frame sees one face (the k nearest frames overall).
-        k: frames per face (>= 0; 0 = every frame for every target).
+        k: the target's nearest source frames taken whatever they see (>= 0; 0 = every frame
+            for every target).
         is_source: (T,) bool, the frames that may texture (``data_term.source_stride``); None = all.
+        coverage: frames each face is owed: after the k nearest, the walk goes on, nearest
+            first, taking a frame while some face it sees has fewer than min(coverage, frames
+            that see it) taken; None = k.
 
     Returns:
         (T, N) int32, row t: its source frames ascending, -1 padding. t itself is in its row when
@@ -101,7 +105,10 @@ def nearest_sources(descriptors, visible, k: int, is_source=None) -> np.ndarray:
     src = np.ones(T, bool) if is_source is None else np.asarray(is_source, bool)
     vis = vis & src[:, None]
     srcs = np.flatnonzero(vis.any(axis=1))          # sources that see anything
-    need = np.minimum(k, vis.sum(axis=0)).astype(np.int64)   # (F,) frames each face is owed
+    c = k if coverage is None else int(coverage)
+    if c < 0:
+        raise ValueError(f"poses.coverage_frames must be >= 0, got {coverage}")
+    need = np.minimum(c, vis.sum(axis=0)).astype(np.int64)   # (F,) frames each face is owed
     fr, fa = np.nonzero(vis)
     vptr = np.searchsorted(fr, np.arange(T + 1)).astype(np.int64)
     vidx = fa.astype(np.int64)
@@ -112,7 +119,7 @@ def nearest_sources(descriptors, visible, k: int, is_source=None) -> np.ndarray:
         dist = np.linalg.norm(D[srcs] - D[t], axis=1)
         dist[srcs == t] = -1.0                       # t first (ties at distance 0)
         order = srcs[np.argsort(dist, kind="stable")].astype(np.int64)
-        n = _walk(order, vptr, vidx, need, count, taken)
+        n = _walk(order, vptr, vidx, need, count, taken, k)
         rows.append(np.sort(taken[:n]))
     N = max((r.size for r in rows), default=0)
     out = np.full((T, max(N, 1)), -1, np.int32)
@@ -122,10 +129,10 @@ def nearest_sources(descriptors, visible, k: int, is_source=None) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _walk(order, vptr, vidx, need, count, taken):
-    """Walk the sources nearest first; take a frame while some face it sees is still owed
-    frames. A frame not taken sees only faces owed nothing, so it need not be counted.
-    Writes taken[:n], returns n; count is scratch (F,)."""
+def _walk(order, vptr, vidx, need, count, taken, k):
+    """Walk the sources nearest first; take the first k, then a frame while some face it sees
+    is still owed frames. A frame not taken sees only faces owed nothing, so it need not be
+    counted. Writes taken[:n], returns n; count is scratch (F,)."""
     count[:] = 0
     unsat = 0
     for f in range(need.shape[0]):
@@ -133,10 +140,10 @@ def _walk(order, vptr, vidx, need, count, taken):
             unsat += 1
     n = 0
     for i in range(order.shape[0]):
-        if unsat == 0:
+        if unsat == 0 and i >= k:
             break
         l = order[i]
-        take = False
+        take = i < k
         for q in range(vptr[l], vptr[l + 1]):
             f = vidx[q]
             if count[f] < need[f]:

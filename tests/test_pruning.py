@@ -32,6 +32,14 @@ def test_nearest_sources_hold_each_frames_k_nearest_and_each_faces():
             v = np.flatnonzero(vis[:, f])
             assert set(v[np.argsort(d[t, v], kind="stable")[:k]].tolist()) <= row, (t, f)
         assert {3, 17} <= row
+    # with less coverage: still the k nearest, and every face seen by some frame keeps one
+    nb1 = nearest_sources(desc, vis, k, coverage=1)
+    assert (nb1 >= 0).sum() < (nb >= 0).sum()
+    for t in range(T):
+        row = nb1[t][nb1[t] >= 0]
+        seeing = np.flatnonzero(vis.any(axis=1))
+        assert set(seeing[np.argsort(d[t, seeing], kind="stable")[:k]].tolist()) <= set(row.tolist())
+        assert (vis[row].any(axis=0) == vis.any(axis=0)).all(), t
     # only source frames are chosen
     src = np.arange(T) % 3 == 0
     nb3 = nearest_sources(desc, vis, k, src)
