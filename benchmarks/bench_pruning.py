@@ -132,6 +132,11 @@ def main(argv=None):
     setup_logging(None)
     R = args.results.resolve()
     k0 = _stored_params(R / "poses.zarr", "poses").get("nearest_frames", 0)
+    from stex.io import open_store
+    g = open_store(R / "poses.zarr", "poses")
+    T = len(g.attrs["frame_ids"])
+    if "pairs" in g and g["pairs"].shape[0] == T * (T - 1) // 2:
+        k0 = 0  # pruning kept every pair: the run's tables are the full ones
     if args.k:
         ref = None
         if k0:  # the run was pruned: the full tables' labels first
