@@ -85,6 +85,23 @@ def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
     return row
 
 
+def pair_counts(results: Path, specs: str) -> None:
+    """Sources per target and pairs kept for each k[:coverage] on the run's tracking and
+    visibility, without computing poses (the cheap look at how much pruning keeps)."""
+    from stex.io import open_store
+    from stex.pruning import nearest_sources, pose_pairs, shape_descriptors
+    X = np.asarray(open_store(results / "tracking.zarr", "tracking")["vertices"][...], np.float64)
+    vis = np.asarray(open_store(results / "projection.zarr", "projection")["face_visible"][...], bool)
+    D = shape_descriptors(X)
+    T = len(X)
+    print("k | coverage | sources per target (mean, max) | pairs | of all pairs")
+    for spec in specs.split(","):
+        k, _, c = spec.partition(":")
+        nb = nearest_sources(D, vis, int(k), coverage=int(c) if c else None)
+        n = (nb >= 0).sum(axis=1)
+        print(f"{k} | {c or k} | {n.mean():.1f}, {n.max()} | {len(pose_pairs(nb))} | {T * (T - 1) // 2}")
+
+
 def agreement(full_labels, other_labels) -> dict:
     from stex.io import open_store
     a = open_store(full_labels, "labels")["labels"][...]
@@ -124,6 +141,7 @@ def main(argv=None):
     ap.add_argument("results", type=Path, help="a finished run (with the full tables or pruned)")
     ap.add_argument("--k", default="", help="comma-separated nearest_frames[:coverage_frames] values to sweep")
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/stex_bench_pruning"))
+    ap.add_argument("--pairs", default="", help="k[:coverage] values: only count the pairs kept")
     ap.add_argument("--pruned", type=Path, help="a finished run of the same scene with pruning "
                     "(RESULTS then must be the full tables' run)")
     args = ap.parse_args(argv)
@@ -131,6 +149,8 @@ def main(argv=None):
     from stex.logs import setup_logging
     setup_logging(None)
     R = args.results.resolve()
+    if args.pairs:
+        pair_counts(R, args.pairs)
     k0 = _stored_params(R / "poses.zarr", "poses").get("nearest_frames", 0)
     from stex.io import open_store
     g = open_store(R / "poses.zarr", "poses")
