@@ -205,19 +205,25 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
                "lost_frames": "list[int]: frames judged lost (array lost; a warning names them)"},
     ),
     "poses": ArtifactSpec(
-        description="Rigid poses between every pair of frames (stex.poses): K_{t->t'} maps frame "
-        "t's mesh onto frame t' (x' = R x + t, depth-camera coordinates), from RANSAC over "
-        "same-index vertex pairs plus robust point-to-plane ICP; estimated for t < t', the other "
-        "half is the exact inverse, the diagonal is the identity. Used by E_glo.",
+        description="Rigid poses between the frame pairs candidate pruning keeps (stex.poses, "
+        "stex.pruning): per target frame its source frames (each face's poses.nearest_frames "
+        "nearest in shape that see it; every frame with 0), and for every unordered pair of a "
+        "target and one of its sources K_{i->j} (i < j) mapping frame i's mesh onto frame j "
+        "(x' = R x + t, depth-camera coordinates), from RANSAC over same-index vertex pairs plus "
+        "robust point-to-plane ICP; K_{j->i} is its exact inverse, K_{t->t} the identity. Used by E_glo.",
         path="poses.zarr",
         arrays={
-            "poses": ArraySpec(("T", "T", 4, 4), "float64", "m", "poses[t, t'] = K_{t->t'} (4x4 rigid, translation in metres); poses[t', t] = inv(poses[t, t'])", (1, "T", 4, 4)),
-            "inlier_ratio": ArraySpec(("T", "T"), "float32", "1", "fraction of vertices within poses.inlier_threshold_m of their partner after alignment (symmetric, 1 on the diagonal)"),
+            "pairs": ArraySpec(("P", 2), "int32", "index", "frame pairs (i, j), i < j, sequence positions, sorted lexicographically"),
+            "poses": ArraySpec(("P", 4, 4), "float64", "m", "poses[p] = K_{i->j} of pairs[p] (4x4 rigid, translation in metres)"),
+            "inlier_ratio": ArraySpec(("P",), "float32", "1", "fraction of vertices within poses.inlier_threshold_m of their partner after alignment"),
+            "neighbours": ArraySpec(("T", "N"), "int32", "index", "source frames each target frame is compared with (sequence positions, ascending, -1 padding; the target itself when it is a source)"),
+            "descriptors": ArraySpec(("T", "D"), "float32", "m", "per-frame shape descriptor: rigidly aligned vertex subset, PCA-reduced (stex.pruning.shape_descriptors)"),
         },
         attrs={
-            "frame_ids": "list[int]: global frame index of each row/column",
+            "frame_ids": "list[int]: global frame index of each sequence position",
             "vertices_source": "str: the store the per-frame vertices were read from",
             "vertices_array": "str: the array read from it",
+            "source_stride": "int: data_term.source_stride the sources were chosen with",
         },
     ),
     "projection": ArtifactSpec(
@@ -304,7 +310,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         "frames, or never).",
         path="data_term/block_{block}.zarr",
         arrays={
-            "glo": ArraySpec(("Tb", "T"), "float32", "1", "E_glo[t, l]: clipped depth difference of K_{t->l}(M_t) and M_l rendered in the depth camera over the union of their silhouettes, divided by the clip (0..1)"),
+            "glo": ArraySpec(("Tb", "N"), "float32", "1", "E_glo[t, glo_sources[t, n]]: clipped depth difference of K_{t->l}(M_t) and M_l rendered in the depth camera over the union of their silhouettes, divided by the clip (0..1; 1 at padding)"),
+            "glo_sources": ArraySpec(("Tb", "N"), "int32", "index", "the source frames l of each target's E_glo row and candidates (poses neighbours: sequence positions, ascending, -1 padding)"),
             "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
             "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
             "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
@@ -426,7 +433,7 @@ def artifacts_markdown() -> str:
         f"Conventions: {CONVENTIONS}",
         "",
         "Shape symbols: T frames (in that store), V vertices, F faces, Vt texture coordinates, "
-        "Hc×Wc colour image, Hd×Wd depth image, W texture side, E adjacent face pairs, Tb target frames of a block, K candidates, R rounds. Per-frame arrays are chunked one "
+        "Hc×Wc colour image, Hd×Wd depth image, W texture side, E adjacent face pairs, Tb target frames of a block, K candidates, R rounds, P frame pairs, N sources per target, D descriptor components. Per-frame arrays are chunked one "
         "frame per chunk.",
         "",
     ]

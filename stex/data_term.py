@@ -29,6 +29,10 @@ for the face. The stage records the fraction of (target, face) pairs where this 
 ``prefilter_exact``), and ``tests/test_data_term.py`` checks that wherever it holds the pruned
 candidates equal those of the full ranking (``test_pruned_candidates_equal_full_ranking_where_exact``).
 
+Candidate pruning (:mod:`stex.pruning`, ``poses.nearest_frames``) comes first: a target's
+candidates are drawn only from its source frames in the ``poses`` store (each face's k nearest
+in shape that see it), so E_glo, the prefilter and E_loc cost the same per target whatever T is.
+
 ``similarity: global | local`` keeps only one geometric term (the paper's ablation): U = E_qual
 + E_glo, or U = E_qual + (1 + E_loc) (shifted to [0, 1] so its scale matches E_glo's). E_str is a
 local term: 'local' keeps it, 'global' drops it.
@@ -162,29 +166,45 @@ def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: f
 def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, omega_g: float,
                      similarity: str, n_candidates: int, prefilter: int, median_hops: int = 2,
                      target_group: int = 4, strain=None, omega_str: float = 0.0,
-                     str_clip: float = 0.1):
+                     str_clip: float = 0.1, sources=None):
     """Candidates of a block of target frames (E_loc for the prefiltered frames of
     ``target_group`` targets at once: the descriptors stream through memory once per group, and
     the (target, face, source) triples of a group — F · prefilter per target, 0.8 M at paper
     scale — bound the memory; docs/decisions/data_term.md).
 
     Args:
-        targets: (n,) target frames (sequence positions); glo: (n, T) their E_glo rows.
+        targets: (n,) target frames (sequence positions); glo: (n, N) their E_glo rows over
+            ``sources`` (N = T without them).
         face_visible: (T, F) bool; e_qual: (T, F) float32.
         descriptors: (T, V, D) SHOT descriptors (numpy or zarr; unused for 'global').
         faces: (F, 3) int. median_hops: median filter of the vertex similarities.
         strain: (T, F, 3) :func:`stex.similarity.face_strain` of the tracked meshes, or None
             (E_str = 0); omega_str, str_clip: its weight and clip.
+        sources: (n, N) int, the source frames each target is compared with (candidate pruning,
+            :func:`stex.pruning.nearest_sources`; ascending, -1 padding); None = every frame.
 
     Returns:
-        list of :func:`finish_candidates` dicts, one per target.
+        list of :func:`finish_candidates` dicts, one per target (candidates as frames).
     """
     use_str = strain is not None and omega_str > 0 and similarity != "global"
+    T = np.asarray(face_visible).shape[0]
+    cols = (np.broadcast_to(np.arange(T), (len(targets), T)) if sources is None
+            else np.asarray(sources, np.int64))
+    if cols.shape != np.shape(glo):
+        raise ValueError(f"glo rows {np.shape(glo)} and sources {cols.shape} differ in shape")
 
-    def str_row(k):  # (T, F), made twice per target rather than held for the block (21 MB each)
-        return strain_similarity(strain, targets[k], str_clip) if use_str else None
+    def columns(k):  # the target's sources' rows of the (T, F) tables
+        if sources is None:
+            return face_visible, e_qual
+        safe = np.where(cols[k] >= 0, cols[k], 0)
+        return face_visible[safe] & (cols[k] >= 0)[:, None], e_qual[safe]
 
-    pres = [prefilter_candidates(glo[k], face_visible, e_qual, omega_g, similarity,
+    def str_row(k):  # (N, F), made twice per target rather than held for the block (21 MB each)
+        if not use_str:
+            return None
+        return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k])
+
+    pres = [prefilter_candidates(glo[k], *columns(k), omega_g, similarity,
                                  max(prefilter, n_candidates), str_row(k), omega_str)
             for k in range(len(targets))]
     locs = [None] * len(targets)
@@ -198,7 +218,7 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                 f, j = np.nonzero(pres[k][0] >= 0)
                 tt.append(np.full(f.size, targets[k], np.int64))
                 ff.append(f)
-                ll.append(pres[k][0][f, j].astype(np.int64))
+                ll.append(cols[k][pres[k][0][f, j]].astype(np.int64))
                 where.append((f, j))
             vals = local_similarity_triples(descriptors, faces, np.concatenate(tt), np.concatenate(ff),
                                             np.concatenate(ll), rings=rings)
@@ -208,9 +228,14 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                 loc[f, j] = vals[n0:n0 + f.size]
                 n0 += f.size
                 locs[k] = loc
-    return [finish_candidates(pres[k][0], pres[k][1], glo[k], face_visible, e_qual, locs[k],
-                              omega_g, similarity, n_candidates, str_row(k), omega_str)
-            for k in range(len(targets))]
+    out = []
+    for k in range(len(targets)):
+        res = finish_candidates(pres[k][0], pres[k][1], glo[k], *columns(k), locs[k], omega_g,
+                                similarity, n_candidates, str_row(k), omega_str)
+        c = res["candidates"]
+        res["candidates"] = np.where(c >= 0, cols[k][np.maximum(c, 0)], -1).astype(np.int16)
+        out.append(res)
+    return out
 
 
 def lost_sources(frame_lost, vertex_lost, faces) -> np.ndarray:

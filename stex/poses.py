@@ -659,6 +659,33 @@ def _pairs(pairs, n_frames):
     return np.ascontiguousarray(pr[:, 0]), np.ascontiguousarray(pr[:, 1])
 
 
+def pair_poses(vertices, faces, pairs=None, params: dict | None = None, seed: int | None = None,
+               threads: int | None = None):
+    """Rigid poses of the given frame pairs (every pair with the same seeded samples, so a pair's
+    pose does not depend on which other pairs are computed).
+
+    Args:
+        vertices: (T, V, 3) float per-frame vertices of one topology (metres).
+        faces: (F, 3) int triangles, for the vertex normals of the point-to-plane ICP.
+        pairs: (P, 2) int frame pairs (i, j), i != j; default every i < j.
+        params, seed, threads: as in :func:`pose_table`.
+
+    Returns:
+        poses: (P, 4, 4) float64 K_{i→j} (x' ≈ R x + t), inlier_ratio: (P,) float32.
+    """
+    p = pose_params(params)
+    if seed is not None:
+        p["seed"] = int(seed)
+    X = _check_vertices(vertices)
+    n = X.shape[0]
+    pi, pj = _pairs(pairs, n)
+    N = np.stack([vertex_normals(X[k], faces) for k in range(n)]) if p["icp_iterations"] > 0 else X
+    log.info("poses: %d frames, %d vertices, %d pairs, %d threads", n, X.shape[1],
+             pi.size, max(1, int(threads or os.cpu_count() or 1)))
+    T, r = _run_pairs(X, N, pi, pj, p, threads, icp_iter=p["icp_iterations"])
+    return T, r.astype(np.float32)
+
+
 def pose_table(vertices, faces, params: dict | None = None, seed: int | None = None,
                threads: int | None = None):
     """Rigid poses between every pair of frames.
@@ -679,16 +706,9 @@ def pose_table(vertices, faces, params: dict | None = None, seed: int | None = N
         inlier_ratio: (T, T) float32, fraction of vertices within ``inlier_threshold_m`` of their
         partner after alignment (symmetric; 1 on the diagonal).
     """
-    p = pose_params(params)
-    if seed is not None:
-        p["seed"] = int(seed)
-    X = _check_vertices(vertices)
-    n = X.shape[0]
-    N = np.stack([vertex_normals(X[k], faces) for k in range(n)]) if p["icp_iterations"] > 0 else X
+    n = _check_vertices(vertices).shape[0]
     pi, pj = _all_pairs(n)
-    log.info("poses: %d frames, %d vertices, %d pairs (t < t'), %d threads", n, X.shape[1],
-             pi.size, max(1, int(threads or os.cpu_count() or 1)))
-    T, r = _run_pairs(X, N, pi, pj, p, threads, icp_iter=p["icp_iterations"])
+    T, r = pair_poses(vertices, faces, np.stack([pi, pj], axis=1), params, seed, threads)
     poses = np.broadcast_to(np.eye(4), (n, n, 4, 4)).copy()
     ratio = np.ones((n, n), np.float32)
     poses[pi, pj] = T

@@ -23,9 +23,10 @@ Choices, deliberately:
   by the number of pixels where the two depths *differ* (``mask = d > 0``), which drops pixels
   where both meshes agree exactly and so inflates the mean; stex follows the paper.
 - An empty union (both meshes outside the image) gives 0, as in the authors' code.
-- ``scale`` renders at a fraction of the depth resolution (``Intrinsics.scaled``): T² renders
-  dominate the stage (265² = 70k at paper scale). Renders of M_l in its own camera are made
-  once per call and shared by all target rows.
+- ``scale`` renders at a fraction of the depth resolution (``Intrinsics.scaled``): the renders
+  dominate the stage, one per (target, source) pair, T² without candidate pruning
+  (``sources``, :mod:`stex.pruning`). Renders of M_l in its own camera are made once per call,
+  only for the sources some row names, and shared by all target rows.
 
 E_loc — local similarity (:func:`stex.shot.geodesic_neighbourhoods`, :func:`stex.shot.shot_descriptors`,
 :func:`local_similarity_faces`, :func:`local_similarity_triples`)
@@ -188,36 +189,43 @@ def _image_box(px, py, iz, W, H, box):
 
 
 @njit(cache=True, nogil=True)
-def _render_own(X, F, K, near, own, boxes):
-    """own[l] = depth of frame l's mesh; boxes[l] = its pixel box (r0, r1, c0, c1)."""
-    T, H, W = own.shape
+def _render_own(X, frames, F, K, near, own, boxes):
+    """own[s] = depth of frame frames[s]'s mesh; boxes[s] = its pixel box (r0, r1, c0, c1)."""
+    S, H, W = own.shape
     nv = X.shape[1]
     fid = np.empty((H, W), np.int32)
     bary = np.empty((H, W, 3), np.float32)
     px = np.empty(nv)
     py = np.empty(nv)
     iz = np.empty(nv)
-    for l in range(T):
-        raster_kernel(X[l], F, K, near, own[l], fid, bary)  # only depth is read; own[l] starts at 0
+    for s in range(S):
+        l = frames[s]
+        raster_kernel(X[l], F, K, near, own[s], fid, bary)  # only depth is read; own[s] starts at 0
         project_vertices(X[l], K, near, px, py, iz)
-        _image_box(px, py, iz, W, H, boxes[l])
+        _image_box(px, py, iz, W, H, boxes[s])
 
 
 @njit(cache=True, nogil=True)
-def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, out):
-    """out[l] = E_glo(t, l) for every source l; depth must be all 0 on entry (left all 0)."""
-    T, H, W = own.shape
+def _global_row(Xt, poses_t, cols, slot, t, F, K, near, own, boxes, clip, depth, fid, bary, out):
+    """out[j] = E_glo(t, cols[j]) for the sources cols (-1: padding, 1); poses_t[j] =
+    K_{t→cols[j]}; slot[l] = the row of frame l in own / boxes. depth must be all 0 on entry
+    (left all 0)."""
+    S, H, W = own.shape
     nv = Xt.shape[0]
     Y = np.empty((nv, 3))
     px = np.empty(nv)
     py = np.empty(nv)
     iz = np.empty(nv)
     box = np.zeros(4, np.int64)
-    for l in range(T):
-        if l == t:
-            out[l] = 0.0
+    for j in range(cols.shape[0]):
+        l = cols[j]
+        if l < 0:
+            out[j] = 1.0
             continue
-        P = poses_t[l]
+        if l == t:
+            out[j] = 0.0
+            continue
+        P = poses_t[j]
         for i in range(nv):
             x, y, z = Xt[i, 0], Xt[i, 1], Xt[i, 2]
             for k in range(3):
@@ -225,7 +233,7 @@ def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, 
         raster_kernel(Y, F, K, near, depth, fid, bary)
         project_vertices(Y, K, near, px, py, iz)
         _image_box(px, py, iz, W, H, box)
-        ob = boxes[l]
+        ob = boxes[slot[l]]
         # union of the two boxes (an empty box has r0 = r1)
         if box[0] == box[1]:
             r0, r1, c0, c1 = ob[0], ob[1], ob[2], ob[3]
@@ -234,7 +242,7 @@ def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, 
         else:
             r0, r1 = min(box[0], ob[0]), max(box[1], ob[1])
             c0, c1 = min(box[2], ob[2]), max(box[3], ob[3])
-        D = own[l]
+        D = own[slot[l]]
         s = 0.0
         n = 0
         for r in range(r0, r1):
@@ -247,21 +255,24 @@ def _global_row(Xt, poses_t, t, F, K, near, own, boxes, clip, depth, fid, bary, 
                 elif a > 0.0 or b > 0.0:
                     s += clip
                     n += 1
-        out[l] = s / (n * clip) if n > 0 else 0.0
+        out[j] = s / (n * clip) if n > 0 else 0.0
         for r in range(box[0], box[1]):  # reset what this render wrote
             for c in range(box[2], box[3]):
                 depth[r, c] = 0.0
 
 
 def global_similarity(vertices, faces, poses, K, width, height, targets=None, clip_m: float = 0.1,
-                      scale: float = 1.0, threads: int = 1, near: float = 1e-3) -> np.ndarray:
-    """E_glo: clipped depth difference of the rigidly aligned meshes, for target rows × all sources.
+                      scale: float = 1.0, threads: int = 1, near: float = 1e-3,
+                      sources=None) -> np.ndarray:
+    """E_glo: clipped depth difference of the rigidly aligned meshes, for target rows × sources.
 
     Args:
         vertices: (T, V, 3) float tracked vertices of every frame, metres, depth-camera coordinates
             (a zarr array is read whole: T·V·3 values).
         faces: (F, 3) int vertex indices.
-        poses: (T, T, 4, 4) float64; poses[t, l] maps frame t's mesh onto frame l (x' = R x + t).
+        poses: without ``sources``, (T, T, 4, 4) float64 with poses[t, l] mapping frame t's mesh
+            onto frame l (x' = R x + t); with ``sources``, (n, N, 4, 4): poses[i, j] =
+            K_{targets[i]→sources[i, j]} (any value at padding).
         K: (3, 3) depth camera matrix (pixels) for a ``width`` x ``height`` image.
         targets: (n,) int target frames (rows); None = all T frames.
         clip_m: the clip of the per-pixel depth difference, metres (module docstring).
@@ -269,22 +280,41 @@ def global_similarity(vertices, faces, poses, K, width, height, targets=None, cl
             with :meth:`stex.camera.Intrinsics.scaled`.
         threads: worker threads over target rows (numba kernels release the GIL).
         near: near plane of the renders, metres.
+        sources: (n, N) int source frames of each row (-1 padding; candidate pruning,
+            :mod:`stex.pruning`); None = every frame 0..T-1. Only the frames named are rendered.
 
     Returns:
-        (n, T) float32 in [0, 1]: row i, column l = mean over the union of the silhouettes of
-        K_{targets[i]→l}(M_{targets[i]}) and M_l in the depth camera of min(clip, |ΔD|) / clip
-        (a pixel in only one silhouette counts 1); 0 at l = targets[i] and where the union is
-        empty.
+        (n, N) float32 in [0, 1] (N = T without ``sources``): row i, column j = mean over the
+        union of the silhouettes of K_{t→l}(M_t) and M_l in the depth camera of
+        min(clip, |ΔD|) / clip (a pixel in only one silhouette counts 1), t = targets[i],
+        l = sources[i, j] (or j); 0 at l = t and where the union is empty, 1 at padding.
     """
     X = _check_frames_vertices(vertices)
     T, nv = X.shape[:2]
     F = check_faces(faces, nv)
-    P = _check_poses(poses, T)
     clip = positive(clip_m, "clip_m")
     scale = positive(scale, "scale")
     near = positive(near, "near")
     n_threads = _threads(threads)
     tg = np.arange(T, dtype=np.int64) if targets is None else _check_frame_ids(targets, T, "targets")
+    if sources is None:
+        P = _check_poses(poses, T)[tg]
+        cols = np.broadcast_to(np.arange(T, dtype=np.int64), (tg.size, T))
+    else:
+        cols = np.asarray(sources, np.int64)
+        if cols.ndim != 2 or cols.shape[0] != tg.size:
+            raise ValueError(f"sources must be (n, N) with n = {tg.size} targets, got {cols.shape}")
+        if cols.size and (cols.max() >= T or cols.min() < -1):
+            raise ValueError(f"sources hold frames outside [-1, {T})")
+        P = np.asarray(poses, np.float64)
+        if P.shape != cols.shape + (4, 4):
+            raise ValueError(f"poses must be (n, N, 4, 4) = {cols.shape + (4, 4)} with sources, got {P.shape}")
+        P = np.where((cols >= 0)[..., None, None], P, np.eye(4))
+        bad = ~np.isfinite(P).all(axis=(2, 3)) | (np.abs(P[:, :, 3] - [0, 0, 0, 1]) > 1e-9).any(axis=2)
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise ValueError(f"poses[{i}, {j}] (target {int(tg[i])}, source {int(cols[i, j])}) is not "
+                             f"a finite rigid 4x4 transform: {P[i, j].tolist()}")
     intr = Intrinsics(np.asarray(K, dtype=np.float64), width, height)
     if not np.allclose(intr.K[2], [0.0, 0.0, 1.0]):
         raise ValueError(f"camera matrix K must have last row (0, 0, 1), got {intr.K.tolist()}")
@@ -293,20 +323,26 @@ def global_similarity(vertices, faces, poses, K, width, height, targets=None, cl
     H, W = intr.height, intr.width
     Kc = np.ascontiguousarray(intr.K)
 
-    own = np.zeros((T, H, W), np.float32)
-    boxes = np.zeros((T, 4), np.int64)
-    _render_own(X, F, Kc, near, own, boxes)
+    frames = np.unique(cols[cols >= 0])              # the frames rendered in their own pose
+    slot = np.full(T, -1, np.int64)
+    slot[frames] = np.arange(frames.size)
+    own = np.zeros((frames.size, H, W), np.float32)
+    boxes = np.zeros((frames.size, 4), np.int64)
+    _render_own(X, frames, F, Kc, near, own, boxes)
+    cols = np.ascontiguousarray(cols)
+    P = np.ascontiguousarray(P)
 
-    out = np.zeros((tg.size, T), np.float32)
+    out = np.zeros(cols.shape, np.float32)
 
     def work(rows):
         depth = np.zeros((H, W), np.float32)
         fid = np.empty((H, W), np.int32)
         bary = np.empty((H, W, 3), np.float32)
-        row = np.empty(T, np.float64)
+        row = np.empty(cols.shape[1], np.float64)
         for i in rows:
             t = int(tg[i])
-            _global_row(X[t], P[t], t, F, Kc, near, own, boxes, clip, depth, fid, bary, row)
+            _global_row(X[t], P[i], cols[i], slot, t, F, Kc, near, own, boxes, clip, depth, fid,
+                        bary, row)
             out[i] = row
 
     chunks = [c for c in np.array_split(np.arange(tg.size), n_threads) if c.size]
@@ -722,17 +758,19 @@ def face_strain(vertices, rest_vertices, faces, rings: int = 3) -> np.ndarray:
     return out
 
 
-def strain_similarity(strain, target: int, clip: float = 0.1) -> np.ndarray:
-    """E_str(target, f, l) for every source frame l and face f (module docstring).
+def strain_similarity(strain, target: int, clip: float = 0.1, sources=None) -> np.ndarray:
+    """E_str(target, f, l) for every source frame l (or those in ``sources``) and face f
+    (module docstring).
 
     Args:
         strain: (T, F, 3) float from :func:`face_strain`.
         target: sequence position t of the target frame.
         clip: strain difference (sum over the 3 edges of |Δ ln length|) that counts as fully
             dissimilar (1).
+        sources: optional (N,) int source frames (rows of the result; -1 padding gives 1).
 
     Returns:
-        (T, F) float32 in [0, 1]; row ``target`` is 0.
+        (T, F) (or (N, F)) float32 in [0, 1]; the row of ``target`` is 0.
     """
     S = np.asarray(strain)
     if S.ndim != 3 or S.shape[2] != 3:
@@ -741,5 +779,11 @@ def strain_similarity(strain, target: int, clip: float = 0.1) -> np.ndarray:
     if not 0 <= t < S.shape[0]:
         raise ValueError(f"target {t} outside 0..{S.shape[0] - 1}")
     c = positive(clip, "clip")
+    if sources is not None:
+        cols = np.asarray(sources, np.int64)
+        d = np.abs(S[np.where(cols >= 0, cols, t)] - S[t][None]).sum(axis=2, dtype=np.float32)
+        out = np.minimum(d / np.float32(c), np.float32(1.0))
+        out[cols < 0] = 1.0
+        return out
     d = np.abs(S - S[t][None]).sum(axis=2, dtype=np.float32)
     return np.minimum(d / np.float32(c), np.float32(1.0))

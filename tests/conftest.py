@@ -176,7 +176,8 @@ def run_pipeline(cfg: dict, d) -> dict:
 
     P = run_stages(cfg, d)
     P["poses"] = d / "poses.zarr"
-    write_pose_table(P["tracking"], P["poses"], cfg["poses"], array="vertices", faces=P["template"])
+    write_pose_table(P["tracking"], P["poses"], cfg["poses"], array="vertices", faces=P["template"],
+                     visibility=P["projection"], source_stride=cfg["data_term"]["source_stride"])
     P["observations"] = d / "observations.zarr"
     write_observations(P["template"], P["tracking"], P["projection"], P["projection"], P["frames"],
                        cfg["observations"], P["observations"])

@@ -237,8 +237,12 @@ def _stores(d, blur, slanted, vis):
         for name in ("residual_m", "n_correspondences", "seconds", "silhouette_iou", "depth_fit_m"):
             s.write(name, np.zeros(T))
     with create_store(d / "poses.zarr", "poses", attrs={"frame_ids": ids}) as s:
-        s.write("poses", np.broadcast_to(np.eye(4), (T, T, 4, 4)).copy())
-        s.write("inlier_ratio", np.ones((T, T)))
+        i, j = np.triu_indices(T, 1)
+        s.write("pairs", np.stack([i, j], axis=1))
+        s.write("poses", np.broadcast_to(np.eye(4), (i.size, 4, 4)).copy())
+        s.write("inlier_ratio", np.ones(i.size))
+        s.write("neighbours", np.broadcast_to(np.arange(T), (T, T)).copy())
+        s.write("descriptors", np.zeros((T, 1)))
     with create_store(d / "observations.zarr", "observations", attrs={"frame_ids": ids}) as s:
         s.write("face_samples", np.zeros((T, 2, 15)))
         s.write("edge_samples", np.zeros((T, 1, 9)))

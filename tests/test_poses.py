@@ -219,20 +219,23 @@ def test_write_pose_table_store(tmp_path, caplog):
         write_pose_table(scene, out, load_config()["poses"], array="truth/vertices")
     assert any("6 / 6 pairs" in r.getMessage() for r in caplog.records)
     g = open_store(out, "poses")
-    assert g["poses"].shape == (4, 4, 4, 4) and g["poses"].chunks == (1, 4, 4, 4)
-    assert g["inlier_ratio"].dtype == np.float32
+    # the sparse layout: every pair of 4 frames is kept (nearest_frames >= T - 1)
+    assert g["pairs"][...].tolist() == [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]
+    assert g["poses"].shape == (6, 4, 4) and g["neighbours"][...].tolist() == [[0, 1, 2, 3]] * 4
+    assert g["inlier_ratio"].dtype == np.float32 and g["descriptors"].shape[0] == 4
     assert g.attrs["frame_ids"] == [10, 11, 12, 13] and g.attrs["vertices_array"] == "truth/vertices"
     assert g.attrs["params"]["inlier_threshold_m"] == 0.005
     P, r = poses.pose_table(X.astype(np.float32), s.faces, load_config()["poses"])  # stored as float32
-    np.testing.assert_array_equal(g["poses"][...], P)
-    np.testing.assert_array_equal(g["inlier_ratio"][...], r)
+    i, j = np.triu_indices(4, 1)
+    np.testing.assert_array_equal(g["poses"][...], P[i, j])
+    np.testing.assert_array_equal(g["inlier_ratio"][...], r[i, j])
     # vertices from another store, faces from the scene store (as for the tracking artifact)
     other = tmp_path / "other.zarr"
     with create_store(other, "scene", attrs={"frame_ids": [10, 11, 12, 13]}) as w:
         w.write("given/vertices", X)
     write_pose_table(other, tmp_path / "p2.zarr", load_config()["poses"], array="given/vertices", faces=scene)
     g2 = open_store(tmp_path / "p2.zarr", "poses")
-    np.testing.assert_array_equal(g2["poses"][...], P)
+    np.testing.assert_array_equal(g2["poses"][...], P[i, j])
     assert g2.attrs["vertices_array"] == "given/vertices"
     with pytest.raises(ValueError, match="no array 'nope'"):
         write_pose_table(scene, tmp_path / "x.zarr", array="nope")

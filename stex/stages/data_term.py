@@ -12,7 +12,9 @@ from stex.camera import Calibration
 from stex.config import section_params
 from stex.data_term import block_candidates, lost_sources, source_mask
 from stex.io import create_store, open_store, position_range, short_ids
+from stex.pruning import directed_poses
 from stex.similarity import global_similarity
+from stex.stages.poses import read_pose_table
 
 log = logging.getLogger("stex.data_term")
 
@@ -43,10 +45,13 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     faces = np.asarray(template["faces"][...], np.int64)
     tracking = open_store(tracking_path, "tracking")
     vertices = np.asarray(tracking["vertices"][...], np.float32)
-    poses_store = open_store(poses_path, "poses")
-    if list(poses_store.attrs["frame_ids"]) != ids:
+    table = read_pose_table(poses_path)
+    if table["frame_ids"] != ids:
         raise ValueError(f"{poses_path} and {observations_path} hold different frames")
-    poses = np.asarray(poses_store["poses"][...], np.float64)
+    if table["source_stride"] != p["source_stride"] and table["neighbours"].shape[1] < len(ids):
+        raise ValueError(f"{poses_path} chose its sources with data_term.source_stride "
+                         f"{table['source_stride']}, the data term has {p['source_stride']} "
+                         f"(re-run the poses stage)")
     cal = Calibration.from_dict(scene.attrs["calibration"])
     face_visible = np.asarray(obs["face_visible"][...], bool)
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
@@ -78,9 +83,14 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
                          f"data_term.similarity={p['similarity']!r}")
     t0 = time.perf_counter()
     targets = list(range(start, stop))
+    # the sources candidate pruning compares each target with (every frame when not pruned)
+    cols = table["neighbours"][start:stop]
+    cols = cols[:, :max(1, int((cols >= 0).sum(axis=1).max(initial=1)))]
+    tt = np.broadcast_to(np.asarray(targets)[:, None], cols.shape)
+    poses = directed_poses(table["pairs"], table["poses"], len(ids), tt, np.where(cols >= 0, cols, tt))
     glo = global_similarity(vertices, faces, poses, cal.depth.K, cal.depth.width,
                             cal.depth.height, targets=targets, clip_m=p["glo_clip_m"],
-                            scale=p["glo_scale"])
+                            scale=p["glo_scale"], sources=cols)
     log.info("data_term: E_glo rows %d..%d in %.1f s", start, stop - 1, time.perf_counter() - t0)
     K = int(p["candidates"])
     nT, nF = len(targets), len(faces)
@@ -89,12 +99,14 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
              "source_frames": [int(i) for i in np.asarray(ids)[sources]]}
     with create_store(out, "data_term", attrs=attrs, params=p) as store:
         store.write("glo", glo.astype(np.float32))
+        store.write("glo_sources", cols)
         arrays = {name: store.create(name, (nT, nF, K))
                   for name in ("candidates", "e_glo", "e_loc", "e_qual", "e_str")}
         results = block_candidates(targets, glo, face_visible, e_qual, descriptors, faces,
                                    p["omega_g"], p["similarity"], K, int(p["prefilter"]),
                                    int(p["median_hops"]), strain=strain,
-                                   omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]))
+                                   omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]),
+                                   sources=cols)
         for k, res in enumerate(results):
             for name, arr in arrays.items():
                 arr[k] = res[name]

@@ -1,10 +1,12 @@
-# Rigid pose tables K_{t->t'} between all frame pairs, from the tracked vertices.
+# Rigid poses K_{t->t'} of the frame pairs candidate pruning keeps (poses.nearest_frames), from
+# the tracked vertices; the projection's visibility says which frames can serve each face.
 
 
 rule poses:
     input:
         tracking=f"{RESULTS}/tracking.zarr",
         template=f"{RESULTS}/template.zarr",
+        projection=f"{RESULTS}/projection.zarr",
     output:
         directory(f"{RESULTS}/poses.zarr"),
     log:
@@ -17,5 +19,6 @@ rule poses:
     threads: 2
     params:
         poses=config["poses"],
+        source_stride=config["data_term"]["source_stride"],
     script:
         "../scripts/poses.py"
