@@ -170,10 +170,15 @@ def test_track_params_defaults_match_the_schema():
     from dataclasses import asdict
 
     from stex.config import section_params
+    from stex.articulated import ArticulatedParams
     schema = section_params("tracking")
     fields = asdict(TrackParams())
-    # mode and min_silhouette_iou are the stage's, not the solver's
-    assert {k: v for k, v in schema.items() if k not in ("mode", "min_silhouette_iou")} == fields
+    # mode, min_silhouette_iou and skeleton (on/off) are the stage's; skeleton_* the skeleton solver's
+    stage = ("mode", "min_silhouette_iou", "skeleton")
+    assert {k: v for k, v in schema.items() if k not in stage and not k.startswith("skeleton_")} == fields
+    skeleton = {k.removeprefix("skeleton_"): tuple(v) if isinstance(v, list) else v
+                for k, v in schema.items() if k.startswith("skeleton_")}
+    assert skeleton == asdict(ArticulatedParams())
 
 
 def test_flow_on_the_object_box_matches_the_whole_image(tiny_config):

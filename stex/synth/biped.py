@@ -13,8 +13,6 @@ Its texture is the procedural body's seeded noise and strokes in an xatlas atlas
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-from skimage.measure import marching_cubes
 
 from stex.atlas import build_atlas, texel_map
 from stex.mesh import decimate
@@ -62,6 +60,8 @@ def _bone_distances(P):
 def biped_mesh():
     """The biped at height 1 in its rest pose: vertices (V, 3) float64, faces (F, 3) int32
     (counter-clockwise from outside), joints (V, 4) int, weights (V, 4) float."""
+    # imported here: the workflow imports the synthetic scenes while it reads its rules
+    from skimage.measure import marching_cubes
     lo, hi = np.array([-0.28, -0.03, -0.12]), np.array([0.28, 1.0, 0.14])
     n = np.ceil((hi - lo) / VOXEL_M).astype(int) + 1
     axes = [lo[k] + VOXEL_M * np.arange(n[k]) for k in range(3)]
@@ -113,6 +113,7 @@ class BipedBody(SkinnedBody):
 
     def _local_rotations(self, time_s: float) -> np.ndarray:
         """(J, 3, 3) each joint's turn from the rest pose at ``time_s`` (the walk cycle)."""
+        from scipy.spatial.transform import Rotation  # here: the workflow imports the scenes while it reads its rules
         ph = 2 * np.pi * time_s / self.period
         s = self.stride
         ang = {  # rotation vectors: +x turns a limb pointing down towards the back (z -)

@@ -53,7 +53,9 @@ EVALUATION = dict(
         **{r: f"{RESULTS}/references/{r}/corrected" for r in REFERENCES},
     },
 )
-REFERENCE_BLOCKS = [f"{RESULTS}/references/{r}/corrected/block_{b:04d}.zarr" for r in REFERENCES for b in range(len(BLOCKS))]
+REFERENCE_BLOCKS = [
+    f"{RESULTS}/references/{r}/corrected/block_{b:04d}.zarr" for r in REFERENCES for b in range(len(BLOCKS))
+]
 
 
 wildcard_constraints:
@@ -114,3 +116,11 @@ def evaluation_blocks(kind):
         return [f"{RESULTS}/{kind}/block_{k:04d}.zarr" for k in range(max(0, b - 1), b + 1)]
 
     return blocks
+
+
+def previous_reference_corrected(wildcards):
+    """The previous block's corrected store of the reference when the temporal coupling chains the blocks."""
+    b = int(wildcards.block)
+    if not config["correction"]["temporal"] or b == 0:
+        return []
+    return [f"{RESULTS}/references/{wildcards.reference}/corrected/block_{b - 1:04d}.zarr"]

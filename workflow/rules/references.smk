@@ -18,12 +18,12 @@ rule reference_oracle_labels:
         data_term=expand(f"{RESULTS}/data_term/block_{{block}}.zarr", block=BLOCK_IDS),
     output:
         directory(f"{RESULTS}/references/{{oracle}}/labels.zarr"),
-    wildcard_constraints:
-        oracle="oracle|oracle_candidates",
     log:
         f"{RESULTS}/logs/reference_labels_{{oracle}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/reference_labels_{{oracle}}.tsv"
+    wildcard_constraints:
+        oracle="oracle|oracle_candidates",
     conda:
         ENV
     script:
@@ -71,14 +71,6 @@ rule reference_volume:
         positions=block_range,
     script:
         "../scripts/volume.py"
-
-
-def previous_reference_corrected(wildcards):
-    """The previous block's corrected store of the reference when the temporal coupling chains the blocks."""
-    b = int(wildcards.block)
-    if not config["correction"]["temporal"] or b == 0:
-        return []
-    return [f"{RESULTS}/references/{wildcards.reference}/corrected/block_{b - 1:04d}.zarr"]
 
 
 rule reference_correction:
