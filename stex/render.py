@@ -671,6 +671,24 @@ def _bilinear_kernel(img, uv, out):
                          + w10 * img[r1, c0, k] + w11 * img[r1, c1, k])
 
 
+def _kernel_image(image, name: str, shapes: str) -> np.ndarray:
+    """``image`` as an array the sampling kernels take: 2-D or 3-D, not empty, numeric; bool as
+    uint8, float16 as float32, byte order native. ``name`` and ``shapes`` word the errors."""
+    img = np.asarray(image)
+    if img.ndim not in (2, 3):
+        raise ValueError(f"{name} must be {shapes}, got shape {img.shape}")
+    if img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"{name} must not be empty, got shape {img.shape}")
+    if img.dtype == np.bool_:
+        return img.astype(np.uint8)
+    if not np.issubdtype(img.dtype, np.number) or np.issubdtype(img.dtype, np.complexfloating):
+        raise ValueError(f"{name} must be numeric, got dtype {img.dtype}")
+    if img.dtype == np.float16 or not img.dtype.isnative:
+        # the kernels are compiled for native-endian dtypes; float16 has no numba type
+        return img.astype(np.float32 if img.dtype.kind == "f" else img.dtype.newbyteorder("="))
+    return img
+
+
 def sample_bilinear(image, uv) -> np.ndarray:
     """Bilinear image lookup with clamp-to-edge.
 
@@ -683,18 +701,7 @@ def sample_bilinear(image, uv) -> np.ndarray:
     Returns:
         float32 array of shape (..., C) for a 3-D image, (...) for a 2-D image.
     """
-    img = np.asarray(image)
-    if img.ndim not in (2, 3):
-        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {img.shape}")
-    if img.shape[0] == 0 or img.shape[1] == 0:
-        raise ValueError(f"image must not be empty, got shape {img.shape}")
-    if img.dtype == np.bool_:
-        img = img.astype(np.uint8)
-    elif not np.issubdtype(img.dtype, np.number) or np.issubdtype(img.dtype, np.complexfloating):
-        raise ValueError(f"image must be numeric, got dtype {img.dtype}")
-    elif img.dtype == np.float16 or not img.dtype.isnative:
-        # the kernel is compiled for native-endian dtypes; float16 has no numba type
-        img = img.astype(np.float32 if img.dtype.kind == "f" else img.dtype.newbyteorder("="))
+    img = _kernel_image(image, "image", "(H, W) or (H, W, C)")
     gray = img.ndim == 2
     img3 = np.ascontiguousarray(img[:, :, None] if gray else img)
     uv = np.asarray(uv, dtype=np.float64)
@@ -798,14 +805,7 @@ def sample_texture(mask, uv, texture, quantize: bool = False) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64)
     if not uv.shape[0]:
         return image
-    if tex.shape[0] == 0 or tex.shape[1] == 0:
-        raise ValueError(f"texture must not be empty, got shape {tex.shape}")
-    if tex.dtype == np.bool_:
-        tex = tex.astype(np.uint8)
-    elif not np.issubdtype(tex.dtype, np.number) or np.issubdtype(tex.dtype, np.complexfloating):
-        raise ValueError(f"texture must be numeric, got dtype {tex.dtype}")
-    elif tex.dtype == np.float16 or not tex.dtype.isnative:
-        tex = tex.astype(np.float32 if tex.dtype.kind == "f" else tex.dtype.newbyteorder("="))
+    tex = _kernel_image(tex, "texture", "(Ht, Wt, C) or (Ht, Wt)")
     tex3 = np.ascontiguousarray(tex[:, :, None] if tex.ndim == 2 else tex)
     pixels = np.flatnonzero(mask)
     if len(pixels) != uv.shape[0]:
