@@ -4,12 +4,14 @@ end-to-end acceptance: coverage 100 %, scores within 0.5 dB of the true template
 Runs ``snakemake`` twice on the demo's synthetic motion capture (config/config.yaml, the demo
 scene; ``--frames`` shortens it), into ``--results``: once as it is (the source's true template),
 once with ``template.from_scan`` (a synthetic turntable scan of the same body, ``--scan-frames``
-frames with the same camera, fused, closed and aligned to frame 0). Both runs target the
+frames, its depth at ``--scan-depth`` (by default the Kinect's 640x576 mode, as issue 59's scan
+acceptance), fused, closed and aligned to frame 0). Both runs target the
 evaluation only (no previews, no viewer). Then prints, per method, coverage, PSNR, SSIM and mask
 IoU side by side, the PSNR difference, the scan's fusion figures and each run's summed job
 times (wall and CPU, from the jobs' benchmark files). ``--report-only`` re-reads finished runs.
 
-    python benchmarks/bench_scan_workflow.py [--frames 120] [--scan-frames 300] [--cores 2]
+    python benchmarks/bench_scan_workflow.py [--frames 120] [--scan-frames 300] [--scan-depth 640x576]
+        [--scan-fx 504] [--cores 2]
         [--results /tmp/stex_scan_e2e] [--report-only]
 """
 
@@ -36,7 +38,9 @@ def run_config(args, scene: str) -> dict:
     if args.frames is not None:
         cfg["source"] = {"synthetic": {"n_frames": args.frames}}
     if scene == RUNS["from scan"]:
-        cfg["template"] = {"from_scan": True, "scan": {"kind": "synthetic", "n_frames": args.scan_frames}}
+        w, h = (int(x) for x in args.scan_depth.split("x"))
+        cfg["template"] = {"from_scan": True, "scan": {"kind": "synthetic", "n_frames": args.scan_frames,
+                                                       "depth": {"width": w, "height": h, "fx": args.scan_fx}}}
     return cfg
 
 
@@ -107,6 +111,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=None, help="motion capture frames (default: the demo's, 120)")
     ap.add_argument("--scan-frames", type=int, default=300, help="turntable scan frames (one turn)")
+    ap.add_argument("--scan-depth", default="640x576", help="the scan's depth image, WxH (issue 59: the Kinect's "
+                    "NFOV unbinned mode; the motion capture keeps the demo's)")
+    ap.add_argument("--scan-fx", type=float, default=504.0, help="the scan's depth focal length (px)")
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--results", type=Path, default=Path("/tmp/stex_scan_e2e"))
     ap.add_argument("--only", choices=sorted(RUNS), help="run one of the two (then report both if finished)")

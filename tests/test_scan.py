@@ -9,7 +9,7 @@ from stex.io import open_store
 from stex.masks import compute_mask
 from stex.mesh import is_closed
 from stex.scan import align_to_view, frame_points, fuse_scan, rotation_angle_deg, surface_distance
-from stex.stages.scan import write_scan
+from stex.stages.scan import scan_capture, write_scan
 from stex.synth.scene import SyntheticScene, rotation
 from stex.synth.turntable import TurntableScene
 
@@ -99,6 +99,17 @@ def test_a_scan_that_does_not_turn_is_refused():
     scan = section_params("template", {"scan": SCAN})["scan"]
     with pytest.raises(ValueError, match=r"turn the object by 0 degrees in total, less than template.scan.min_turn_deg"):
         fuse_scan(still, scene.calibration, scan, 0.3, 1.6)
+
+
+def test_a_synthetic_scan_can_use_its_own_depth_mode():
+    scan = section_params("template", {"scan": dict(SCAN, depth={"width": 64, "height": 48, "fx": 50.0})})["scan"]
+    cal, n, frames, _ = scan_capture(scan, SOURCE)
+    assert (cal.depth.width, cal.depth.height, cal.depth.fx) == (64, 48, 50.0)
+    assert n == SCAN["n_frames"]
+    _, color, depth, _ = next(frames(0, 1))
+    assert depth.shape == (48, 64) and color.shape[:2] == (150, 200)  # the colour camera stays the source's
+    default = section_params("template", {"scan": SCAN})["scan"]
+    assert scan_capture(default, SOURCE)[0].depth.width == section_params("source", SOURCE)["synthetic"]["depth"]["width"]
 
 
 def test_a_folder_or_mkv_scan_needs_a_path(tmp_path):

@@ -33,6 +33,8 @@ def scan_capture(scan: dict, source_cfg: dict | None = None):
     if kind == "synthetic":
         src = section_params("source", source_cfg if source_cfg and source_cfg.get("kind") == "synthetic" else {})
         synth = dict(src["synthetic"], n_frames=int(scan["n_frames"]))
+        if scan.get("depth"):  # the scan's own depth mode; the colour camera stays the source's
+            synth["depth"] = dict(scan["depth"])
         scene = TurntableScene(synth, scan["elevation_deg"])
 
         def frames(start, stop):
