@@ -76,8 +76,13 @@ class SyntheticSource(Source):
         return self.scene.calibration
 
     def template(self) -> Mesh:
-        # The template is the true mesh at frame 0 (with the object's own atlas).
-        return Mesh(self.scene.true_vertices(0), self.scene.faces, self.scene.texcoords, self.scene.texcoord_faces)
+        # The true mesh at frame 0, or the undeformed rest shape in frame 0's place; both with the
+        # object's own atlas.
+        if self.cfg["template"] == "rest":
+            V = self.scene.rest_shape_vertices(0)
+        else:
+            V = self.scene.true_vertices(0)
+        return Mesh(V, self.scene.faces, self.scene.texcoords, self.scene.texcoord_faces)
 
     def given_vertices(self, position: int) -> np.ndarray:
         return self.scene.given_vertices(position)

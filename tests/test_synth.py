@@ -123,6 +123,20 @@ def test_clean_depth_matches_truth(tiny_config):
     assert np.abs(r.depth_mm / 1000.0 - r.true_depth).max() <= 0.0005 + 1e-6
 
 
+def test_the_rest_template_is_the_undeformed_shape_where_frame_0_holds_the_object(tiny_config):
+    from stex.ingest import open_source
+
+    src = dict(tiny_config["source"], synthetic=dict(tiny_config["source"]["synthetic"], template="rest"))
+    rest = open_source(src).template()
+    frame0 = open_source(tiny_config["source"]).template()
+    assert np.array_equal(rest.faces, frame0.faces) and np.array_equal(rest.texcoords, frame0.texcoords)
+    scene = SyntheticScene(tiny_config["source"]["synthetic"])
+    R = scene.object_to_depth(0.0)
+    undeformed = scene.body.vertices(None) @ R[:3, :3].T + R[:3, 3]
+    np.testing.assert_allclose(rest.vertices, undeformed, atol=1e-9)
+    assert np.linalg.norm(rest.vertices - frame0.vertices, axis=1).max() > 1e-3  # frame 0 is deformed
+
+
 def test_tracking_drift_is_tangential_and_bounded(tiny_config):
     cfg = copy.deepcopy(tiny_config["source"]["synthetic"])
     cfg["degradations"]["tracking_drift"] = {"enabled": True, "amplitude_m": 0.01, "period_s": 1.0}

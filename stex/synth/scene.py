@@ -141,6 +141,12 @@ class SyntheticScene:
         t = self.time_of(frame) + offset_s
         return transform_points(self.object_to_depth(t), self.body.vertices(t)).astype(np.float64)
 
+    def rest_shape_vertices(self, frame: int) -> np.ndarray:
+        """(V, 3) float64 undeformed rest-shape vertices placed as the object is at ``frame``
+        (depth-camera coordinates, metres): what a scan of the still object gives."""
+        rest = self.body.vertices(None)
+        return transform_points(self.object_to_depth(self.time_of(frame)), rest).astype(np.float64)
+
     def skeleton(self, frame: int = 0):
         """The object's skin at ``frame`` in depth-camera coordinates, as
         :func:`stex.skeleton.skeleton_from_skin` takes it (parents, joint frames (J, 4, 4), vertex
