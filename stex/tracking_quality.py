@@ -56,21 +56,23 @@ class QualityThresholds:
         mesh that no longer follows the surface's deformation.
     frame_ref_flow_m, frame_ref_fail_share: as frame_flow_m and frame_fail_share, against the
         first frames' appearance (:class:`QualityMonitor`).
-    reacquire_share, reacquire_flow_m: after a lost frame, a frame is ok again only under this
-        share of lost seen vertices and this median flow against the first frames (m).
+    reacquire_share, reacquire_flow_m, reacquire_depth_m: after a lost frame, a frame is ok again
+        only under this share of lost seen vertices, this median flow against the first frames (m)
+        and this mean depth difference (m).
     """
 
     vertex_depth_m: float = 0.015
     vertex_outside_px: float = 3.0
     vertex_flow_m: float = 0.01
-    frame_share: float = 0.25
-    frame_flow_m: float = 0.006
-    frame_fail_share: float = 0.5
-    frame_depth_m: float = 1.0
-    frame_ref_flow_m: float = 0.006
-    frame_ref_fail_share: float = 1.0
+    frame_share: float = 0.15
+    frame_flow_m: float = 0.008
+    frame_fail_share: float = 0.3
+    frame_depth_m: float = 0.006
+    frame_ref_flow_m: float = 0.008
+    frame_ref_fail_share: float = 0.5
     reacquire_share: float = 0.1
     reacquire_flow_m: float = 0.003
+    reacquire_depth_m: float = 0.004
 
 
 THRESHOLDS = QualityThresholds()
@@ -201,13 +203,14 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = Fa
     ``th.frame_fail_share`` of the measurable vertices fail the flow's forward-backward check, or
     the mean depth difference exceeds ``th.frame_depth_m``. With ``was_lost`` (the previous
     frame was lost) the frame also stays lost until it is re-acquired: under
-    ``th.reacquire_share`` of its seen vertices lost and the reference's median flow (where
-    measured) under ``th.reacquire_flow_m``. Why: a drifted mesh can fit the depth again while
+    ``th.reacquire_share`` of its seen vertices lost, the reference's median flow (where
+    measured) under ``th.reacquire_flow_m`` and the mean depth difference under
+    ``th.reacquire_depth_m``. Why: a drifted mesh can fit the depth again while
     still sliding; without this memory a slow drift flickers between lost and ok.
 
     Returns (vertex lost (V,) bool, frame lost, summary: ``share`` of seen vertices lost,
     ``flow_m`` and ``ref_flow_m`` median appearance flow (m, NaN without), ``fail_share``,
-    ``ref_fail_share``, ``depth_m`` mean depth difference (m), ``no_data`` bool, ``why`` str naming
+    ``ref_fail_share``, ``depth_mean_m`` mean depth difference (m), ``no_data`` bool, ``why`` str naming
     what decided, "" where ok).
     """
     seen = signals["seen"]
@@ -245,10 +248,11 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = Fa
     depth_mean = float(np.nanmean(depth)) if not no_data else float("nan")
     if depth_mean > th.frame_depth_m:
         why.append(f"the mesh is {1000 * depth_mean:.1f} mm off the depth (mean)")
-    if was_lost and not why and not (share < th.reacquire_share and not ref_med >= th.reacquire_flow_m):
+    if was_lost and not why and not (share < th.reacquire_share and not ref_med >= th.reacquire_flow_m
+                                     and depth_mean < th.reacquire_depth_m):
         why.append("not re-acquired since the last lost frame")
     summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "ref_flow_m": ref_med,
-               "ref_fail_share": ref_fail_share, "depth_m": depth_mean, "no_data": no_data, "why": "; ".join(why)}
+               "ref_fail_share": ref_fail_share, "depth_mean_m": depth_mean, "no_data": no_data, "why": "; ".join(why)}
     return lost, bool(why), summary
 
 
