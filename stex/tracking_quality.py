@@ -16,8 +16,11 @@ good frame from a lost one. Each frame's mesh is scored here from four things th
 - flow consistency: a vertex whose texel is known and seen squarely enough but whose flow fails
   the forward-backward check in every channel: model and image disagree there.
 
+The same flow against a reference model captured at the first frames only (:class:`QualityMonitor`)
+sees a slow slide that the tracker's own model, drifting with the mesh, follows.
 :func:`judge` turns them into a lost/ok decision per vertex and per frame with the thresholds
-of :data:`THRESHOLDS`, chosen on the demo scene and tracks made to fail on it
+of :data:`THRESHOLDS`, chosen on the dev scenes (the demo, a procedural body) and tracks made to
+fail on them, with the memory of the last frame's decision
 (docs/decisions/tracking_quality.md; benchmarks/bench_tracking_quality.py).
 """
 

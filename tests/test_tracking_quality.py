@@ -53,6 +53,7 @@ def test_the_signal_passes_a_true_track_and_flags_a_wrong_one(tiny):
     V = tiny[3][0]
     good = _quality(tiny, V)
     assert not good["lost"] and good["share"] < 0.1 and not good["no_data"]
+    assert good["depth_m"].shape == (len(V),) and np.isfinite(good["depth_mean_m"])   # per vertex, and the mean
     assert np.nanmedian(good["flow_px"]) < 1.0
     axis = tiny["scene"].object_to_depth(tiny["scene"].time_of(3))[:3, 1]
     c = V.mean(0)
