@@ -52,7 +52,6 @@ from scipy.sparse.linalg import LinearOperator, cg
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from stex.atlas import build_atlas
 from stex.camera import backproject_depth, project_points
 from stex.deformation import (
     DeformationGraph, NormalPattern, build_graph, compose_rigid, deform, identity_params, normal_equations,
@@ -60,7 +59,7 @@ from stex.deformation import (
 from stex.flow import AppearanceModel, flow_constraints, flow_image
 from stex.frame_fit import depth_residual
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
-from stex.tracking_quality import frame_quality
+from stex.tracking_quality import QualityMonitor
 
 log = logging.getLogger("stex.tracking")
 
@@ -758,8 +757,8 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
     refine_params = TrackParams(**{**params.__dict__, "l0_rounds": 1})
     prev = before = V0
     rest_warp = identity_params(len(graph.nodes))   # the warp from the template (unseen_from_rest)
-    model = None
-    prev_image = None
+    model, prev_image = None, None
+    monitor = QualityMonitor(F, texcoords, texcoord_faces, params, rest=V0)   # judges each frame (lost / ok)
     t0 = time.perf_counter()
     for pos, obs in enumerate(observations):
         tf = time.perf_counter()
@@ -834,14 +833,12 @@ def track_sequence(template_vertices, faces, observations, params: TrackParams, 
                      1000 * stats["data_rms_m"], stats["seconds"], (pos + 1) / (time.perf_counter() - t0),
                      guard["lm_rejected"], guard["lm_failed"])
         # judged against the appearance of earlier frames only: before this frame's capture
-        stats["quality"] = frame_quality(cur, F, obs.target, obs.mask, obs.calibration, model if use_flow else None,
-                                         image, prev_image, consistency_px=params.flow_consistency_px,
-                                         min_cos=params.flow_min_cos, erode_px=params.flow_erode_px)
+        stats["quality"] = monitor.frame(pos, cur, obs, model if use_flow else None, image)
         before, prev = prev, cur
         if use_flow:
             if model is None:
                 if texcoords is None:
-                    texcoords, texcoord_faces = build_atlas(V0, F, params.model_size, 2)
+                    texcoords, texcoord_faces = monitor.atlas()
                 model = AppearanceModel(texcoords, texcoord_faces, F, params.model_size, image.shape[2])
             if image.shape[2] != model.channels:
                 raise ValueError(f"tracking: frame position {pos}: the flow's image has {image.shape[2]} channels, "

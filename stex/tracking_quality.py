@@ -16,8 +16,11 @@ good frame from a lost one. Each frame's mesh is scored here from four things th
 - flow consistency: a vertex whose texel is known and seen squarely enough but whose flow fails
   the forward-backward check in every channel: model and image disagree there.
 
+The same flow against a reference model captured at the first frames only (:class:`QualityMonitor`)
+sees a slow slide that the tracker's own model, drifting with the mesh, follows.
 :func:`judge` turns them into a lost/ok decision per vertex and per frame with the thresholds
-of :data:`THRESHOLDS`, chosen on the demo scene and tracks made to fail on it
+of :data:`THRESHOLDS`, chosen on the dev scenes (the demo, a procedural body) and tracks made to
+fail on them, with the memory of the last frame's decision
 (docs/decisions/tracking_quality.md; benchmarks/bench_tracking_quality.py).
 """
 
@@ -29,12 +32,14 @@ import cv2
 import numpy as np
 
 from stex.camera import project_points, transform_points
-from stex.flow import AppearanceModel, flow_constraints
+from stex.atlas import build_atlas
+from stex.flow import AppearanceModel, flow_constraints, flow_image
 from stex.render import rasterize, vertex_visibility
 
-__all__ = ["QualityThresholds", "THRESHOLDS", "vertex_signals", "judge", "frame_quality"]
+__all__ = ["QualityThresholds", "THRESHOLDS", "vertex_signals", "judge", "frame_quality", "QualityMonitor"]
 
 DEPTH_CLIP_M = 0.1         # a depth difference counts at most this much (m): beyond, the pixel is another surface
+REFERENCE_FRAMES = 3      # the first frames' appearance is the reference (QualityMonitor): before any drift
 APPEARANCE_MAX_SIDE = 640  # the appearance flow runs on colour images downscaled to this longer side (px) at most
 
 
@@ -52,15 +57,25 @@ class QualityThresholds:
         fails its forward-backward check.
     frame_depth_m: ... or where the mean depth difference of its seen vertices exceeds this (m): a
         mesh that no longer follows the surface's deformation.
+    frame_ref_flow_m, frame_ref_fail_share: as frame_flow_m and frame_fail_share, against the
+        first frames' appearance (:class:`QualityMonitor`).
+    reacquire_share, reacquire_flow_m, reacquire_depth_m: after a lost frame, a frame is ok again
+        only under this share of lost seen vertices, this median flow against the first frames (m)
+        and this mean depth difference (m).
     """
 
     vertex_depth_m: float = 0.015
     vertex_outside_px: float = 3.0
     vertex_flow_m: float = 0.01
-    frame_share: float = 0.25
-    frame_flow_m: float = 0.006
-    frame_fail_share: float = 0.5
-    frame_depth_m: float = 1.0
+    frame_share: float = 0.15
+    frame_flow_m: float = 0.008
+    frame_fail_share: float = 0.3
+    frame_depth_m: float = 0.006
+    frame_ref_flow_m: float = 0.008
+    frame_ref_fail_share: float = 0.5
+    reacquire_share: float = 0.1
+    reacquire_flow_m: float = 0.003
+    reacquire_depth_m: float = 0.004
 
 
 THRESHOLDS = QualityThresholds()
@@ -96,7 +111,7 @@ def _resized(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: AppearanceModel | None = None,
                    image=None, prev_image=None, consistency_px: float = 1.0, min_cos: float = 0.15,
-                   erode_px: int = 1) -> dict:
+                   erode_px: int = 1, reference: AppearanceModel | None = None) -> dict:
     """The quality signals of one frame's mesh, per vertex (see the module docstring).
 
     Args:
@@ -109,13 +124,16 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
         image: (Hc, Wc, C) uint8 the frame's flow channels (:func:`stex.flow.flow_image`, the
             model's), with ``model``; prev_image the previous frame's, or None.
         consistency_px, min_cos, erode_px: the flow term's settings (``tracking.flow_*``).
+        reference: an appearance model captured at the first frames only (:class:`QualityMonitor`),
+            or None: the same flow against it gives ``ref_flow_px`` and ``ref_fail``.
 
     Returns a dict of (V,) arrays: ``seen`` bool (the depth camera sees the vertex), ``depth_m``
     float32 (|observed - mesh| depth along the ray, clipped at DEPTH_CLIP_M; NaN where not seen or
     without clean depth), ``outside_px`` float32 (distance outside the mask; NaN where not seen
     or without a mask), ``flow_px`` float32 (the smallest appearance flow over the channels that
     pass; NaN where none), ``flow_fail`` bool (measurable, but no channel passes), ``m_per_px``
-    float32 (metres per colour pixel at the vertex; NaN without a calibration).
+    float32 (metres per colour pixel at the vertex; NaN without a calibration); ``ref_flow_px``
+    and ``ref_fail`` as ``flow_px`` and ``flow_fail`` against ``reference``.
     """
     V = np.asarray(vertices, np.float64)
     F = np.asarray(faces, np.int64)
@@ -123,7 +141,8 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
     H, W = target.valid.shape
     nan = np.full(n, np.nan, np.float32)
     out = {"seen": np.zeros(n, bool), "depth_m": nan.copy(), "outside_px": nan.copy(), "flow_px": nan.copy(),
-           "flow_fail": np.zeros(n, bool), "m_per_px": nan.copy()}
+           "flow_fail": np.zeros(n, bool), "m_per_px": nan.copy(), "ref_flow_px": nan.copy(),
+           "ref_fail": np.zeros(n, bool)}
     if not np.isfinite(V).all():
         return out
     seen = vertex_visibility(V, F, target.K, rasterize(V, F, target.K, W, H).depth)[0]
@@ -145,7 +164,8 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
     out["m_per_px"] = (Vc[:, 2] / c.K[0, 0]).astype(np.float32)
     if mask is not None:
         out["outside_px"][ids] = _outside_distance(np.asarray(mask, bool), project_points(Vc[ids], c.K)[0])
-    if model is not None and image is not None:
+    models = {"flow": model, "ref_flow": reference}
+    if image is not None and any(m is not None for m in models.values()):
         # Why downscaled: at a paper-scale colour camera the flow costs as much as half a frame's
         # tracking; a vertex off by a centimetre is still pixels off at the smaller size.
         factor = min(1.0, APPEARANCE_MAX_SIDE / max(c.width, c.height))
@@ -153,47 +173,66 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
             calibration = replace(calibration, color=c.scaled(factor))
             c = calibration.color
             image, prev_image, mask = (None if a is None else _resized(a, c.size) for a in (image, prev_image, mask))
-        fid, u1 = flow_constraints(V, F, model, image, mask, calibration, consistency_px, min_cos, erode_px=erode_px,
-                                   prev_image=prev_image)
-        if len(fid):
-            d = np.linalg.norm(u1 - project_points(Vc[fid], c.K)[0], axis=1) / factor   # full-size px
-            best = np.full(n, np.inf)
-            np.minimum.at(best, fid, d)
-            got = np.isfinite(best)
-            out["flow_px"][got] = best[got]
-        # measurable: seen squarely enough in the colour camera, with a known texel
-        cvis, ccos = vertex_visibility(Vc, F, c.K, rasterize(Vc, F, c.K, c.width, c.height).depth)
-        known = model.texture.reshape(-1, model.channels + 1)[model.vertex_texel, -1] > 0
-        out["flow_fail"] = cvis & (ccos > min_cos) & known & seen & ~np.isfinite(out["flow_px"])
+        uv_c = project_points(transform_points(calibration.depth_to_color, V), c.K)[0]
+        # measurable: seen squarely enough in the colour camera
+        Vs = transform_points(calibration.depth_to_color, V)
+        cvis, ccos = vertex_visibility(Vs, F, c.K, rasterize(Vs, F, c.K, c.width, c.height).depth)
+        for key, m in models.items():
+            if m is None:
+                continue
+            fid, u1 = flow_constraints(V, F, m, image, mask, calibration, consistency_px, min_cos, erode_px=erode_px,
+                                       prev_image=prev_image)
+            if len(fid):
+                d = np.linalg.norm(u1 - uv_c[fid], axis=1) / factor   # full-size px
+                best = np.full(n, np.inf)
+                np.minimum.at(best, fid, d)
+                got = np.isfinite(best)
+                out[f"{key}_px"][got] = best[got]
+            # ... and with a known texel
+            known = m.texture.reshape(-1, m.channels + 1)[m.vertex_texel, -1] > 0
+            out[f"{key}_fail"] = cvis & (ccos > min_cos) & known & seen & ~np.isfinite(out[f"{key}_px"])
     return out
 
 
-def judge(signals: dict, th: QualityThresholds = THRESHOLDS) -> tuple[np.ndarray, bool, dict]:
+def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = False) -> tuple[np.ndarray, bool, dict]:
     """Lost or ok, per vertex and for the frame, from :func:`vertex_signals`.
 
     A seen vertex is lost where its depth difference exceeds ``th.vertex_depth_m``, it lies more
-    than ``th.vertex_outside_px`` outside the mask, or its appearance flow exceeds
-    ``th.vertex_flow_m`` (px times its metres per pixel). The frame is lost where the depth
-    camera sees none of the mesh (no data), or more than ``th.frame_share`` of its seen vertices
-    are lost, or the median appearance flow exceeds ``th.frame_flow_m``, or more than
+    than ``th.vertex_outside_px`` outside the mask, or its appearance flow (against the tracker's
+    model or the first frames' reference) exceeds ``th.vertex_flow_m`` (px times its metres per
+    pixel). The frame is lost where the depth camera sees none of the mesh (no data), or more
+    than ``th.frame_share`` of its seen vertices are lost, or the median appearance flow exceeds
+    ``th.frame_flow_m`` (the reference's ``th.frame_ref_flow_m``), or more than
     ``th.frame_fail_share`` of the measurable vertices fail the flow's forward-backward check, or
-    the mean depth difference exceeds ``th.frame_depth_m``.
+    the mean depth difference exceeds ``th.frame_depth_m``. With ``was_lost`` (the previous
+    frame was lost) the frame also stays lost until it is re-acquired: under
+    ``th.reacquire_share`` of its seen vertices lost, the reference's median flow (where
+    measured) under ``th.reacquire_flow_m`` and the mean depth difference under
+    ``th.reacquire_depth_m``. Why: a drifted mesh can fit the depth again while
+    still sliding; without this memory a slow drift flickers between lost and ok.
 
     Returns (vertex lost (V,) bool, frame lost, summary: ``share`` of seen vertices lost,
-    ``flow_m`` median appearance flow (m, NaN without), ``fail_share``, ``depth_m`` mean depth
-    difference (m), ``no_data`` bool, ``why``
-    str naming what decided, "" where ok).
+    ``flow_m`` and ``ref_flow_m`` median appearance flow (m, NaN without), ``fail_share``,
+    ``ref_fail_share``, ``depth_mean_m`` mean depth difference (m), ``no_data`` bool, ``why`` str naming
+    what decided, "" where ok).
     """
     seen = signals["seen"]
     depth, outside = signals["depth_m"], signals["outside_px"]
     flow_m = signals["flow_px"] * signals["m_per_px"]
+    ref_m = signals.get("ref_flow_px", np.full(len(seen), np.nan)) * signals["m_per_px"]
     with np.errstate(invalid="ignore"):
-        lost = seen & ((depth > th.vertex_depth_m) | (outside > th.vertex_outside_px) | (flow_m > th.vertex_flow_m))
+        lost = seen & ((depth > th.vertex_depth_m) | (outside > th.vertex_outside_px) | (flow_m > th.vertex_flow_m)
+                       | (ref_m > th.vertex_flow_m))
     n_seen = int(seen.sum())
-    measured = np.isfinite(flow_m)
-    flow_med = float(np.median(flow_m[measured])) if measured.any() else float("nan")
-    n_meas = int(measured.sum() + signals["flow_fail"].sum())
-    fail_share = float(signals["flow_fail"].sum() / n_meas) if n_meas else 0.0
+
+    def median_and_fail(f, fail):
+        measured = np.isfinite(f)
+        med = float(np.median(f[measured])) if measured.any() else float("nan")
+        n_meas = int(measured.sum() + fail.sum())
+        return med, float(fail.sum() / n_meas) if n_meas else 0.0
+
+    flow_med, fail_share = median_and_fail(flow_m, signals["flow_fail"])
+    ref_med, ref_fail_share = median_and_fail(ref_m, signals.get("ref_fail", np.zeros(len(seen), bool)))
     share = float(lost.sum() / n_seen) if n_seen else 1.0
     no_data = n_seen == 0 or not np.isfinite(depth).any()
     why = []
@@ -203,13 +242,20 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS) -> tuple[np.ndarray
         why.append(f"{100 * share:.0f} % of the seen vertices off the depth, the mask or the appearance")
     if flow_med > th.frame_flow_m:
         why.append(f"the appearance model sits {1000 * flow_med:.1f} mm (median) from the image")
+    if ref_med > th.frame_ref_flow_m:
+        why.append(f"the first frames' appearance sits {1000 * ref_med:.1f} mm (median) from the image")
     if fail_share > th.frame_fail_share:
         why.append(f"{100 * fail_share:.0f} % of the appearance flow inconsistent")
+    if ref_fail_share > th.frame_ref_fail_share:
+        why.append(f"{100 * ref_fail_share:.0f} % of the flow from the first frames' appearance inconsistent")
     depth_mean = float(np.nanmean(depth)) if not no_data else float("nan")
     if depth_mean > th.frame_depth_m:
         why.append(f"the mesh is {1000 * depth_mean:.1f} mm off the depth (mean)")
-    summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "depth_m": depth_mean,
-               "no_data": no_data, "why": "; ".join(why)}
+    if was_lost and not why and not (share < th.reacquire_share and not ref_med >= th.reacquire_flow_m
+                                     and depth_mean < th.reacquire_depth_m):
+        why.append("not re-acquired since the last lost frame")
+    summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "ref_flow_m": ref_med,
+               "ref_fail_share": ref_fail_share, "depth_mean_m": depth_mean, "no_data": no_data, "why": "; ".join(why)}
     return lost, bool(why), summary
 
 
@@ -220,3 +266,51 @@ def frame_quality(vertices, faces, target, mask=None, calibration=None, model=No
     sig = vertex_signals(vertices, faces, target, mask, calibration, model, image, prev_image, **flow_settings)
     vertex_lost, lost, summary = judge(sig, th)
     return {**sig, "vertex_lost": vertex_lost, "lost": lost, **summary}
+
+
+class QualityMonitor:
+    """The tracker's per-frame judgement with memory (:func:`judge` with ``was_lost``) and a
+    reference appearance model captured at the first ``REFERENCE_FRAMES`` frames only.
+
+    Why a reference: the tracker's own model captures new texels where the mesh already is, so it
+    drifts with the mesh and cannot see a slow slide; the first frames' texture, captured before
+    any drift, can. It is judged even where the tracker's flow term is off (``w_flow`` 0), from the
+    frame's colour image.
+    """
+
+    def __init__(self, faces, texcoords=None, texcoord_faces=None, params=None, th: QualityThresholds = THRESHOLDS,
+                 reference_frames: int = REFERENCE_FRAMES, rest=None):
+        self.faces, self.rest = np.asarray(faces, np.int64), rest
+        self.texcoords, self.texcoord_faces = texcoords, texcoord_faces
+        g = (lambda k, d: getattr(params, k, d))
+        self.channels, self.size = g("flow_channels", "grey+chroma"), g("model_size", 1024)
+        self.capture_cos = g("model_min_cos", 0.3)
+        self.flow = {"consistency_px": g("flow_consistency_px", 1.0), "min_cos": g("flow_min_cos", 0.15),
+                     "erode_px": g("flow_erode_px", 1)}
+        self.th, self.reference_frames = th, reference_frames
+        self.reference, self.prev_image, self.was_lost = None, None, False
+
+    def atlas(self, vertices=None) -> tuple[np.ndarray, np.ndarray]:
+        """The atlas (texcoords, texcoord faces) given, or built once (from ``rest`` where given) and
+        shared with the tracker's model."""
+        if self.texcoords is None:
+            self.texcoords, self.texcoord_faces = build_atlas(self.rest if self.rest is not None else vertices,
+                                                              self.faces, self.size, 2)
+        return self.texcoords, self.texcoord_faces
+
+    def frame(self, pos: int, vertices, obs, model=None, image=None) -> dict:
+        """Judge frame position ``pos``'s mesh (V, 3) against the observation ``obs`` (``target``,
+        ``image``, ``mask``, ``calibration``), the tracker's ``model`` before this frame's capture
+        and its flow ``image`` (None: made from ``obs.image``); as :func:`frame_quality`."""
+        if image is None and obs.image is not None and obs.calibration is not None:
+            image = flow_image(obs.image, self.channels)
+        captured = self.reference is not None and pos > 0
+        sig = vertex_signals(vertices, self.faces, obs.target, obs.mask, obs.calibration, model, image,
+                             self.prev_image, reference=self.reference if captured else None, **self.flow)
+        vertex_lost, lost, summary = judge(sig, self.th, self.was_lost)
+        if image is not None and pos < self.reference_frames and not lost and np.isfinite(vertices).all():
+            if self.reference is None:
+                self.reference = AppearanceModel(*self.atlas(vertices), self.faces, self.size, image.shape[2])
+            self.reference.capture(vertices, image, obs.calibration, self.capture_cos, pos)
+        self.was_lost, self.prev_image = lost, image
+        return {**sig, "vertex_lost": vertex_lost, "lost": lost, **summary}

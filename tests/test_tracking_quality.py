@@ -16,7 +16,7 @@ from stex.render import rasterize
 from stex.synth.scene import SyntheticScene
 from stex.synth.shapes import bumpy_sphere
 from stex.tracking import Observation, TrackParams, depth_target, track_sequence
-from stex.tracking_quality import frame_quality
+from stex.tracking_quality import THRESHOLDS, QualityMonitor, frame_quality, judge
 
 K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
@@ -53,6 +53,7 @@ def test_the_signal_passes_a_true_track_and_flags_a_wrong_one(tiny):
     V = tiny[3][0]
     good = _quality(tiny, V)
     assert not good["lost"] and good["share"] < 0.1 and not good["no_data"]
+    assert good["depth_m"].shape == (len(V),) and np.isfinite(good["depth_mean_m"])   # per vertex, and the mean
     assert np.nanmedian(good["flow_px"]) < 1.0
     axis = tiny["scene"].object_to_depth(tiny["scene"].time_of(3))[:3, 1]
     c = V.mean(0)
@@ -146,3 +147,49 @@ def test_a_frame_without_data_keeps_the_rigid_solution_and_is_flagged(settings):
     assert np.isfinite(V1).all() and np.abs(V1 - V0).max() < 1e-5   # the rest fit re-poses the hidden side by round-off
     assert not s0["quality"]["lost"] and not s2["quality"]["lost"]
     assert np.linalg.norm(V2 - frames[2], axis=1).mean() < 0.003
+
+
+def test_the_first_frames_reference_sees_a_slide_the_drifting_model_follows(tiny):
+    """A mesh slid 8 degrees about the body's axis at frame 3, judged against a tracker model that
+    was captured at that slid mesh (a model that drifted with it): the tracker's own flow sees about
+    nothing, the reference captured by the monitor at the true frame 0 sees the slide and the frame
+    is lost for it; the true mesh at frame 3 (its model captured there) stays ok."""
+    s, F, cal = tiny["scene"], tiny["faces"], tiny["cal"]
+    V0, target0, image0, mask0 = tiny[0]
+    V3, target3, image3, mask3 = tiny[3]
+    axis = s.object_to_depth(s.time_of(3))[:3, 1]
+    c = V3.mean(0)
+    slid = (V3 - c) @ Rotation.from_rotvec(np.deg2rad(8) * axis).as_matrix().T + c
+    results = {}
+    for name, V in (("true", V3), ("slid", slid)):
+        drifted = AppearanceModel(s.body.texcoords, s.body.texcoord_faces, F, 512, 3)  # it follows the mesh
+        drifted.capture(V, image3, cal, 0.3, 0)
+        mon = QualityMonitor(F, s.body.texcoords, s.body.texcoord_faces, TrackParams(model_size=512))
+        first = mon.frame(0, V0, Observation(target0, None, cal, mask0), image=image0)
+        assert not first["lost"] and mon.reference is not None
+        results[name] = mon.frame(1, V, Observation(target3, None, cal, mask3), drifted, image3)
+    slid_q, true_q = results["slid"], results["true"]
+    assert np.nanmedian(slid_q["flow_px"]) < 0.5                 # the drifted model sits on the image
+    assert slid_q["lost"] and "first frames" in slid_q["why"]
+    assert slid_q["ref_flow_m"] > 3 * true_q["ref_flow_m"]
+    assert not true_q["lost"]
+
+
+def _signals(n=100, depth=0.002, ref_px=0.0):
+    """Signals of a frame whose n vertices are all seen, at ``depth`` (m) off, 1 mm a pixel."""
+    return {"seen": np.ones(n, bool), "depth_m": np.full(n, depth, np.float32), "outside_px": np.zeros(n, np.float32),
+            "flow_px": np.full(n, np.nan, np.float32), "flow_fail": np.zeros(n, bool),
+            "m_per_px": np.full(n, 0.001, np.float32), "ref_flow_px": np.full(n, ref_px, np.float32),
+            "ref_fail": np.zeros(n, bool)}
+
+
+def test_a_lost_track_stays_lost_until_reacquired():
+    """judge's memory: a frame just under the reference-flow bound is ok after an ok frame and
+    lost after a lost one; a clean frame after a lost one is ok again (re-acquired)."""
+    px = 1000 * (THRESHOLDS.reacquire_flow_m + THRESHOLDS.frame_ref_flow_m) / 2   # between the two bounds
+    marginal = _signals(ref_px=px)
+    assert not judge(marginal, THRESHOLDS, was_lost=False)[1]
+    lost, why = judge(marginal, THRESHOLDS, was_lost=True)[1:]
+    assert lost and "re-acquired" in why["why"]
+    assert not judge(_signals(), THRESHOLDS, was_lost=True)[1]
+    assert judge(_signals(ref_px=2000 * THRESHOLDS.frame_ref_flow_m), THRESHOLDS)[1]
