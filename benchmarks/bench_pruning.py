@@ -12,7 +12,7 @@ Two measurements:
    the labels' agreement and every PSNR score of the evaluation (dB) of ours and ours
    uncorrected, side by side, with the largest difference.
 
-    python benchmarks/bench_pruning.py RESULTS --k 10:3,20:3,20:5 [--scratch DIR] [--pruned RESULTS_K]
+    python benchmarks/bench_pruning.py RESULTS --k 10:3,20:3,20:3:cover [--scratch DIR] [--pruned RESULTS_K]
 
 The issue's acceptance (paper scene family, T = 265): labels agree on >= 99 % of (t, face) and
 the evaluation's scores move by <= 0.05 dB.
@@ -38,16 +38,16 @@ def _stored_params(path, kind) -> dict:
 
 
 def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
-          coverage: int | None = None) -> dict:
+          coverage: int | None = None, mode: str | None = None) -> dict:
     """Poses, data term and labels of ``results`` with nearest_frames = k (and coverage_frames
-    = coverage, default the schema's), into ``scratch``."""
+    = coverage, coverage_mode = mode, default the schema's), into ``scratch``."""
     from stex.io import open_store
     from stex.stages.data_term import write_data_term
     from stex.stages.labeling import write_labels
     from stex.stages.poses import write_pose_table
 
     R = results
-    d = scratch / (f"k{k}" if coverage is None else f"k{k}_c{coverage}")
+    d = scratch / ((f"k{k}" if coverage is None else f"k{k}_c{coverage}") + (f"_{mode}" if mode else ""))
     shutil.rmtree(d, ignore_errors=True)
     d.mkdir(parents=True)
     blocks = sorted((R / "data_term").glob("block_*.zarr"))
@@ -55,7 +55,9 @@ def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
     pp = dict(_stored_params(R / "poses.zarr", "poses"), nearest_frames=k)
     if coverage is not None:
         pp["coverage_frames"] = coverage
-    row = {"k": k, "coverage": pp.get("coverage_frames")}
+    if mode:
+        pp["coverage_mode"] = mode
+    row = {"k": k, "coverage": pp.get("coverage_frames"), "mode": pp.get("coverage_mode", "walk")}
     t0 = time.perf_counter()
     write_pose_table(R / "tracking.zarr", d / "poses.zarr", pp, faces=R / "template.zarr",
                      visibility=R / "projection.zarr", source_stride=dt["source_stride"], threads=2)
@@ -94,12 +96,22 @@ def pair_counts(results: Path, specs: str) -> None:
     vis = np.asarray(open_store(results / "projection.zarr", "projection")["face_visible"][...], bool)
     D = shape_descriptors(X)
     T = len(X)
-    print("k | coverage | sources per target (mean, max) | pairs | of all pairs")
+    print("k | coverage | mode | sources per target (mean, max) | pairs | of all pairs")
     for spec in specs.split(","):
-        k, _, c = spec.partition(":")
-        nb = nearest_sources(D, vis, int(k), coverage=int(c) if c else None)
+        k, c, m = parse_spec(spec)
+        nb = nearest_sources(D, vis, k, coverage=c, mode=m or "walk")
         n = (nb >= 0).sum(axis=1)
-        print(f"{k} | {c or k} | {n.mean():.1f}, {n.max()} | {len(pose_pairs(nb))} | {T * (T - 1) // 2}")
+        print(f"{k} | {c if c is not None else k} | {m or 'walk'} | {n.mean():.1f}, {n.max()} | "
+              f"{len(pose_pairs(nb))} | {T * (T - 1) // 2}")
+
+
+def parse_spec(spec: str):
+    """``k[:coverage[:mode]]`` -> (k, coverage or None, mode or None)."""
+    parts = spec.split(":")
+    if not 1 <= len(parts) <= 3 or not parts[0]:
+        raise ValueError(f"--k / --pairs entry {spec!r}: expected k[:coverage[:walk|cover]]")
+    c = int(parts[1]) if len(parts) > 1 and parts[1] else None
+    return int(parts[0]), c, (parts[2] if len(parts) > 2 and parts[2] else None)
 
 
 def agreement(full_labels, other_labels) -> dict:
@@ -165,9 +177,9 @@ def main(argv=None):
             ref = args.scratch / "k0" / "labels.zarr"
         rows = []
         for spec in args.k.split(","):
-            k, _, c = spec.partition(":")
-            if int(k) or not k0:
-                rows.append(run_k(R, args.scratch, int(k), ref, int(c) if c else None))
+            k, c, m = parse_spec(spec)
+            if k or not k0:
+                rows.append(run_k(R, args.scratch, k, ref, c, m))
         cols = list(rows[0])
         print(" | ".join(cols))
         for r in rows:

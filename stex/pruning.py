@@ -17,7 +17,10 @@ descriptor:
    still needs: each face is owed its ``coverage`` nearest frames that see it (all of them
    when fewer see it). A face that t's nearest frames never see (the far side of a turning
    object) still gets frames that do see it, so no face loses its candidates, while the set
-   stays bounded whatever T is. ``k = 0`` means every frame (the full tables).
+   stays bounded whatever T is. ``k = 0`` means every frame (the full tables). The walk takes
+   each face's own nearest frames, which differ from face to face; ``mode="cover"`` instead
+   chooses the owed frames as a greedy set cover (near shapes first among frames that cover
+   about as much), so fewer frames serve the faces the nearest frames miss.
 3. **Pairs** (:func:`pose_pairs`): the unordered frame pairs {t, l}, l in t's source set, each
    given one rigid pose (K_{l→t} is the inverse of K_{t→l}).
 
@@ -36,6 +39,14 @@ __all__ = ["shape_descriptors", "nearest_sources", "pose_pairs", "pair_index", "
 #: principal components kept in the descriptor: the procedural and captured motions we measured
 #: put nearly all of the aligned shapes' variance in a handful of components, so more only costs
 DESCRIPTOR_DIMS = 32
+
+#: ways to choose the frames owed to faces (``poses.coverage_mode``)
+COVER_MODES = ("walk", "cover")
+
+#: the set cover takes the nearest frame covering at least this share of what the best frame
+#: covers: a pick is never much worse than the greedy one, so the set stays small, while among
+#: frames that cover about as much the nearer shape wins
+COVER_GAIN_RATIO = 0.5
 
 
 def shape_descriptors(vertices, n_vertices: int = 512, dims: int = DESCRIPTOR_DIMS,
@@ -74,7 +85,8 @@ def shape_descriptors(vertices, n_vertices: int = 512, dims: int = DESCRIPTOR_DI
     return (U[:, :d] * S[:d]).astype(np.float32)
 
 
-def nearest_sources(descriptors, visible, k: int, is_source=None, coverage: int | None = None) -> np.ndarray:
+def nearest_sources(descriptors, visible, k: int, is_source=None, coverage: int | None = None,
+                    mode: str = "walk", cover_ratio: float = COVER_GAIN_RATIO) -> np.ndarray:
     """The source frames each target is compared with (module docstring, step 2).
 
     Args:
@@ -87,6 +99,12 @@ def nearest_sources(descriptors, visible, k: int, is_source=None, coverage: int 
         coverage: frames each face is owed: after the k nearest, the walk goes on, nearest
             first, taking a frame while some face it sees has fewer than min(coverage, frames
             that see it) taken; None = k.
+        mode: how the frames owed to faces are chosen after the k nearest: ``walk`` (every
+            frame, nearest first, that some owed face needs) or ``cover`` (a greedy set cover:
+            repeatedly the nearest frame whose count of owed faces it sees is at least
+            ``cover_ratio`` of the best remaining frame's, until no face is owed).
+        cover_ratio: in (0, 1]; 1 = the plain greedy set cover (fewest frames), smaller prefers
+            nearer shapes over frames that cover more.
 
     Returns:
         (T, N) int32, row t: its source frames ascending, -1 padding. t itself is in its row when
@@ -108,18 +126,33 @@ def nearest_sources(descriptors, visible, k: int, is_source=None, coverage: int 
     c = k if coverage is None else int(coverage)
     if c < 0:
         raise ValueError(f"poses.coverage_frames must be >= 0, got {coverage}")
+    if mode not in COVER_MODES:
+        raise ValueError(f"poses.coverage_mode must be one of {COVER_MODES}, got {mode!r}")
+    if not 0.0 < float(cover_ratio) <= 1.0:
+        raise ValueError(f"cover_ratio must be in (0, 1], got {cover_ratio}")
     need = np.minimum(c, vis.sum(axis=0)).astype(np.int64)   # (F,) frames each face is owed
     fr, fa = np.nonzero(vis)
     vptr = np.searchsorted(fr, np.arange(T + 1)).astype(np.int64)
     vidx = fa.astype(np.int64)
     count = np.zeros(vis.shape[1], np.int64)
     taken = np.empty(T, np.int64)
+    if mode == "cover":   # face -> frames that see it, and each frame's owed faces at the start
+        ff, ft = np.nonzero(vis.T)
+        fptr = np.searchsorted(ff, np.arange(vis.shape[1] + 1)).astype(np.int64)
+        fidx = ft.astype(np.int64)
+        gain0 = (vis & (need > 0)[None]).sum(axis=1).astype(np.int64)
+        gain = np.empty(T, np.int64)
+        rank = np.empty(T, np.int64)
     rows = []
     for t in range(T):
         dist = np.linalg.norm(D[srcs] - D[t], axis=1)
         dist[srcs == t] = -1.0                       # t first (ties at distance 0)
         order = srcs[np.argsort(dist, kind="stable")].astype(np.int64)
-        n = _walk(order, vptr, vidx, need, count, taken, k)
+        if mode == "cover":
+            n = _cover(order, vptr, vidx, fptr, fidx, need, count, gain0, gain, rank, taken, k,
+                       float(cover_ratio))
+        else:
+            n = _walk(order, vptr, vidx, need, count, taken, k)
         rows.append(np.sort(taken[:n]))
     N = max((r.size for r in rows), default=0)
     out = np.full((T, max(N, 1)), -1, np.int32)
@@ -154,6 +187,58 @@ def _walk(order, vptr, vidx, need, count, taken, k):
         if take:
             taken[n] = l
             n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _cover(order, vptr, vidx, fptr, fidx, need, count, gain0, gain, rank, taken, k, ratio):
+    """Take the first k of ``order``, then greedily, while some face is owed frames, the first
+    frame in ``order`` whose gain (owed faces it sees) is >= ratio times the largest gain.
+    Gains are updated when a face stops being owed, so a pick costs O(T). Writes taken[:n],
+    returns n; count, gain and rank are scratch."""
+    count[:] = 0
+    gain[:] = gain0
+    rank[:] = -1
+    unsat = 0
+    for f in range(need.shape[0]):
+        if need[f] > 0:
+            unsat += 1
+    for i in range(order.shape[0]):
+        rank[order[i]] = i
+    n = 0
+    i = 0
+    while True:
+        if i < k and i < order.shape[0]:
+            l = order[i]
+            i += 1
+        else:
+            if unsat == 0:
+                break
+            best = 0
+            for j in range(order.shape[0]):
+                if gain[order[j]] > best:
+                    best = gain[order[j]]
+            if best == 0:
+                break
+            l = -1
+            for j in range(order.shape[0]):
+                if gain[order[j]] > 0 and gain[order[j]] >= ratio * best:
+                    l = order[j]
+                    break
+        taken[n] = l
+        n += 1
+        gain[l] = 0
+        rank[l] = -2                       # taken: never picked again
+        for q in range(vptr[l], vptr[l + 1]):
+            f = vidx[q]
+            if count[f] < need[f]:
+                count[f] += 1
+                if count[f] == need[f]:    # no longer owed: frames seeing it gain less
+                    unsat -= 1
+                    for r in range(fptr[f], fptr[f + 1]):
+                        m = fidx[r]
+                        if rank[m] >= 0:
+                            gain[m] -= 1
     return n
 
 

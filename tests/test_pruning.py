@@ -53,6 +53,42 @@ def test_nearest_sources_hold_each_frames_k_nearest_and_each_faces():
         pair_index(pairs[1:], T, pairs[:1, 0], pairs[:1, 1])
 
 
+def _turning_visibility(T=60, F=90, width=12):
+    """A turning object: face f is seen by the frames of a window that moves with f."""
+    t = np.arange(T)[:, None]
+    f = np.arange(F)[None]
+    return ((t - f * T / F) % T) < width
+
+
+def test_set_cover_covers_every_owed_face_with_fewer_frames():
+    rng = np.random.default_rng(2)
+    T, k, c = 60, 3, 2
+    vis = _turning_visibility(T)
+    desc = np.cumsum(rng.normal(size=(T, 4)), axis=0)
+    walk = nearest_sources(desc, vis, k, coverage=c)
+    cover = nearest_sources(desc, vis, k, coverage=c, mode="cover")
+    d = np.linalg.norm(desc[:, None] - desc[None], axis=2)
+    need = np.minimum(c, vis.sum(axis=0))
+    for t in range(T):
+        row = cover[t][cover[t] >= 0]
+        nearest = np.argsort(np.where(np.arange(T) == t, -1.0, d[t]), kind="stable")[:k]
+        assert set(nearest.tolist()) <= set(row.tolist()), t
+        assert (vis[row].sum(axis=0) >= need).all(), t       # every face keeps its owed frames
+    assert (cover >= 0).sum() < (walk >= 0).sum()
+    assert len(pose_pairs(cover)) < len(pose_pairs(walk))
+    # ratio 1 is the plain greedy cover: here its first pick after t covers the most owed faces
+    one = nearest_sources(desc, vis, 1, coverage=1, mode="cover", cover_ratio=1.0)
+    for t in range(T):
+        row = one[t][one[t] >= 0]
+        assert (vis[row].sum(axis=0) >= 1).all()
+        gain = (vis & ~vis[t][None]).sum(axis=1)              # owed faces each frame sees after t
+        assert gain[row[row != t]].max() == gain.max(), t
+    with pytest.raises(ValueError, match="coverage_mode"):
+        nearest_sources(desc, vis, k, mode="cover2")
+    with pytest.raises(ValueError, match="cover_ratio"):
+        nearest_sources(desc, vis, k, mode="cover", cover_ratio=0.0)
+
+
 def test_shape_descriptor_ignores_rigid_motion():
     rng = np.random.default_rng(0)
     X = rng.normal(size=(1, 200, 3)).repeat(4, axis=0)

@@ -103,7 +103,7 @@ def write_pose_table(vertices_source, out, params: dict | None = None, array: st
         vis = np.asarray(proj["face_visible"][...], bool)
     desc = shape_descriptors(X, p["sample_vertices"], seed=p["seed"])
     nb = nearest_sources(desc, vis, p["nearest_frames"], source_mask(len(X), source_stride),
-                         coverage=p["coverage_frames"])
+                         coverage=p["coverage_frames"], mode=p["coverage_mode"])
     pairs = pose_pairs(nb)
     log.info("poses: %d frames, up to %d sources per frame (nearest_frames %d), %d pairs of %d",
              len(X), nb.shape[1], p["nearest_frames"], len(pairs), len(X) * (len(X) - 1) // 2)
