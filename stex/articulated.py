@@ -51,6 +51,9 @@ class ArticulatedParams:
     w_data_to_model: float = 1.0
     velocity: float = 1.0
     search_deg: tuple = (10.0, 20.0, 35.0)
+    min_seen: float = 5.0
+    unseen_return: float = 0.3
+    reacquire_deg: tuple = (50.0, 70.0)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ArticulatedParams":
@@ -60,7 +63,7 @@ class ArticulatedParams:
             key = f"skeleton_{name}"
             if key in d and d[key] is not None:
                 v = d[key]
-                setattr(out, name, tuple(float(a) for a in v) if name == "search_deg" else type(getattr(out, name))(v))
+                setattr(out, name, tuple(float(a) for a in v) if name.endswith("_deg") else type(getattr(out, name))(v))
         return out
 
 
@@ -115,6 +118,9 @@ class ArticulatedTracker:
         self.limbs = limb_joints(skeleton, min_vertices=10, depth=LIMB_DEPTH)
         self.pose = identity_pose(len(skeleton.parents))
         self.last = None        # the pose of the frame before, for the joints' velocity
+        # (J, V) how much each joint's subtree moves each vertex (skin weights summed down the chain)
+        self.influence = (self.anc[:, skeleton.joints] * skeleton.weights[None]).sum(2)
+        self.seen = np.ones(len(skeleton.parents), bool)   # joints with data in the frame before
         self.coarse = TrackParams(**{**params.__dict__, "association": "closest",
                                      "max_distance_m": 2 * params.max_distance_m})
         self.fine = params
@@ -130,29 +136,49 @@ class ArticulatedTracker:
         # start from the joints' predicted turn; the prior holds each joint to where it was
         # (moved with the root), so a joint no data reaches stops instead of turning on
         last = compose_root(self.skeleton, self.pose, R, t)
-        start = compose_root(self.skeleton, self._predicted(), R, t)
+        seen = self.joints_seen(self.vertices(last), target)
+        start = compose_root(self.skeleton, self._predicted(seen), R, t)
         half = max(1, self.ap.iterations // 2)
         steps = [0]
         pose = self._lm(start, last, target, flow, silhouette, self.coarse, half, stats, steps)
         kept = 0
         if self.ap.search_deg:
-            pose, kept = self._limb_search(pose, target)
+            pose, kept = self._limb_search(pose, target, back=seen & ~self.seen)
         pose = self._lm(pose, last, target, flow, silhouette, self.fine, self.ap.iterations - half, stats, steps)
+        # a joint no depth reaches keeps its predicted turn: whatever moved it in the solve was
+        # data of another part (the depth-to-mesh pairs reach hidden vertices too)
+        pose.rotations[~seen] = start.rotations[~seen]
         stats["skeleton_steps"], stats["skeleton_search_kept"] = steps[0], kept
-        self.last, self.pose = self.pose, pose
+        stats["skeleton_unseen_joints"] = int((~seen).sum())
+        self.last, self.pose, self.seen = self.pose, pose, seen
         return self.vertices()
 
-    def _predicted(self) -> Pose:
+    def joints_seen(self, X, target: DepthTarget) -> np.ndarray:
+        """(J,) bool: the joints whose subtree moves at least ``min_seen`` vertices' worth (skin
+        weights summed) of the mesh ``X`` (V, 3) that the depth camera sees."""
+        H, W = target.valid.shape
+        vis = vertex_visibility(X, self.faces, target.K, rasterize(X, self.faces, target.K, W, H).depth)[0]
+        return self.influence[:, vis].sum(1) >= self.ap.min_seen
+
+    def _predicted(self, seen=None) -> Pose:
         """The pose the joints' last turn, once more (times ``velocity``), leads to; the root is the
         rigid stage's. Why: a walking limb turns by about as much each frame, several cm at the paw,
-        farther than its data pairs reach from where it was."""
-        if self.last is None or self.ap.velocity <= 0:
-            return self.pose
-        turn = rotation_vectors(np.einsum("jab,jcb->jac", self.pose.rotations, self.last.rotations))
+        farther than its data pairs reach from where it was. A joint not ``seen`` ((J,) bool) does
+        not go on turning (no data would stop it): it turns back towards the template's pose by
+        the fraction ``unseen_return`` of its turn."""
+        J = len(self.skeleton.parents)
+        seen = np.ones(J, bool) if seen is None else seen
         out = self.pose.copy()
-        step = Rotation.from_rotvec(self.ap.velocity * turn).as_matrix()
         roots = self.skeleton.parents < 0
-        out.rotations[~roots] = np.einsum("jab,jbc->jac", step[~roots], self.pose.rotations[~roots])
+        if self.last is not None and self.ap.velocity > 0:
+            turn = rotation_vectors(np.einsum("jab,jcb->jac", self.pose.rotations, self.last.rotations))
+            step = Rotation.from_rotvec(self.ap.velocity * turn).as_matrix()
+            go = ~roots & seen
+            out.rotations[go] = np.einsum("jab,jbc->jac", step[go], self.pose.rotations[go])
+        back = ~roots & ~seen
+        if self.ap.unseen_return > 0 and back.any():
+            keep = rotation_vectors(self.pose.rotations[back]) * (1.0 - min(self.ap.unseen_return, 1.0))
+            out.rotations[back] = Rotation.from_rotvec(keep).as_matrix()
         return out
 
     def pose_unseen(self, cur: np.ndarray, faces, target: DepthTarget) -> np.ndarray:
@@ -241,10 +267,13 @@ class ArticulatedTracker:
         ok[ok] &= (nv[v[ok]] * nq[ok]).sum(1) > 0
         return v[ok], q[ok], nq[ok], np.full(int(ok.sum()), self.ap.w_data_to_model * k * k / 4.0)
 
-    def _limb_search(self, pose, target):
+    def _limb_search(self, pose, target, back=None):
         """Each limb's upper joints turned by ``search_deg`` about the camera's axes, both ways, a
-        turn kept where it lowers the clipped depth difference; returns (pose, turns kept)."""
+        turn kept where it lowers the clipped depth difference; returns (pose, turns kept). A limb
+        whose first joint comes ``back`` into view ((J,) bool) also tries ``reacquire_deg``: it
+        was held without data and may be far from where it is now."""
         sk = self.skeleton
+        back = np.zeros(len(sk.parents), bool) if back is None else back
         near = cv2.dilate(target.valid.astype(np.uint8), np.ones((2 * SEARCH_NEAR_PX + 1,) * 2, np.uint8)) > 0
         best = _search_score(self.vertices(pose), self.faces, target, near)
         kept = 0
@@ -253,8 +282,9 @@ class ArticulatedTracker:
                 cand_best = None
                 R, _ = joint_transforms(sk, pose)
                 Rp = np.eye(3) if sk.parents[j] < 0 else R[sk.parents[j]]
+                degs = self.ap.search_deg + (self.ap.reacquire_deg if back[limb[0]] else ())
                 for axis in SEARCH_AXES:
-                    for deg in self.ap.search_deg:
+                    for deg in degs:
                         for sign in (-1.0, 1.0):
                             cand = pose.copy()
                             turn = Rotation.from_rotvec(Rp.T @ axis * np.deg2rad(sign * deg)).as_matrix()

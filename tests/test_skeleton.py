@@ -158,3 +158,39 @@ def test_the_tracking_stage_without_the_skeleton_is_the_graph_alone(tmp_path):
         out[name] = open_store(tmp_path / f"tracking_{name}.zarr", "tracking")["vertices"][...]
     assert np.array_equal(out["plain"], out["off"])
     assert not np.array_equal(out["plain"], out["on"])     # the skeleton path is another path
+
+
+def _arm_half_out_of_view():
+    """The arm of :func:`_arm` with a camera whose image ends below the upper arm: the forearm
+    (y > 0.04 m) is out of view, the upper arm in it."""
+    sk, V, F = _arm()
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 225.0], [0, 0, 1]])
+    upper = sk.joints[:, 0] == 0
+    return sk, V, F, K, _depth(V, F[np.all(upper[F], axis=1)], K)
+
+
+def test_a_joint_the_depth_camera_cannot_see_is_named_unseen():
+    sk, V, F, K, target = _arm_half_out_of_view()
+    tracker = ArticulatedTracker(sk, V, F, TrackParams(), ArticulatedParams(search_deg=(), min_seen=100.0))
+    assert tracker.joints_seen(V, target).tolist() == [True, False]
+    # a camera that sees the whole arm sees both joints
+    K_all = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    assert tracker.joints_seen(V, _depth(V, F, K_all)).tolist() == [True, True]
+
+
+def test_an_unseen_joint_stops_turning_and_turns_back_towards_the_template():
+    """The forearm turned 20 degrees in the last frame and then left the view: without data it
+    must not go on at its last speed (40 degrees), and it gives back ``unseen_return`` of its turn."""
+    sk, V, F, K, target = _arm_half_out_of_view()
+    turn = np.deg2rad(20.0) * np.array([0.0, 0.0, 1.0])
+    for back, expected in ((0.0, 20.0), (0.3, 14.0)):
+        tracker = ArticulatedTracker(sk, V, F, TrackParams(), ArticulatedParams(
+            search_deg=(), min_seen=100.0, unseen_return=back))
+        tracker.last = identity_pose(2)
+        tracker.pose = identity_pose(2)
+        tracker.pose.rotations[1] = Rotation.from_rotvec(turn).as_matrix()
+        stats = {}
+        tracker.solve(np.eye(3), np.zeros(3), target, stats=stats)
+        got = np.rad2deg(np.linalg.norm(Rotation.from_matrix(tracker.pose.rotations[1]).as_rotvec()))
+        assert abs(got - expected) < 1e-6, (back, got)
+        assert stats["skeleton_unseen_joints"] == 1
