@@ -9,6 +9,16 @@ from stex.config import load_config
 REPO = Path(__file__).resolve().parents[1]
 
 
+def load_benchmark(name: str):
+    """benchmarks/<name>.py as a module (benchmarks/ is a folder of scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def data_samples() -> Path:
     """The shared third-party samples (../shared/data_samples or $STEX_DATA_SAMPLES)."""
     env = os.environ.get("STEX_DATA_SAMPLES")

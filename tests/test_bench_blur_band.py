@@ -1,21 +1,14 @@
 """benchmarks/bench_blur_band.py's sweep: one mask for every image, each erosion scored alike."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from conftest import load_benchmark
 from stex import metrics as ev
-
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_blur_band.py"
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_blur_band", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_blur_band")
 
 
 def _images():

@@ -1,22 +1,15 @@
 """benchmarks/bench_blur_resample.py's round trip: photo -> texels -> pixels."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from conftest import load_benchmark
 from stex import metrics as ev
-
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_blur_resample.py"
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_blur_resample", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_blur_resample")
 
 
 def _photo():

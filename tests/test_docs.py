@@ -5,7 +5,7 @@ import re
 import pytest
 import yaml
 
-from conftest import REPO
+from conftest import REPO, load_benchmark
 from stex import config_doc
 from stex.config import SCHEMA_PATH, load_schema, validate_config
 
@@ -99,13 +99,7 @@ def test_readme_is_a_page_a_newcomer_reads():
 
 
 def _results_page():
-    """benchmarks/results_page.py as a module (benchmarks/ is a folder of scripts, not a package)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("results_page", REPO / "benchmarks" / "results_page.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("results_page")
 
 
 def test_results_page_is_generated_from_the_recorded_runs():
