@@ -321,7 +321,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
         attrs={
             "frame_ids": "list[int]: global frame index of each target row",
             "sequence_frame_ids": "list[int]: global frame index of each sequence position (columns of glo, candidate values)",
-            "source_frames": "list[int]: global frame indices allowed as sources (data_term.source_stride)",
+            "source_frames": "list[int]: global frame indices allowed as sources (data_term.source_stride, without the frames tracking lost)",
+            "lost_source_frames": "list[int]: frames of the source stride left out because tracking lost them (data_term.exclude_lost); not held out",
             "prefilter_exact": "list[float]: per target, fraction of faces whose candidate pruning is provably exact",
             "seconds": "float: wall time of the block (s)",
         },

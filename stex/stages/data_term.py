@@ -57,6 +57,7 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
     sources = source_mask(len(ids), p["source_stride"])
     face_visible = face_visible & sources[:, None]
+    lost_frames = np.zeros(len(ids), bool)
     if p["exclude_lost"] and "vertex_lost" in tracking:
         lost = lost_sources(tracking["lost"][...], tracking["vertex_lost"][...], faces)
         if not (face_visible & ~lost).any() and face_visible.any():
@@ -65,7 +66,8 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
                              f"anything. Look at the tracking's log and previews/tracking_fit.png; or take "
                              f"texture from them anyway with data_term.exclude_lost: false")
         face_visible = face_visible & ~lost
-        sources = sources & ~np.asarray(tracking["lost"][...], bool)
+        lost_frames = sources & np.asarray(tracking["lost"][...], bool)
+        sources = sources & ~lost_frames
     if "blur_cost" not in obs:
         raise ValueError(f"{observations_path}: no blur_cost table (written by the observations "
                          f"stage since it offers blur_rule; re-run the observations stage)")
@@ -96,7 +98,9 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     nT, nF = len(targets), len(faces)
     exact = []
     attrs = {"frame_ids": ids[start:stop], "sequence_frame_ids": ids,
-             "source_frames": [int(i) for i in np.asarray(ids)[sources]]}
+             "source_frames": [int(i) for i in np.asarray(ids)[sources]],
+             # the held-out protocol's sources that tracking lost: left out, but not held out
+             "lost_source_frames": [int(i) for i in np.asarray(ids)[lost_frames]]}
     with create_store(out, "data_term", attrs=attrs, params=p) as store:
         store.write("glo", glo.astype(np.float32))
         store.write("glo_sources", cols)

@@ -314,8 +314,8 @@ class _Inputs:
         if data_term_paths:
             data_term_attrs = open_store(list(data_term_paths)[0], "data_term").attrs
             src = data_term_attrs.get("source_frames")
-            if src is not None:
-                sources = {int(i) for i in src}
+            if src is not None:  # frames lost by the tracking texture nothing but are not held out
+                sources = {int(i) for i in src} | {int(i) for i in data_term_attrs.get("lost_source_frames", [])}
                 k = data_term_attrs.get("params", {}).get("source_stride")
             if sorted(sources) != sorted(global_sources):
                 raise ValueError(f"global_texture store {global_texture_path} was built from source "
