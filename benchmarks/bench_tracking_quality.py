@@ -57,7 +57,7 @@ from stex.synth.scene import SyntheticScene  # noqa: E402
 from stex.template import prepare_template  # noqa: E402
 from stex.tracking import Observation, TrackParams, depth_target, track_sequence  # noqa: E402
 from stex.flow import AppearanceModel, flow_image  # noqa: E402
-from stex.tracking_quality import THRESHOLDS, QualityMonitor, QualityThresholds, judge  # noqa: E402
+from stex.tracking_quality import THRESHOLDS, QualityMonitor, QualityThresholds, judge, template_area_ratio  # noqa: E402
 
 LOST_M = 0.015
 SIGNAL_KEYS = ("seen", "depth_m", "outside_px", "flow_px", "flow_fail", "m_per_px")
@@ -120,6 +120,38 @@ def seen_by_depth(V, F, K, size) -> np.ndarray:
     return vertex_visibility(V, F, K, rasterize(V, F, K, *size).depth)[0]
 
 
+def initial_template(scene, cfg: dict, track: str, t0: int):
+    """(template, faces, embedding, the template's vertices at frame ``t0`` as the track starts:
+    turned, shifted or grown where TRACKS / TEMPLATE_SCALE say)."""
+    _, _, turn_deg, shift = TRACKS[track]
+    # the body as it is (no splitting): small scenes, quick tracks
+    tmpl = prepare_template(Mesh(scene.true_vertices(0), scene.faces), {**cfg["template"], "min_faces": 0})
+    F = tmpl["faces"].astype(np.int64)
+    emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
+    V0 = transfer_vertices(scene.true_vertices(t0), scene.faces, *emb)
+    if turn_deg or shift:
+        axis = scene.object_to_depth(scene.time_of(t0))[:3, 1]   # the body's vertical axis
+        c = V0.mean(0)
+        V0 = (V0 - c) @ Rotation.from_rotvec(np.deg2rad(turn_deg) * axis).as_matrix().T + c + [shift, 0.0, 0.0]
+    if track in TEMPLATE_SCALE:
+        V0 = (V0 - V0.mean(0)) * TEMPLATE_SCALE[track] + V0.mean(0)
+    return tmpl, F, emb, V0
+
+
+def template_area(scene_name: str, track: str, tracked: dict) -> dict:
+    """The scale cue (stex.tracking_quality.template_area_ratio) of a cached track: its starting
+    template against its first frame rendered again; per frame (the same value)."""
+    syn, cfg = scene_config(scene_name)
+    syn["n_frames"] = SCENES[scene_name][2]
+    scene = SyntheticScene(syn)
+    t0 = int(tracked["frames"][0])
+    _, F, _, V0 = initial_template(scene, cfg, track, t0)
+    r = scene.render_frame(t0)
+    target = depth_target(r.depth_mm / 1000.0, scene.calibration.depth.K,
+                          mask_in_depth(r.true_mask, r.depth_mm, scene.calibration))
+    return {"template_area_ratio": np.full(len(tracked["frames"]), template_area_ratio(V0, F, target))}
+
+
 def run_track(scene_name: str, track: str) -> dict:
     """Track one (scene, track) pair; per frame the signals, the truth's errors, the time."""
     syn, cfg = scene_config(scene_name)
@@ -127,19 +159,9 @@ def run_track(scene_name: str, track: str) -> dict:
     syn["n_frames"] = n
     scene = SyntheticScene(syn)
     cal = scene.calibration
-    pick, overrides, turn_deg, shift = TRACKS[track]
+    pick, overrides, _, _ = TRACKS[track]
     frames = pick(n)
-    # the body as it is (no splitting): small scenes, quick tracks
-    tmpl = prepare_template(Mesh(scene.true_vertices(0), scene.faces), {**cfg["template"], "min_faces": 0})
-    F = tmpl["faces"].astype(np.int64)
-    emb = (tmpl["embedding/face"], tmpl["embedding/bary"])
-    V0 = transfer_vertices(scene.true_vertices(frames[0]), scene.faces, *emb)
-    if turn_deg or shift:
-        axis = scene.object_to_depth(scene.time_of(frames[0]))[:3, 1]   # the body's vertical axis
-        c = V0.mean(0)
-        V0 = (V0 - c) @ Rotation.from_rotvec(np.deg2rad(turn_deg) * axis).as_matrix().T + c + [shift, 0.0, 0.0]
-    if track in TEMPLATE_SCALE:
-        V0 = (V0 - V0.mean(0)) * TEMPLATE_SCALE[track] + V0.mean(0)
+    tmpl, F, emb, V0 = initial_template(scene, cfg, track, frames[0])
     params = TrackParams.from_dict({**cfg["tracking"], "mode": "track", **overrides})
     truth = {}
 
@@ -168,6 +190,7 @@ def run_track(scene_name: str, track: str) -> dict:
 
 
 REPLAY_KEYS = (*SIGNAL_KEYS, "ref_flow_px", "ref_fail")
+SIGNAL_KEYS_ALL = (*REPLAY_KEYS, "template_area_ratio")
 
 
 def replay_signals(scene_name: str, track: str, tracked: dict) -> dict:
@@ -228,7 +251,7 @@ def real_pair_tracks(samples: Path) -> list[dict]:
 
 
 def signals_of(track: dict, i: int) -> dict:
-    return {k: track[k][i] for k in REPLAY_KEYS if k in track}
+    return {k: track[k][i] for k in SIGNAL_KEYS_ALL if k in track}
 
 
 def judged(track: dict, th: QualityThresholds) -> list:
@@ -270,11 +293,12 @@ GRID = {"frame_share": [0.1, 0.15, 0.2, 0.25, 0.3, 0.4], "frame_flow_m": [0.004,
         "frame_fail_share": [0.3, 0.5, 0.7, 1.0], "frame_depth_m": [0.003, 0.004, 0.005, 0.006, 1.0],
         "frame_ref_flow_m": [0.003, 0.004, 0.005, 0.006, 0.008, 0.012, 1.0],
         "frame_ref_fail_share": [0.3, 0.5, 0.7, 1.0], "reacquire_share": [0.02, 0.05, 0.1, 0.2],
-        "reacquire_flow_m": [0.003, 0.004, 1.0], "reacquire_depth_m": [0.003, 0.004, 1.0]}
+        "reacquire_flow_m": [0.003, 0.004, 1.0], "reacquire_depth_m": [0.003, 0.004, 1.0],
+        "template_area_ratio": [1.33]}
 # reacquire_share 0 (a track once lost stays lost) is left out on purpose: one false alarm would
 # then take every later frame from the labeling, and a track the tracker recovers would never count again.
 SUMMARY_OF = {"frame_share": "share", "frame_flow_m": "flow_m", "frame_fail_share": "fail_share",
-              "frame_depth_m": "depth_mean_m", "frame_ref_flow_m": "ref_flow_m", "frame_ref_fail_share": "ref_fail_share"}
+              "frame_depth_m": "depth_mean_m", "frame_ref_flow_m": "ref_flow_m", "frame_ref_fail_share": "ref_fail_share", "template_area_ratio": "template_area_ratio"}
 
 
 def choose_thresholds(tracks: list[dict], th: QualityThresholds) -> None:
@@ -386,6 +410,14 @@ def main() -> int:
                 r.update(replay_signals(s, tr, r))
                 if path is not None:
                     np.savez_compressed(path, **{k: r[k] for k in REPLAY_KEYS})
+        if "V" in r:    # the scale cue: the starting template against the first frame
+            path = args.cache / f"{s}_{tr}.scale.npz" if args.cache else None
+            if path is not None and path.exists():
+                r.update(dict(np.load(path)))
+            else:
+                r.update(template_area(s, tr, r))
+                if path is not None:
+                    np.savez_compressed(path, **{"template_area_ratio": r["template_area_ratio"]})
     if args.grid:
         choose_thresholds([v for (s, _), v in tracks.items() if SCENES[s][0] == "dev"], th)
         return 0

@@ -36,7 +36,8 @@ from stex.atlas import build_atlas
 from stex.flow import AppearanceModel, flow_constraints, flow_image
 from stex.render import rasterize, vertex_visibility
 
-__all__ = ["QualityThresholds", "THRESHOLDS", "vertex_signals", "judge", "frame_quality", "QualityMonitor"]
+__all__ = ["QualityThresholds", "THRESHOLDS", "vertex_signals", "judge", "frame_quality", "QualityMonitor",
+           "template_area_ratio"]
 
 DEPTH_CLIP_M = 0.1         # a depth difference counts at most this much (m): beyond, the pixel is another surface
 REFERENCE_FRAMES = 3      # the first frames' appearance is the reference (QualityMonitor): before any drift
@@ -62,6 +63,9 @@ class QualityThresholds:
     reacquire_share, reacquire_flow_m, reacquire_depth_m: after a lost frame, a frame is ok again
         only under this share of lost seen vertices, this median flow against the first frames (m)
         and this mean depth difference (m).
+    template_area_ratio: every frame is lost where the template, at the first frame, covers more
+        than this many times the first frame's foreground depth pixels (:func:`template_area_ratio`):
+        a template too large for the object, which the tracker squeezes onto the depth.
     """
 
     vertex_depth_m: float = 0.015
@@ -76,6 +80,7 @@ class QualityThresholds:
     reacquire_share: float = 0.1
     reacquire_flow_m: float = 0.003
     reacquire_depth_m: float = 0.004
+    template_area_ratio: float = 1.33
 
 
 THRESHOLDS = QualityThresholds()
@@ -194,6 +199,23 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
     return out
 
 
+def template_area_ratio(vertices, faces, target) -> float:
+    """The template's silhouette in the depth camera over the first frame's foreground depth pixels.
+
+    Why: a template too large for the object is pulled onto the depth by the tracker, so neither the
+    depth fit nor the one-sided silhouette sees it; its own extent, before tracking, does. A right
+    template scores a little over 1 (the foreground loses its grazing, invalid pixels). NaN without
+    foreground depth or with a non-finite template.
+    """
+    V = np.asarray(vertices, np.float64)
+    H, W = target.valid.shape
+    n_fg = int(np.count_nonzero(target.valid))
+    if not n_fg or not np.isfinite(V).all():
+        return float("nan")
+    d = rasterize(V, np.asarray(faces, np.int64), target.K, W, H).depth
+    return float(np.count_nonzero(np.isfinite(d) & (d > 0)) / n_fg)
+
+
 def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = False) -> tuple[np.ndarray, bool, dict]:
     """Lost or ok, per vertex and for the frame, from :func:`vertex_signals`.
 
@@ -204,7 +226,8 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = Fa
     than ``th.frame_share`` of its seen vertices are lost, or the median appearance flow exceeds
     ``th.frame_flow_m`` (the reference's ``th.frame_ref_flow_m``), or more than
     ``th.frame_fail_share`` of the measurable vertices fail the flow's forward-backward check, or
-    the mean depth difference exceeds ``th.frame_depth_m``. With ``was_lost`` (the previous
+    the mean depth difference exceeds ``th.frame_depth_m``, or the template's first-frame
+    ``signals["template_area_ratio"]`` (where given) exceeds ``th.template_area_ratio``. With ``was_lost`` (the previous
     frame was lost) the frame also stays lost until it is re-acquired: under
     ``th.reacquire_share`` of its seen vertices lost, the reference's median flow (where
     measured) under ``th.reacquire_flow_m`` and the mean depth difference under
@@ -213,7 +236,8 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = Fa
 
     Returns (vertex lost (V,) bool, frame lost, summary: ``share`` of seen vertices lost,
     ``flow_m`` and ``ref_flow_m`` median appearance flow (m, NaN without), ``fail_share``,
-    ``ref_fail_share``, ``depth_mean_m`` mean depth difference (m), ``no_data`` bool, ``why`` str naming
+    ``ref_fail_share``, ``depth_mean_m`` mean depth difference (m), ``template_area_ratio`` (the
+    signals', NaN without), ``no_data`` bool, ``why`` str naming
     what decided, "" where ok).
     """
     seen = signals["seen"]
@@ -249,13 +273,16 @@ def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = Fa
     if ref_fail_share > th.frame_ref_fail_share:
         why.append(f"{100 * ref_fail_share:.0f} % of the flow from the first frames' appearance inconsistent")
     depth_mean = float(np.nanmean(depth)) if not no_data else float("nan")
+    area = float(signals.get("template_area_ratio", np.nan))
+    if area > th.template_area_ratio:
+        why.append(f"the template covers {area:.2f} times the first frame's depth of the object: too large")
     if depth_mean > th.frame_depth_m:
         why.append(f"the mesh is {1000 * depth_mean:.1f} mm off the depth (mean)")
     if was_lost and not why and not (share < th.reacquire_share and not ref_med >= th.reacquire_flow_m
                                      and depth_mean < th.reacquire_depth_m):
         why.append("not re-acquired since the last lost frame")
     summary = {"share": share, "flow_m": flow_med, "fail_share": fail_share, "ref_flow_m": ref_med,
-               "ref_fail_share": ref_fail_share, "depth_mean_m": depth_mean, "no_data": no_data, "why": "; ".join(why)}
+               "ref_fail_share": ref_fail_share, "depth_mean_m": depth_mean, "template_area_ratio": area, "no_data": no_data, "why": "; ".join(why)}
     return lost, bool(why), summary
 
 
@@ -289,6 +316,7 @@ class QualityMonitor:
                      "erode_px": g("flow_erode_px", 1)}
         self.th, self.reference_frames = th, reference_frames
         self.reference, self.prev_image, self.was_lost = None, None, False
+        self.area_ratio = float("nan")
 
     def atlas(self, vertices=None) -> tuple[np.ndarray, np.ndarray]:
         """The atlas (texcoords, texcoord faces) given, or built once (from ``rest`` where given) and
@@ -305,8 +333,12 @@ class QualityMonitor:
         if image is None and obs.image is not None and obs.calibration is not None:
             image = flow_image(obs.image, self.channels)
         captured = self.reference is not None and pos > 0
+        if pos == 0:
+            self.area_ratio = template_area_ratio(self.rest if self.rest is not None else vertices, self.faces,
+                                                  obs.target)
         sig = vertex_signals(vertices, self.faces, obs.target, obs.mask, obs.calibration, model, image,
                              self.prev_image, reference=self.reference if captured else None, **self.flow)
+        sig["template_area_ratio"] = self.area_ratio
         vertex_lost, lost, summary = judge(sig, self.th, self.was_lost)
         if image is not None and pos < self.reference_frames and not lost and np.isfinite(vertices).all():
             if self.reference is None:

@@ -16,7 +16,7 @@ from stex.render import rasterize
 from stex.synth.scene import SyntheticScene
 from stex.synth.shapes import bumpy_sphere
 from stex.tracking import Observation, TrackParams, depth_target, track_sequence
-from stex.tracking_quality import THRESHOLDS, QualityMonitor, frame_quality, judge
+from stex.tracking_quality import THRESHOLDS, QualityMonitor, frame_quality, judge, template_area_ratio
 
 K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
@@ -193,3 +193,23 @@ def test_a_lost_track_stays_lost_until_reacquired():
     assert lost and "re-acquired" in why["why"]
     assert not judge(_signals(), THRESHOLDS, was_lost=True)[1]
     assert judge(_signals(ref_px=2000 * THRESHOLDS.frame_ref_flow_m), THRESHOLDS)[1]
+
+
+def test_a_template_too_large_for_the_object_is_lost_from_the_first_frame(tiny):
+    """The scale cue: the true mesh of frame 0 covers about its foreground depth (a little more:
+    the grazing pixels have no depth), the same mesh grown 20 % about its centre covers clearly
+    more, over the threshold, and the monitor then judges every frame lost, naming the template."""
+    V, target, _, _ = tiny[0]
+    F = tiny["faces"]
+    right = template_area_ratio(V, F, target)
+    c = V.mean(0)
+    grown = (V - c) * 1.2 + c
+    big = template_area_ratio(grown, F, target)
+    assert 0.9 < right < THRESHOLDS.template_area_ratio < big
+    assert big > 1.3 * right
+    monitor = QualityMonitor(F, rest=grown)
+    for pos, t in enumerate((0, 3)):
+        Vt, target_t, _, mask = tiny[t]
+        q = monitor.frame(pos, Vt, Observation(target_t, None, tiny["cal"], mask))
+        assert q["lost"] and "too large" in q["why"]
+    assert np.isnan(template_area_ratio(np.full_like(V, np.nan), F, target))
