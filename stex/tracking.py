@@ -74,12 +74,16 @@ FRAME_GUARD_MARGIN = 1.05  # a solve fitting the depth this much worse than the 
 
 @dataclass
 class DepthTarget:
-    """Foreground depth points of one frame: points/normals (H, W, 3) float64, valid (H, W)."""
+    """Foreground depth points of one frame: points/normals (H, W, 3) float64, valid (H, W) where
+    they have a normal; measured (H, W) every pixel with depth, foreground the measured pixels of
+    the object, depth edges included."""
 
     points: np.ndarray
     normals: np.ndarray
     valid: np.ndarray
     K: np.ndarray
+    measured: np.ndarray | None = None     # None: unknown (as valid)
+    foreground: np.ndarray | None = None   # None: as valid
     tree: object = None          # cKDTree of the valid points, built on first use
     flat_points: np.ndarray | None = None
     flat_normals: np.ndarray | None = None
@@ -96,7 +100,8 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
         bad = np.argwhere(~np.isfinite(depth_m))[0]
         raise ValueError(f"depth has non-finite values (first at row {bad[0]}, column {bad[1]})")
     P = backproject_depth(depth_m, K)
-    ok = depth_m > 0
+    measured = depth_m > 0
+    ok = measured.copy()
     if foreground is not None:
         ok &= foreground
     dx = np.zeros_like(P)
@@ -110,9 +115,11 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
     smooth[1:-1, 1:-1] = (
         (np.abs(z[1:-1, 2:] - z[1:-1, :-2]) < max_jump_m) & (np.abs(z[2:, 1:-1] - z[:-2, 1:-1]) < max_jump_m)
         & (z[1:-1, 2:] > 0) & (z[1:-1, :-2] > 0) & (z[2:, 1:-1] > 0) & (z[:-2, 1:-1] > 0))
+    seen = ok.copy()
     ok &= smooth & (nn > 0)
     normals = np.where(ok[..., None], n / np.maximum(nn, 1e-12)[..., None], 0.0)
-    return DepthTarget(np.where(ok[..., None], P, 0.0), normals, ok, np.asarray(K, np.float64))
+    return DepthTarget(np.where(ok[..., None], P, 0.0), normals, ok, np.asarray(K, np.float64),
+                       measured=measured, foreground=seen)
 
 
 # -- one frame's solve ------------------------------------------------------------------------------

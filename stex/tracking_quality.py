@@ -80,7 +80,7 @@ class QualityThresholds:
     reacquire_share: float = 0.1
     reacquire_flow_m: float = 0.003
     reacquire_depth_m: float = 0.004
-    template_area_ratio: float = 1.33
+    template_area_ratio: float = 1.015
 
 
 THRESHOLDS = QualityThresholds()
@@ -200,20 +200,28 @@ def vertex_signals(vertices, faces, target, mask=None, calibration=None, model: 
 
 
 def template_area_ratio(vertices, faces, target) -> float:
-    """The template's silhouette in the depth camera over the first frame's foreground depth pixels.
+    """The template's silhouette in the depth camera over the first frame's foreground depth pixels;
+    both count only pixels with depth (``target.measured``, ``target.foreground``: depth edges
+    included, so the ratio does not grow as the depth image shrinks; ``target.valid`` where not
+    given).
 
     Why: a template too large for the object is pulled onto the depth by the tracker, so neither the
-    depth fit nor the one-sided silhouette sees it; its own extent, before tracking, does. A right
-    template scores a little over 1 (the foreground loses its grazing, invalid pixels). NaN without
-    foreground depth or with a non-finite template.
+    depth fit nor the one-sided silhouette sees it; its own extent, before tracking, does, where it
+    covers measured background. Pixels without depth say nothing (a template from depth fills the
+    object's holes). A right template scores about 1, one 10 % too large about its square. NaN
+    without foreground depth or with a non-finite template.
     """
     V = np.asarray(vertices, np.float64)
     H, W = target.valid.shape
-    n_fg = int(np.count_nonzero(target.valid))
+    fg = target.valid if target.foreground is None else target.foreground
+    n_fg = int(np.count_nonzero(fg))
     if not n_fg or not np.isfinite(V).all():
         return float("nan")
     d = rasterize(V, np.asarray(faces, np.int64), target.K, W, H).depth
-    return float(np.count_nonzero(np.isfinite(d) & (d > 0)) / n_fg)
+    cover = np.isfinite(d) & (d > 0)
+    if target.measured is not None:
+        cover &= target.measured
+    return float(np.count_nonzero(cover) / n_fg)
 
 
 def judge(signals: dict, th: QualityThresholds = THRESHOLDS, was_lost: bool = False) -> tuple[np.ndarray, bool, dict]:

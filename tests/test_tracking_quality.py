@@ -3,6 +3,8 @@ without data (issue 55)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -213,3 +215,27 @@ def test_a_template_too_large_for_the_object_is_lost_from_the_first_frame(tiny):
         q = monitor.frame(pos, Vt, Observation(target_t, None, tiny["cal"], mask))
         assert q["lost"] and "too large" in q["why"]
     assert np.isnan(template_area_ratio(np.full_like(V, np.nan), F, target))
+
+
+def test_the_scale_cue_holds_at_a_small_depth_image_and_over_depth_holes(tiny):
+    """A right template stays under the scale cue's bound where the depth image is small (its
+    edge band, without normals, is a large share of the object) and where the depth has holes
+    inside the object that the template covers (a template from depth fills them): the cue counts
+    the pixels with depth only, edges included."""
+    small = SyntheticScene(load_config(overrides={"source": {"synthetic": TINY_SYNTHETIC}})["source"]["synthetic"])
+    r = small.render_frame(0)
+    target = depth_target(r.depth_mm / 1000.0, small.calibration.depth.K,
+                          mask_in_depth(r.true_mask, r.depth_mm, small.calibration))
+    assert target.valid.sum() < 0.8 * target.foreground.sum()      # the edge band matters here
+    assert template_area_ratio(small.true_vertices(0), small.faces, target) < THRESHOLDS.template_area_ratio
+    V, target, _, _ = tiny[0]
+    F = tiny["faces"]
+    rows, cols = np.nonzero(target.foreground)
+    hole = np.zeros_like(target.valid)
+    hole[rows.min():(rows.min() + rows.max()) // 2] = True          # the object's upper half: no depth
+    holed = replace(target, valid=target.valid & ~hole, measured=target.measured & ~hole,
+                    foreground=target.foreground & ~hole)
+    assert holed.foreground.sum() < 0.7 * target.foreground.sum()
+    right = template_area_ratio(V, F, holed)
+    assert abs(right - template_area_ratio(V, F, target)) < 0.05
+    assert right < THRESHOLDS.template_area_ratio
