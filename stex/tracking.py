@@ -75,8 +75,7 @@ FRAME_GUARD_MARGIN = 1.05  # a solve fitting the depth this much worse than the 
 @dataclass
 class DepthTarget:
     """Foreground depth points of one frame: points/normals (H, W, 3) float64, valid (H, W) where
-    they have a normal; measured (H, W) every pixel with depth, foreground the measured pixels of
-    the object, depth edges included."""
+    they have a normal; measured / foreground (H, W): pixels with depth / of the object, edges too."""
 
     points: np.ndarray
     normals: np.ndarray
@@ -101,9 +100,7 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
         raise ValueError(f"depth has non-finite values (first at row {bad[0]}, column {bad[1]})")
     P = backproject_depth(depth_m, K)
     measured = depth_m > 0
-    ok = measured.copy()
-    if foreground is not None:
-        ok &= foreground
+    ok = measured & foreground if foreground is not None else measured.copy()
     dx = np.zeros_like(P)
     dy = np.zeros_like(P)
     dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
@@ -115,11 +112,9 @@ def depth_target(depth_m: np.ndarray, K: np.ndarray, foreground: np.ndarray | No
     smooth[1:-1, 1:-1] = (
         (np.abs(z[1:-1, 2:] - z[1:-1, :-2]) < max_jump_m) & (np.abs(z[2:, 1:-1] - z[:-2, 1:-1]) < max_jump_m)
         & (z[1:-1, 2:] > 0) & (z[1:-1, :-2] > 0) & (z[2:, 1:-1] > 0) & (z[:-2, 1:-1] > 0))
-    seen = ok.copy()
-    ok &= smooth & (nn > 0)
+    seen, ok = ok, ok & smooth & (nn > 0)
     normals = np.where(ok[..., None], n / np.maximum(nn, 1e-12)[..., None], 0.0)
-    return DepthTarget(np.where(ok[..., None], P, 0.0), normals, ok, np.asarray(K, np.float64),
-                       measured=measured, foreground=seen)
+    return DepthTarget(np.where(ok[..., None], P, 0.0), normals, ok, np.asarray(K, np.float64), measured, seen)
 
 
 # -- one frame's solve ------------------------------------------------------------------------------

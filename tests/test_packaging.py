@@ -11,8 +11,8 @@ def _name(req: str) -> str:
     return re.split(r"[<>=!~ \[;]", req.strip(), maxsplit=1)[0].lower().replace("_", "-")
 
 
-# the system libraries Open3D's wheel links (libEGL, libGL), which a conda environment must bring
-OPEN3D_SYSTEM_LIBS = {"libegl", "libgl"}
+# the system libraries Open3D's wheel links (libEGL, libGL, libusb), which a conda environment must bring
+OPEN3D_SYSTEM_LIBS = {"libegl", "libgl", "libusb"}
 
 
 def test_conda_env_matches_pyproject():
