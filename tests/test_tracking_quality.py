@@ -230,7 +230,7 @@ def test_the_scale_cue_holds_at_a_small_depth_image_and_over_depth_holes(tiny):
     assert template_area_ratio(small.true_vertices(0), small.faces, target) < THRESHOLDS.template_area_ratio
     V, target, _, _ = tiny[0]
     F = tiny["faces"]
-    rows, cols = np.nonzero(target.foreground)
+    rows = np.nonzero(target.foreground)[0]
     hole = np.zeros_like(target.valid)
     hole[rows.min():(rows.min() + rows.max()) // 2] = True          # the object's upper half: no depth
     holed = replace(target, valid=target.valid & ~hole, measured=target.measured & ~hole,
