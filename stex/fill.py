@@ -25,8 +25,11 @@ over the texels of never-seen faces, the texels of seen faces held at their samp
 
 The matrix depends only on the atlas and the never-seen faces, not on a slice: it is built and
 its pyamg (classical AMG) hierarchy set up once per volume job, and each slice costs three
-warm-started CG-accelerated V-cycle solves. The graph is built on the texels of never-seen faces
-and of the seen faces around them (sharing a vertex), not on the whole atlas.
+CG-accelerated V-cycle solves, each started from the previous slice's solution: consecutive
+slices differ little, so the solve meets the same relative residual in fewer cycles (the uint8
+result equals a cold start's but for rare one-level roundings). The graph is built on the
+texels of never-seen faces and of the seen faces around them (sharing a vertex), not on the
+whole atlas.
 """
 
 from __future__ import annotations
@@ -105,6 +108,7 @@ class SeamFill:
                      self.targets.size, self.boundary.size, self.timings["graph_s"],
                      self.timings["amg_setup_s"])
         self.last_iterations: list = []
+        self._previous: list = [None, None, None]   # last slice's change per channel (warm start)
 
     @property
     def n_filled(self) -> int:
@@ -145,9 +149,14 @@ class SeamFill:
             if not r0.any():
                 self.last_iterations.append(0)
                 continue
+            # the tolerance is relative to |r0| whatever the start, so a start from the last
+            # slice's change only saves cycles
+            x0 = self._previous[ch]
             res = []
-            out[:, ch] += self._ml.solve(r0, x0=np.zeros_like(r0), tol=self.tol, accel="cg",
-                                         maxiter=self.maxiter, residuals=res)
+            change = self._ml.solve(r0, x0=np.zeros_like(r0) if x0 is None else x0, tol=self.tol,
+                                    accel="cg", maxiter=self.maxiter, residuals=res)
+            self._previous[ch] = change
+            out[:, ch] += change
             self.last_iterations.append(len(res) - 1)
         flat[self.targets] = np.clip(np.floor(out + 0.5), 0, 255).astype(np.uint8)
         return texture
