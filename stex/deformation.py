@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 from scipy.sparse import csgraph
+from scipy.sparse.linalg import LinearOperator
 from scipy.spatial import cKDTree
 
 from stex.mesh import is_closed, points_inside
@@ -342,3 +343,18 @@ def compose_rigid(x: np.ndarray, node_pos: np.ndarray, R: np.ndarray, t: np.ndar
     out[:, :9] = (R[None] @ out[:, :9].reshape(N, 3, 3)).reshape(N, 9)
     out[:, 9:] = (node_pos + out[:, 9:]) @ R.T + t - node_pos
     return out
+
+
+def block_jacobi(blocks):
+    """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg.
+
+    A node whose data are degenerate (a few points on a line, one limb's last pixels) has a
+    rank-deficient block; with large entries the tiny ridge is lost to rounding and the block is
+    singular in floating point, so such a set of blocks is pseudo-inverted instead."""
+    N = len(blocks)
+    ridged = blocks + np.eye(12) * 1e-12
+    try:
+        inv = np.linalg.inv(ridged)
+    except np.linalg.LinAlgError:
+        inv = np.linalg.pinv(ridged, hermitian=True)
+    return LinearOperator((12 * N, 12 * N), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())

@@ -48,14 +48,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import LinearOperator, cg
+from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from stex.camera import backproject_depth, project_points
 from stex.deformation import (
-    DeformationGraph, NormalPattern, build_graph, compose_rigid, deform, identity_params, normal_equations,
-    rigid_fit, rotation_terms)
+    DeformationGraph, NormalPattern, block_jacobi, build_graph, compose_rigid, deform, identity_params,
+    normal_equations, rigid_fit, rotation_terms)
 from stex.flow import AppearanceModel, flow_constraints, flow_image
 from stex.frame_fit import depth_residual
 from stex.render import rasterize, sample_bilinear, vertex_normals, vertex_visibility
@@ -385,11 +385,14 @@ def lm_step(energy, g, JtJ, solve, energy_after, mu, nu, stats):
 
     ``solve(mu)`` gives the step for damping mu (relative to J^T J's diagonal), ``energy_after(step)``
     the energy after it; ``g`` = J^T r and ``JtJ`` (anything with ``@``) give the predicted decrease.
-    Returns (step, or None when no damping up to LM_MAX_TRIES descends, mu, nu); counts
+    Returns (step, or None when no damping up to LM_MAX_TRIES descends or solves, mu, nu); counts
     "lm_rejected" / "lm_failed" in ``stats``."""
     for _ in range(LM_MAX_TRIES + 1):
-        delta = solve(mu)
-        new_energy = energy_after(delta)
+        try:                    # data on a line or a plane: singular in floating point, damp more
+            delta = solve(mu)
+        except np.linalg.LinAlgError:
+            delta = None
+        new_energy = np.nan if delta is None else energy_after(delta)
         # the weighted squares majorise the robust costs: a true descent step lowers both
         # (a converged step may change the energy by round-off only)
         actual = energy - new_energy
@@ -426,21 +429,6 @@ def _l0_step(r_jk, w_smooth, lam, beta):
     difference pays for itself), else 0."""
     keep = (r_jk**2).sum(1) * w_smooth > lam / beta
     return np.where(keep[:, None], r_jk, 0.0)
-
-
-def block_jacobi(blocks):
-    """The 12x12 block-Jacobi preconditioner of the (N, 12, 12) diagonal blocks, for scipy's cg.
-
-    A node whose data are degenerate (a few points on a line, one limb's last pixels) has a
-    rank-deficient block; with large entries the tiny ridge is lost to rounding and the block is
-    singular in floating point, so such a set of blocks is pseudo-inverted instead."""
-    N = len(blocks)
-    ridged = blocks + np.eye(12) * 1e-12
-    try:
-        inv = np.linalg.inv(ridged)
-    except np.linalg.LinAlgError:
-        inv = np.linalg.pinv(ridged, hermitian=True)
-    return LinearOperator((12 * N, 12 * N), matvec=lambda v: np.einsum("nab,nb->na", inv, v.reshape(N, 12)).ravel())
 
 
 def _solve_frame(V0, faces, node_pos, graph, target, p: TrackParams, x_init, flow=None, silhouette=None):

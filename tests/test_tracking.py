@@ -11,9 +11,9 @@ from stex.render import face_normals, rasterize, vertex_visibility
 from stex.synth.shapes import bumpy_sphere
 from stex.template import template_from_depth
 from stex.frame_fit import depth_residual
-from stex.tracking import (Observation, TrackParams, _solve_frame, block_jacobi, depth_target, fit_rest_warp,
+from stex.tracking import (Observation, TrackParams, _solve_frame, depth_target, fit_rest_warp, lm_step,
     track_sequence)
-from stex.deformation import build_graph, compose_rigid, deform, identity_params, rigid_fit
+from stex.deformation import block_jacobi, build_graph, compose_rigid, deform, identity_params, rigid_fit
 
 K = np.array([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]])
 
@@ -1137,6 +1137,33 @@ def test_block_jacobi_takes_a_node_with_degenerate_data():
     assert np.isfinite(out).all()
     assert np.allclose(out[:12], np.linalg.solve(regular, v[:12]), rtol=1e-6)
     assert np.allclose(block_jacobi(blocks[:1]).matvec(v[:12]), np.linalg.solve(regular, v[:12]))
+
+
+def test_a_step_singular_in_floating_point_is_damped_not_a_crash():
+    """Gauss-Newton normal equations of data on a line (here: two unknowns seen only through
+    their sum) are singular without damping, and np.linalg.solve raises (the rigid stage crashed so
+    on a scan whose correspondences collapsed): the step is damped instead and still descends; a
+    system no damping makes solvable ends the round (None) without raising."""
+    JtJ, g = np.array([[1.0, 1.0], [1.0, 1.0]]), np.array([-1.0, -1.0])
+    diag = np.diag(JtJ).copy()
+
+    def energy(d):                                 # 0.5 |J d - r|^2 with J = [1 1], r = 1
+        return float((d.sum() - 1.0) ** 2)
+
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.solve(JtJ, -g)
+    stats = {"lm_rejected": 0, "lm_failed": 0}
+    step, mu, _ = lm_step(energy(np.zeros(2)), g, JtJ, lambda mu: np.linalg.solve(JtJ + np.diag(mu * diag), -g),
+                          energy, 0.0, 2.0, stats)
+    assert step is not None and np.isfinite(step).all() and energy(step) < 1e-3
+    assert stats["lm_rejected"] == 1 and mu > 0
+
+    def never(mu):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    stats = {"lm_rejected": 0, "lm_failed": 0}
+    assert lm_step(1.0, g, JtJ, never, energy, 0.0, 2.0, stats)[0] is None
+    assert stats["lm_failed"] == 1
 
 
 @pytest.mark.parametrize("axis, shift", [("x", [0.0, 0.15, 0.2]), ("y", [-0.15, 0.0, 0.2])])
