@@ -12,7 +12,13 @@ Two measurements:
    the labels' agreement and every PSNR score of the evaluation (dB) of ours and ours
    uncorrected, side by side, with the largest difference.
 
+3. **The labeling's own floor** (``--seeds N``): the run's own tables labelled again with
+   ``labeling.seed`` 1..N (the α-expansion's label order) and compared with the run's labels the
+   same way. Pruning cannot be asked to agree with the full tables better than the full tables
+   agree with themselves under another label order.
+
     python benchmarks/bench_pruning.py RESULTS --k 10:3,20:3,20:3:cover [--scratch DIR] [--pruned RESULTS_K]
+    python benchmarks/bench_pruning.py RESULTS --seeds 2
 
 The issue's acceptance (paper scene family, T = 265): labels agree on >= 99 % of (t, face) and
 the evaluation's scores move by <= 0.05 dB.
@@ -87,6 +93,26 @@ def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
     return row
 
 
+def seed_floor(results: Path, scratch: Path, n_seeds: int) -> list[dict]:
+    """The run's own data-term blocks labelled with ``labeling.seed`` 1..n_seeds into
+    ``scratch``: per seed the agreement with the run's labels and the labeling's time."""
+    from stex.stages.labeling import write_labels
+    blocks = sorted((results / "data_term").glob("block_*.zarr"))
+    params = _stored_params(results / "labels.zarr", "labels")
+    rows = []
+    for seed in range(1, n_seeds + 1):
+        out = scratch / f"seed{seed}" / "labels.zarr"
+        shutil.rmtree(out.parent, ignore_errors=True)
+        out.parent.mkdir(parents=True)
+        t0 = time.perf_counter()
+        write_labels(results / "observations.zarr", blocks, results / "template.zarr",
+                     {**params, "seed": seed}, out, threads=2, projection_path=results / "projection.zarr")
+        rows.append({"seed": seed, "from seed": params.get("seed", 0),
+                     "labeling_s": round(time.perf_counter() - t0, 1),
+                     **agreement(results / "labels.zarr", out)})
+    return rows
+
+
 def pair_counts(results: Path, specs: str) -> None:
     """Sources per target and pairs kept for each k[:coverage] on the run's tracking and
     visibility, without computing poses (the cheap look at how much pruning keeps)."""
@@ -154,6 +180,8 @@ def main(argv=None):
     ap.add_argument("--k", default="", help="comma-separated nearest_frames[:coverage_frames] values to sweep")
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/stex_bench_pruning"))
     ap.add_argument("--pairs", default="", help="k[:coverage] values: only count the pairs kept")
+    ap.add_argument("--seeds", type=int, default=0, help="label the run's own tables again with "
+                    "labeling.seed 1..N: the labeling's own agreement floor")
     ap.add_argument("--pruned", type=Path, help="a finished run of the same scene with pruning "
                     "(RESULTS then must be the full tables' run)")
     args = ap.parse_args(argv)
@@ -184,6 +212,11 @@ def main(argv=None):
         print(" | ".join(cols))
         for r in rows:
             print(" | ".join(str(r[c]) for c in cols))
+    if args.seeds:
+        rows = seed_floor(R, args.scratch, args.seeds)
+        print(" | ".join(rows[0]))
+        for r in rows:
+            print(" | ".join(str(v) for v in r.values()))
     if args.pruned:
         compare_runs(R, args.pruned.resolve())
 
