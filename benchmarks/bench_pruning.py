@@ -156,6 +156,8 @@ def psnr_scores(results: Path) -> dict:
     ev = json.loads((results / "evaluation" / "evaluation.json").read_text())
     out = {}
     for region, methods in ev["summary"].items():
+        if not isinstance(methods, dict):     # the summary's counts beside the regions
+            continue
         for method in ("ours", "ours_uncorrected"):
             for metric, v in methods.get(method, {}).items():
                 if "psnr" in metric and isinstance(v, dict) and v.get("mean") is not None:
