@@ -68,6 +68,7 @@ from stex.articulated import ArticulatedParams, ArticulatedTracker  # noqa: E402
 from stex.skeleton import carry_skeleton, skeleton_from_skin  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "biped": ["config/scenes/biped.yaml"],
+          "biped_turning": ["config/scenes/biped_turning.yaml"],
           "paper": ["config/scenes/paper.yaml"]}
 
 
