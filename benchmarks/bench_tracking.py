@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracking.py --scene demo            # accuracy, every frame
     python benchmarks/bench_tracking.py --scene fox
-    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also --scene biped)
+    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also biped, biped_turning)
     python benchmarks/bench_tracking.py --scene paper --frames 12   # speed at paper scale
     python benchmarks/bench_tracking.py --start 60 --frames 40 --params '{"w_silhouette": 0.25}'
     python benchmarks/bench_tracking.py --scene demo --ceiling model --capture-error   # where the error comes from
