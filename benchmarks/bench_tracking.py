@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracking.py --scene demo            # accuracy, every frame
     python benchmarks/bench_tracking.py --scene fox
-    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also --scene biped)
+    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also biped, biped_turning)
     python benchmarks/bench_tracking.py --scene paper --frames 12   # speed at paper scale
     python benchmarks/bench_tracking.py --start 60 --frames 40 --params '{"w_silhouette": 0.25}'
     python benchmarks/bench_tracking.py --scene demo --ceiling model --capture-error   # where the error comes from
@@ -68,6 +68,7 @@ from stex.articulated import ArticulatedParams, ArticulatedTracker  # noqa: E402
 from stex.skeleton import carry_skeleton, skeleton_from_skin  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "biped": ["config/scenes/biped.yaml"],
+          "biped_turning": ["config/scenes/biped_turning.yaml"],
           "paper": ["config/scenes/paper.yaml"]}
 
 
