@@ -116,8 +116,9 @@ def relabel(results: Path, scratch: Path, params: dict, tables=None) -> Path:
     out = scratch / name
     shutil.rmtree(out, ignore_errors=True)
     base = dict(open_store(results / "labels.zarr", "labels").attrs["params"])
+    proj = results / "projection.zarr"    # the run's own labeling reads it (glimpsed faces)
     write_labels(results / "observations.zarr", tables, results / "template.zarr",
-                 dict(base, **params), out)
+                 dict(base, **params), out, projection_path=proj if proj.exists() else None)
     return out
 
 
