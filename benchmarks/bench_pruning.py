@@ -95,20 +95,17 @@ def run_k(results: Path, scratch: Path, k: int, reference: Path | None = None,
 
 def seed_floor(results: Path, scratch: Path, n_seeds: int) -> list[dict]:
     """The run's own data-term blocks labelled with ``labeling.seed`` 1..n_seeds into
-    ``scratch``: per seed the agreement with the run's labels and the labeling's time."""
-    from stex.stages.labeling import write_labels
-    blocks = sorted((results / "data_term").glob("block_*.zarr"))
-    params = _stored_params(results / "labels.zarr", "labels")
+    ``scratch`` (bench_labeling's relabel): per seed the agreement with the run's labels and the
+    labeling's time."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_labeling import relabel
+    scratch.mkdir(parents=True, exist_ok=True)
+    seed0 = _stored_params(results / "labels.zarr", "labels").get("seed", 0)
     rows = []
     for seed in range(1, n_seeds + 1):
-        out = scratch / f"seed{seed}" / "labels.zarr"
-        shutil.rmtree(out.parent, ignore_errors=True)
-        out.parent.mkdir(parents=True)
         t0 = time.perf_counter()
-        write_labels(results / "observations.zarr", blocks, results / "template.zarr",
-                     {**params, "seed": seed}, out, threads=2, projection_path=results / "projection.zarr")
-        rows.append({"seed": seed, "from seed": params.get("seed", 0),
-                     "labeling_s": round(time.perf_counter() - t0, 1),
+        out = relabel(results, scratch, {"seed": seed})
+        rows.append({"seed": seed, "from seed": seed0, "labeling_s": round(time.perf_counter() - t0, 1),
                      **agreement(results / "labels.zarr", out)})
     return rows
 
