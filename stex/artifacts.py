@@ -316,7 +316,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
             "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
             "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step)", (1, "F", "K")),
-            "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes, clipped (0..1; 0 when tables.omega_str = 0)", (1, "F", "K")),
+            "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes less data_term.str_tolerance, clipped (0..1; 0 when tables.omega_str = 0)", (1, "F", "K")),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each target row",

@@ -15,7 +15,8 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
 - E_loc(t, f, l) = −(1/3) Σ_j τ_j(t)·τ_j(l) ∈ [−1, 0] over the face's three vertices, SHOT
   descriptors of the tracked meshes (``observations`` descriptors).
 - E_str(t, f, l) ∈ [0, 1]: the difference of the local strain (smoothed log edge stretch) of f
-  at t and at l on the tracked meshes (``observations`` strain,
+  at t and at l on the tracked meshes, less a tolerance for the tracking's own drift on the
+  faces t does not see (``observations`` strain,
   :func:`stex.similarity.strain_similarity`). Not in the paper (ω_str = 0 is the paper's data
   term): SHOT sees the surface's orientation, the strain
   sees whether it is compressed (folds, wrinkles) or stretched.
@@ -166,7 +167,7 @@ def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: f
 def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, omega_g: float,
                      similarity: str, n_candidates: int, prefilter: int, median_hops: int = 2,
                      target_group: int = 4, strain=None, omega_str: float = 0.0,
-                     str_clip: float = 0.1, sources=None):
+                     str_clip: float = 0.1, sources=None, str_tolerance: float = 0.0):
     """Candidates of a block of target frames (E_loc for the prefiltered frames of
     ``target_group`` targets at once: the descriptors stream through memory once per group, and
     the (target, face, source) triples of a group — F · prefilter per target, 0.8 M at paper
@@ -179,7 +180,12 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
         descriptors: (T, V, D) SHOT descriptors (numpy or zarr; unused for 'global').
         faces: (F, 3) int. median_hops: median filter of the vertex similarities.
         strain: (T, F, 3) :func:`stex.similarity.face_strain` of the tracked meshes, or None
-            (E_str = 0); omega_str, str_clip: its weight and clip.
+            (E_str = 0); omega_str, str_clip, str_tolerance: its weight, clip and tolerance
+            (:func:`stex.similarity.strain_similarity`). The tolerance applies to the faces
+            the target does not see (``face_visible``'s row of the target): their texture is
+            borrowed, and only a real deformation should rank it. On a face the target sees,
+            every difference counts: the frames whose tracked mesh is most like the target's
+            there carry texture registered like the target's photo.
         sources: (n, N) int, the source frames each target is compared with (candidate pruning,
             :func:`stex.pruning.nearest_sources`; ascending, -1 padding); None = every frame.
 
@@ -202,7 +208,8 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
     def str_row(k):  # (N, F), made twice per target rather than held for the block (21 MB each)
         if not use_str:
             return None
-        return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k])
+        tol = np.where(np.asarray(face_visible[targets[k]], bool), 0.0, float(str_tolerance))
+        return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k], tol)
 
     pres = [prefilter_candidates(glo[k], *columns(k), omega_g, similarity,
                                  max(prefilter, n_candidates), str_row(k), omega_str)

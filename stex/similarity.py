@@ -758,7 +758,8 @@ def face_strain(vertices, rest_vertices, faces, rings: int = 3) -> np.ndarray:
     return out
 
 
-def strain_similarity(strain, target: int, clip: float = 0.1, sources=None) -> np.ndarray:
+def strain_similarity(strain, target: int, clip: float = 0.1, sources=None,
+                      tolerance: float = 0.0) -> np.ndarray:
     """E_str(target, f, l) for every source frame l (or those in ``sources``) and face f
     (module docstring).
 
@@ -768,6 +769,10 @@ def strain_similarity(strain, target: int, clip: float = 0.1, sources=None) -> n
         clip: strain difference (sum over the 3 edges of |Δ ln length|) that counts as fully
             dissimilar (1).
         sources: optional (N,) int source frames (rows of the result; -1 padding gives 1).
+        tolerance: strain difference that still counts as the same strain, one for every face
+            or (F,) per face (0): a tracked mesh's drift stretches a surface that does not
+            deform, and without the tolerance those differences would rank frames where the
+            strain says nothing. E_str = min(max(d - tolerance, 0) / clip, 1).
 
     Returns:
         (T, F) (or (N, F)) float32 in [0, 1]; the row of ``target`` is 0.
@@ -779,11 +784,13 @@ def strain_similarity(strain, target: int, clip: float = 0.1, sources=None) -> n
     if not 0 <= t < S.shape[0]:
         raise ValueError(f"target {t} outside 0..{S.shape[0] - 1}")
     c = positive(clip, "clip")
+    tol = np.asarray(tolerance, np.float32)
+    if tol.ndim > 1 or (tol.ndim == 1 and tol.shape[0] != S.shape[1]) or not (tol >= 0).all():
+        raise ValueError(f"tolerance must be a number >= 0 or {S.shape[1]} of them (one per face), "
+                         f"got {tolerance!r}")
+    rows = S if sources is None else S[np.where(np.asarray(sources, np.int64) >= 0, sources, t)]
+    d = np.abs(rows - S[t][None]).sum(axis=2, dtype=np.float32)
+    out = np.minimum(np.maximum(d - tol, np.float32(0.0)) / np.float32(c), np.float32(1.0))
     if sources is not None:
-        cols = np.asarray(sources, np.int64)
-        d = np.abs(S[np.where(cols >= 0, cols, t)] - S[t][None]).sum(axis=2, dtype=np.float32)
-        out = np.minimum(d / np.float32(c), np.float32(1.0))
-        out[cols < 0] = 1.0
-        return out
-    d = np.abs(S - S[t][None]).sum(axis=2, dtype=np.float32)
-    return np.minimum(d / np.float32(c), np.float32(1.0))
+        out[np.asarray(sources, np.int64) < 0] = 1.0
+    return out

@@ -213,6 +213,33 @@ def test_strain_term_prefers_the_source_with_the_targets_compression():
     assert (ours["e_str"][:, 0] < 0.2).all()
 
 
+def test_strain_tolerance_applies_to_faces_the_target_does_not_see():
+    """A strain difference within the tolerance (drift of a surface that does not deform) does not
+    rank the sources of a face the target does not see: the tie goes back to the other terms. On
+    a face the target sees every difference counts."""
+    V, F = _strip()
+    T = 3
+    frames = np.stack([V * [0.98, 1, 1], V, V * [0.985, 1, 1]])  # differences of a drift's size
+    strain = face_strain(frames, V, F, rings=1)
+    vis = np.ones((T, len(F)), bool)
+    unseen = np.arange(len(F)) % 2 == 0
+    vis[0, unseen] = False                                        # the target sees the odd faces only
+    qual = np.zeros((T, len(F)), np.float32)
+    glo = np.zeros((1, 2), np.float32)
+    desc = np.ones((T, len(V), 4), np.float32) / 2.0
+    # the target is compared with frames 1 and 2 only (candidate pruning's sources), so a face it
+    # sees does not simply take its own frame
+    kw = dict(median_hops=0, strain=strain, omega_str=1.0, str_clip=0.1, sources=np.array([[1, 2]]))
+    exact = block_candidates([0], glo, vis, qual, desc, F, 0.9, "both", 1, prefilter=2, **kw)[0]
+    tolerant = block_candidates([0], glo, vis, qual, desc, F, 0.9, "both", 1, prefilter=2,
+                                str_tolerance=0.1, **kw)[0]
+    assert (exact["candidates"][:, 0] == 2).all()                 # the nearer strain wins
+    assert (tolerant["candidates"][unseen, 0] == 1).all()         # within the tolerance: a tie
+    assert (tolerant["e_str"][unseen, 0] == 0).all()
+    assert (tolerant["candidates"][~unseen, 0] == 2).all()        # seen at t: unchanged
+    np.testing.assert_array_equal(tolerant["e_str"][~unseen], exact["e_str"][~unseen])
+
+
 def _stores(d, blur, slanted, vis):
     """The input stores of :func:`write_data_term` for a static square (2 faces) seen from 1 m, with
     identity poses (E_glo = 0) and the given blur_cost, slanted and face_visible (T, 2)."""

@@ -399,6 +399,26 @@ def test_strain_similarity_is_the_clipped_l1_difference():
     np.testing.assert_allclose(S.strain_similarity(st, 1, clip=0.1)[2], [0.0, 1.0], atol=1e-6)
 
 
+def test_strain_similarity_tolerance_ignores_small_differences():
+    """With a tolerance the difference is reduced by it before the clip, worked by hand: a drift
+    of a surface that does not deform (small differences) no longer ranks frames."""
+    st = np.zeros((3, 2, 3), np.float32)
+    st[1, 0] = [0.01, -0.02, 0.03]                           # L1 distance 0.06: within the tolerance
+    st[1, 1] = [0.2, 0.0, 0.0]                              # 0.2 - 0.08 = 0.12: clipped
+    st[2, 1] = [0.0, 0.13, 0.0]                             # 0.13 - 0.08 = 0.05 -> 0.5
+    E = S.strain_similarity(st, 0, clip=0.1, tolerance=0.08)
+    np.testing.assert_allclose(E, [[0, 0], [0.0, 1.0], [0.0, 0.5]], atol=1e-6)
+    # with sources (padding -1 stays fully dissimilar)
+    Es = S.strain_similarity(st, 0, clip=0.1, sources=np.array([2, -1]), tolerance=0.08)
+    np.testing.assert_allclose(Es, [[0.0, 0.5], [1.0, 1.0]], atol=1e-6)
+    # one tolerance per face: face 0 without, face 1 with
+    Ef = S.strain_similarity(st, 0, clip=0.1, tolerance=np.array([0.0, 0.08]))
+    np.testing.assert_allclose(Ef, [[0, 0], [0.6, 1.0], [0.0, 0.5]], atol=1e-6)
+    for bad in (-0.1, np.array([0.1, 0.1, 0.1])):
+        with pytest.raises(ValueError, match="tolerance"):
+            S.strain_similarity(st, 0, tolerance=bad)
+
+
 @pytest.mark.parametrize("d_over_r, outer_share", [(0.1, 0.0), (0.35, 0.05), (0.6, 0.925), (0.9, 1.0)])
 def test_shot_splits_a_neighbour_between_the_radial_shells(d_over_r, outer_share):
     """SHOT's two radial shells meet at R/2, and a neighbour's vote is shared with the other

@@ -110,7 +110,7 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
                                    p["omega_g"], p["similarity"], K, int(p["prefilter"]),
                                    int(p["median_hops"]), strain=strain,
                                    omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]),
-                                   sources=cols)
+                                   sources=cols, str_tolerance=float(p["str_tolerance"]))
         for k, res in enumerate(results):
             for name, arr in arrays.items():
                 arr[k] = res[name]
