@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracking.py --scene demo            # accuracy, every frame
     python benchmarks/bench_tracking.py --scene fox
-    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also biped, biped_turning)
+    python benchmarks/bench_tracking.py --scene fox --skeleton      # skeleton-driven (also biped, biped_turning, fox_run)
     python benchmarks/bench_tracking.py --scene paper --frames 12   # speed at paper scale
     python benchmarks/bench_tracking.py --start 60 --frames 40 --params '{"w_silhouette": 0.25}'
     python benchmarks/bench_tracking.py --scene demo --ceiling model --capture-error   # where the error comes from
@@ -68,7 +68,7 @@ from stex.articulated import ArticulatedParams, ArticulatedTracker  # noqa: E402
 from stex.skeleton import carry_skeleton, skeleton_from_skin  # noqa: E402
 
 SCENES = {"demo": [], "fox": ["config/scenes/fox.yaml"], "biped": ["config/scenes/biped.yaml"],
-          "biped_turning": ["config/scenes/biped_turning.yaml"],
+          "biped_turning": ["config/scenes/biped_turning.yaml"], "fox_run": ["config/scenes/fox_run.yaml"],
           "paper": ["config/scenes/paper.yaml"]}
 
 
@@ -100,7 +100,7 @@ def main() -> int:
     if unknown:
         raise ValueError(f"--params: {unknown} are not tracking settings (stex.tracking.TrackParams)")
     cfg = load_config(REPO / "config" / "config.yaml", *[REPO / f for f in SCENES[args.scene]], *args.configfile)
-    if args.scene == "fox":
+    if cfg["source"]["synthetic"]["object"] == "gltf":   # the scene file's path is relative to the repository
         cfg["source"]["synthetic"]["gltf"]["path"] = str((REPO / cfg["source"]["synthetic"]["gltf"]["path"]).resolve())
     scene = SyntheticScene(cfg["source"]["synthetic"])
     cal = scene.calibration
