@@ -315,8 +315,8 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "candidates": ArraySpec(("Tb", "F", "K"), "int16", "index", "candidate source frames of face f at target t (sequence positions, ascending), -1 = none", (1, "F", "K")),
             "e_glo": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_glo of each candidate", (1, "F", "K")),
             "e_loc": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_loc of each candidate: -(1/3) sum of the SHOT similarities of the face's 3 vertices (-1..0)", (1, "F", "K")),
-            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step)", (1, "F", "K")),
-            "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes less data_term.str_tolerance, clipped (0..1; 0 when tables.omega_str = 0)", (1, "F", "K")),
+            "e_qual": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_qual of each candidate: observations blur_cost + slanted (0, 1 or 2 with the blur step), times data_term.borrowed_qual_weight on faces the target does not see", (1, "F", "K")),
+            "e_str": ArraySpec(("Tb", "F", "K"), "float32", "1", "E_str of each candidate: local strain difference of the tracked meshes less the tolerance (attr str_tolerance) on faces the target does not see, clipped (0..1; 0 when data_term.omega_str = 0)", (1, "F", "K")),
         },
         attrs={
             "frame_ids": "list[int]: global frame index of each target row",
@@ -324,6 +324,7 @@ ARTIFACTS: dict[str, ArtifactSpec] = {
             "source_frames": "list[int]: global frame indices allowed as sources (data_term.source_stride, without the frames tracking lost)",
             "lost_source_frames": "list[int]: frames of the source stride left out because tracking lost them (data_term.exclude_lost); not held out",
             "prefilter_exact": "list[float]: per target, fraction of faces whose candidate pruning is provably exact",
+            "str_tolerance": "float: the E_str tolerance used on faces the target does not see (data_term.str_tolerance, auto: measured from the strain noise)",
             "seconds": "float: wall time of the block (s)",
         },
     ),

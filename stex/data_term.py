@@ -6,7 +6,9 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
     U(t, f, l) = E_qual(f, l) + ω_g E_glo(t, l) + (1 − ω_g) E_loc(t, f, l)
                  + ω_str E_str(t, f, l)
 
-- E_qual(f, l) = blur_cost + slanted (``observations``; with the paper's blur step 0, 1 or 2).
+- E_qual(f, l) = blur_cost + slanted (``observations``; with the paper's blur step 0, 1 or 2),
+  weighted down on the faces t does not see (``borrowed_qual_weight``): there the shape terms
+  say which frame's texture to borrow, and blur only breaks near ties.
 - E_glo(t, l) ∈ [0, 1]: the clipped depth difference of K_{t→l}(M_t) and M_l over the union of
   their silhouettes, divided by the clip (:func:`stex.similarity.global_similarity`). The authors'
   table is in metres with a 0.1 m clip, so 0.9·E_glo ≤ 0.09 never competes with the 0/1 quality
@@ -16,7 +18,8 @@ visible (``observations`` face_visible), scored by the data term of the paper's 
   descriptors of the tracked meshes (``observations`` descriptors).
 - E_str(t, f, l) ∈ [0, 1]: the difference of the local strain (smoothed log edge stretch) of f
   at t and at l on the tracked meshes, less a tolerance for the tracking's own drift on the
-  faces t does not see (``observations`` strain,
+  faces t does not see (by default a multiple of the measured strain noise,
+  :func:`stex.similarity.strain_noise`; ``observations`` strain,
   :func:`stex.similarity.strain_similarity`). Not in the paper (ω_str = 0 is the paper's data
   term): SHOT sees the surface's orientation, the strain
   sees whether it is compressed (folds, wrinkles) or stretched.
@@ -167,7 +170,8 @@ def finish_candidates(pre_c, pre, glo_row, face_visible, e_qual, loc, omega_g: f
 def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, omega_g: float,
                      similarity: str, n_candidates: int, prefilter: int, median_hops: int = 2,
                      target_group: int = 4, strain=None, omega_str: float = 0.0,
-                     str_clip: float = 0.1, sources=None, str_tolerance: float = 0.0):
+                     str_clip: float = 0.1, sources=None, str_tolerance: float = 0.0,
+                     borrowed_qual_weight: float = 1.0):
     """Candidates of a block of target frames (E_loc for the prefiltered frames of
     ``target_group`` targets at once: the descriptors stream through memory once per group, and
     the (target, face, source) triples of a group — F · prefilter per target, 0.8 M at paper
@@ -186,6 +190,10 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
             borrowed, and only a real deformation should rank it. On a face the target sees,
             every difference counts: the frames whose tracked mesh is most like the target's
             there carry texture registered like the target's photo.
+        borrowed_qual_weight: E_qual's weight on the faces the target does not see (their
+            texture is borrowed, so the frames most like the target in shape should win and blur
+            only break near ties); the candidates' ``e_qual`` carries it, so the labeling
+            weighs them as they were ranked.
         sources: (n, N) int, the source frames each target is compared with (candidate pruning,
             :func:`stex.pruning.nearest_sources`; ascending, -1 padding); None = every frame.
 
@@ -205,13 +213,20 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
         safe = np.where(cols[k] >= 0, cols[k], 0)
         return face_visible[safe] & (cols[k] >= 0)[:, None], e_qual[safe]
 
+    def qual(k):  # E_qual as the target weighs it: borrowed faces ranked by shape first
+        vis, q = columns(k)
+        if borrowed_qual_weight == 1.0:
+            return vis, q
+        w = np.where(np.asarray(face_visible[targets[k]], bool), 1.0, float(borrowed_qual_weight))
+        return vis, (q * w[None, :]).astype(np.float32)
+
     def str_row(k):  # (N, F), made twice per target rather than held for the block (21 MB each)
         if not use_str:
             return None
         tol = np.where(np.asarray(face_visible[targets[k]], bool), 0.0, float(str_tolerance))
         return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k], tol)
 
-    pres = [prefilter_candidates(glo[k], *columns(k), omega_g, similarity,
+    pres = [prefilter_candidates(glo[k], *qual(k), omega_g, similarity,
                                  max(prefilter, n_candidates), str_row(k), omega_str)
             for k in range(len(targets))]
     locs = [None] * len(targets)
@@ -237,7 +252,7 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
                 locs[k] = loc
     out = []
     for k in range(len(targets)):
-        res = finish_candidates(pres[k][0], pres[k][1], glo[k], *columns(k), locs[k], omega_g,
+        res = finish_candidates(pres[k][0], pres[k][1], glo[k], *qual(k), locs[k], omega_g,
                                 similarity, n_candidates, str_row(k), omega_str)
         c = res["candidates"]
         res["candidates"] = np.where(c >= 0, cols[k][np.maximum(c, 0)], -1).astype(np.int16)

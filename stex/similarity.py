@@ -109,6 +109,7 @@ __all__ = [
     "local_similarity_triples",
     "face_strain",
     "strain_similarity",
+    "strain_noise",
 ]
 
 
@@ -794,3 +795,39 @@ def strain_similarity(strain, target: int, clip: float = 0.1, sources=None,
     if sources is not None:
         out[np.asarray(sources, np.int64) < 0] = 1.0
     return out
+
+
+def strain_noise(strain, frames=None, quantile: float = 0.25) -> float:
+    """How much the tracked meshes' strain moves where the surface does not deform: the strain
+    noise that a tracking's drift adds, estimated without the truth.
+
+    Each face's strain is compared with its own median over the frames (sum over the 3 edges of
+    the absolute difference) and the median of that over the frames is the face's typical
+    change; the result is the ``quantile`` of the faces' typical changes. Why a low quantile:
+    most objects have a part that barely deforms (a torso, a rigid half), where the tracked
+    strain changes only by the drift, while the deforming faces change more.
+
+    Args:
+        strain: (T, F, 3) float from :func:`face_strain`.
+        frames: optional (T,) bool, the frames to use (e.g. not lost by the tracking); all
+            by default.
+        quantile: in (0, 1).
+
+    Returns:
+        float >= 0, in the units of :func:`strain_similarity`'s ``clip`` and ``tolerance``;
+        0 for fewer than 2 frames.
+    """
+    S = np.asarray(strain, np.float64)
+    if S.ndim != 3 or S.shape[2] != 3:
+        raise ValueError(f"strain must be (T, F, 3), got {S.shape}")
+    if not 0.0 < float(quantile) < 1.0:
+        raise ValueError(f"quantile must be in (0, 1), got {quantile}")
+    if frames is not None:
+        keep = np.asarray(frames, bool)
+        if keep.shape != (S.shape[0],):
+            raise ValueError(f"frames must be ({S.shape[0]},) bool, got shape {keep.shape}")
+        S = S[keep]
+    if S.shape[0] < 2 or S.shape[1] == 0:
+        return 0.0
+    change = np.median(np.abs(S - np.median(S, axis=0)[None]).sum(axis=2), axis=0)   # (F,)
+    return float(np.quantile(change, float(quantile)))

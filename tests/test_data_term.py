@@ -240,6 +240,29 @@ def test_strain_tolerance_applies_to_faces_the_target_does_not_see():
     np.testing.assert_array_equal(tolerant["e_str"][~unseen], exact["e_str"][~unseen])
 
 
+def test_borrowed_quality_weight_lets_shape_rank_the_faces_the_target_does_not_see():
+    """On a face the target does not see, the texture is borrowed: with the quality weighted
+    down, a blurry frame (E_qual 1) of the target's shape beats a sharp frame of another shape
+    (E_glo 0.5). On a face the target sees, the sharp frame still wins."""
+    V, F = _strip()
+    T = 3
+    vis = np.ones((T, len(F)), bool)
+    unseen = np.arange(len(F)) % 2 == 0
+    vis[0, unseen] = False
+    qual = np.zeros((T, len(F)), np.float32)
+    qual[1] = 1.0                                                 # frame 1 is blurry, frame 2 sharp
+    glo = np.array([[0.0, 0.5]], np.float32)                      # frame 1 has the target's shape
+    desc = np.ones((T, len(V), 4), np.float32) / 2.0
+    kw = dict(median_hops=0, sources=np.array([[1, 2]]))
+    same = block_candidates([0], glo, vis, qual, desc, F, 0.9, "both", 1, prefilter=2, **kw)[0]
+    shape_first = block_candidates([0], glo, vis, qual, desc, F, 0.9, "both", 1, prefilter=2,
+                                   borrowed_qual_weight=0.2, **kw)[0]
+    assert (same["candidates"][:, 0] == 2).all()                  # 1.0 + 0 > 0 + 0.45
+    assert (shape_first["candidates"][unseen, 0] == 1).all()      # 0.2 + 0 < 0 + 0.45
+    np.testing.assert_allclose(shape_first["e_qual"][unseen, 0], 0.2)   # as the labeling weighs it
+    assert (shape_first["candidates"][~unseen, 0] == 2).all()
+
+
 def _stores(d, blur, slanted, vis):
     """The input stores of :func:`write_data_term` for a static square (2 faces) seen from 1 m, with
     identity poses (E_glo = 0) and the given blur_cost, slanted and face_visible (T, 2)."""

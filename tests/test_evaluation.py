@@ -674,7 +674,7 @@ def test_pipeline_tables_rank_with_the_observed_strain(tiny_pipeline):
     cand = np.asarray(tables["candidates"][t], np.int64)
     ok = cand >= 0
     # the tolerance is for the faces frame t does not see
-    tol = np.where(np.asarray(obs["face_visible"][t], bool), 0.0, tables.attrs["params"]["str_tolerance"])
+    tol = np.where(np.asarray(obs["face_visible"][t], bool), 0.0, tables.attrs["str_tolerance"])
     E = strain_similarity(strain, t, tables.attrs["params"]["str_clip"], tolerance=tol)
     f = np.nonzero(ok)[0]
     np.testing.assert_allclose(tables["e_str"][t][ok], E[cand[ok], f], atol=1e-6)

@@ -419,6 +419,34 @@ def test_strain_similarity_tolerance_ignores_small_differences():
             S.strain_similarity(st, 0, tolerance=bad)
 
 
+def test_strain_noise_measures_the_still_faces_and_scales_with_the_drift():
+    """The strain noise is the typical change of the stillest faces: a surface three quarters
+    still (strain moved only by a drift) and a quarter deforming strongly gives about the drift's
+    size, twice the drift gives twice the noise, and the deforming quarter does not raise it.
+    A frame the caller leaves out (a lost track's garbage) does not count."""
+    rng = np.random.default_rng(0)
+    T, F = 20, 400
+    drift = rng.standard_normal((T, F, 3)) * 0.01
+    deform = np.zeros((T, F, 3))
+    deform[:, :100] = np.sin(np.linspace(0, 6, T))[:, None, None] * 0.3   # a quarter folds
+    a = S.strain_noise(drift + deform)
+    b = S.strain_noise(2 * drift + deform)
+    assert b == pytest.approx(2 * a, rel=0.1)
+    assert a == pytest.approx(S.strain_noise(drift), rel=0.2)            # the folds do not count
+    # three edges, each |N(0, 0.01²)| off its median: about 3 × 0.0067 at the median frame
+    assert 0.01 < a < 0.03
+    bad = drift + deform
+    bad[5] = 5.0
+    keep = np.ones(T, bool)
+    keep[5] = False
+    assert S.strain_noise(bad, keep) == pytest.approx(S.strain_noise(np.delete(bad, 5, 0)))
+    assert S.strain_noise(bad[:1]) == 0.0
+    with pytest.raises(ValueError, match="strain"):
+        S.strain_noise(np.zeros((3, 4)))
+    with pytest.raises(ValueError, match="frames"):
+        S.strain_noise(bad, keep[:-1])
+
+
 @pytest.mark.parametrize("d_over_r, outer_share", [(0.1, 0.0), (0.35, 0.05), (0.6, 0.925), (0.9, 1.0)])
 def test_shot_splits_a_neighbour_between_the_radial_shells(d_over_r, outer_share):
     """SHOT's two radial shells meet at R/2, and a neighbour's vote is shared with the other

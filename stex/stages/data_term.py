@@ -13,7 +13,7 @@ from stex.config import section_params
 from stex.data_term import block_candidates, lost_sources, source_mask
 from stex.io import create_store, open_store, position_range, short_ids
 from stex.pruning import directed_poses
-from stex.similarity import global_similarity
+from stex.similarity import global_similarity, strain_noise
 from stex.stages.poses import read_pose_table
 
 log = logging.getLogger("stex.data_term")
@@ -80,6 +80,15 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
             raise ValueError(f"{observations_path}: no strain table, needed by data_term.omega_str > 0 "
                              f"(re-run the observations stage)")
         strain = np.asarray(obs["strain"][...], np.float32)
+    str_tolerance = p["str_tolerance"]
+    if strain is not None and str_tolerance == "auto":
+        # every block of the run derives the same tolerance: all frames' strain, lost ones left out
+        frame_lost = (np.asarray(tracking["lost"][...], bool) if p["exclude_lost"] and "lost" in tracking
+                      else np.zeros(len(ids), bool))
+        str_tolerance = p["str_noise_multiple"] * strain_noise(strain, ~frame_lost)
+        log.info("data_term: strain noise of the tracked meshes gives str_tolerance %.4f", str_tolerance)
+    elif str_tolerance == "auto":
+        str_tolerance = 0.0
     if p["similarity"] != "global" and descriptors is None:
         raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
                          f"data_term.similarity={p['similarity']!r}")
@@ -110,12 +119,14 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
                                    p["omega_g"], p["similarity"], K, int(p["prefilter"]),
                                    int(p["median_hops"]), strain=strain,
                                    omega_str=float(p["omega_str"]), str_clip=float(p["str_clip"]),
-                                   sources=cols, str_tolerance=float(p["str_tolerance"]))
+                                   sources=cols, str_tolerance=float(str_tolerance),
+                                   borrowed_qual_weight=float(p["borrowed_qual_weight"]))
         for k, res in enumerate(results):
             for name, arr in arrays.items():
                 arr[k] = res[name]
             exact.append(float(res["exact"].mean()))
         store.attrs["prefilter_exact"] = [round(x, 5) for x in exact]
+        store.attrs["str_tolerance"] = float(str_tolerance)
         store.attrs["seconds"] = round(time.perf_counter() - t0, 3)
     log.info("data_term: %d targets in %.1f s; pruning provably exact for %.2f %% of (target, face)",
              nT, time.perf_counter() - t0, 100 * float(np.mean(exact)))
