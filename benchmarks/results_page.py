@@ -207,8 +207,9 @@ def headline(records: list[dict], names: list[str]) -> list[str]:
             "test scenes\"), every frame, against the truth. The oracle is the bound of the labeling and no",
             "temporal term the flicker ablation (docs/metrics.md, \"Reference methods\"). Run:",
             "`python benchmarks/bench_test_set.py --record`. The other runs below are dev scenes (the demo,",
-            "dev_body). " + (f"Recorded: {len(recs)} of the set's {len(names)} scenes; the mean is over the"
-                             " recorded ones." if len(recs) < len(names) else "The mean is over the scenes."), "",
+            "dev_body, dev_body_twist) and the paper scene. "
+            + (f"Recorded: {len(recs)} of the set's {len(names)} scenes; the mean is over the recorded ones."
+               if len(recs) < len(names) else "The mean is over the scenes."), "",
             *markdown_table(rows), ""]
 
 

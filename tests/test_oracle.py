@@ -78,7 +78,7 @@ def test_dataset_files_parse_and_name_existing_scene_files(name, monkeypatch):
     if name == "test_set.yaml":
         assert len(scenes) >= 5
         # never a dev scene, never a default-tuning scene
-        assert not set(scenes) & {"demo", "demo_heldout", "fox", "fox_heldout", "dev_body", "biped", "biped_turning",
-                                      "fox_run"}
+        assert not set(scenes) & {"demo", "demo_heldout", "fox", "fox_heldout", "dev_body", "dev_body_twist",
+                                  "biped", "biped_turning", "fox_run"}
         assert any(c["tracking"]["mode"] == "track" for c in scenes.values())
         assert all("oracle" in c["evaluation"]["references"] for c in scenes.values())
