@@ -213,18 +213,18 @@ def block_candidates(targets, glo, face_visible, e_qual, descriptors, faces, ome
         safe = np.where(cols[k] >= 0, cols[k], 0)
         return face_visible[safe] & (cols[k] >= 0)[:, None], e_qual[safe]
 
+    def borrowed(k, value, seen_value):  # (F,): ``value`` on the faces target k does not see
+        return np.where(np.asarray(face_visible[targets[k]], bool), seen_value, value)
+
     def qual(k):  # E_qual as the target weighs it: borrowed faces ranked by shape first
         vis, q = columns(k)
-        if borrowed_qual_weight == 1.0:
-            return vis, q
-        w = np.where(np.asarray(face_visible[targets[k]], bool), 1.0, float(borrowed_qual_weight))
-        return vis, (q * w[None, :]).astype(np.float32)
+        return vis, (q * borrowed(k, float(borrowed_qual_weight), 1.0)[None, :]).astype(np.float32)
 
     def str_row(k):  # (N, F), made twice per target rather than held for the block (21 MB each)
         if not use_str:
             return None
-        tol = np.where(np.asarray(face_visible[targets[k]], bool), 0.0, float(str_tolerance))
-        return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k], tol)
+        return strain_similarity(strain, targets[k], str_clip, None if sources is None else cols[k],
+                                 borrowed(k, float(str_tolerance), 0.0))
 
     pres = [prefilter_candidates(glo[k], *qual(k), omega_g, similarity,
                                  max(prefilter, n_candidates), str_row(k), omega_str)

@@ -57,16 +57,18 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
     # held-out protocol: only every k-th frame may texture anything, every frame is a target
     sources = source_mask(len(ids), p["source_stride"])
     face_visible = face_visible & sources[:, None]
+    frame_lost = np.zeros(len(ids), bool)     # the frames the tracking lost, when they are left out
     lost_frames = np.zeros(len(ids), bool)
     if p["exclude_lost"] and "vertex_lost" in tracking:
-        lost = lost_sources(tracking["lost"][...], tracking["vertex_lost"][...], faces)
+        frame_lost = np.asarray(tracking["lost"][...], bool)
+        lost = lost_sources(frame_lost, tracking["vertex_lost"][...], faces)
         if not (face_visible & ~lost).any() and face_visible.any():
             raise ValueError(f"{tracking_path}: the tracking lost the object wherever a frame sees it (frames "
                              f"{short_ids(tracking.attrs.get('lost_frames', []))} lost): no frame may texture "
                              f"anything. Look at the tracking's log and previews/tracking_fit.png; or take "
                              f"texture from them anyway with data_term.exclude_lost: false")
         face_visible = face_visible & ~lost
-        lost_frames = sources & np.asarray(tracking["lost"][...], bool)
+        lost_frames = sources & frame_lost
         sources = sources & ~lost_frames
     if "blur_cost" not in obs:
         raise ValueError(f"{observations_path}: no blur_cost table (written by the observations "
@@ -81,14 +83,10 @@ def write_data_term(scene_path, template_path, tracking_path, poses_path, observ
                              f"(re-run the observations stage)")
         strain = np.asarray(obs["strain"][...], np.float32)
     str_tolerance = p["str_tolerance"]
-    if strain is not None and str_tolerance == "auto":
+    if str_tolerance == "auto":
         # every block of the run derives the same tolerance: all frames' strain, lost ones left out
-        frame_lost = (np.asarray(tracking["lost"][...], bool) if p["exclude_lost"] and "lost" in tracking
-                      else np.zeros(len(ids), bool))
-        str_tolerance = p["str_noise_multiple"] * strain_noise(strain, ~frame_lost)
+        str_tolerance = 0.0 if strain is None else p["str_noise_multiple"] * strain_noise(strain, ~frame_lost)
         log.info("data_term: strain noise of the tracked meshes gives str_tolerance %.4f", str_tolerance)
-    elif str_tolerance == "auto":
-        str_tolerance = 0.0
     if p["similarity"] != "global" and descriptors is None:
         raise ValueError(f"{observations_path}: no SHOT descriptors, needed by "
                          f"data_term.similarity={p['similarity']!r}")
